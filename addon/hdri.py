@@ -1,0 +1,156 @@
+"""Equirectangular HDRIs to light vectors: solid-angle-correct down-sampling with rotation.
+
+Blender's world convention (Z up): an equirectangular image's column u (0..1, left to right) and
+row v (0 at the top) map to the world direction with azimuth atan2(y, x) = pi - 2 pi u (so the
+image centre u = 0.5 faces world +X and u = 0.25 faces +Y) and elevation pi/2 - pi v.
+``tests/blender`` pins this against a Cycles render.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import lightvec
+from .errors import InputError, LightingError
+
+# Default frame when no scene camera exists: a viewer on world -Y looking toward +Y (Blender's
+# front view), so light-frame X = world X, Y = world Z, Z = world -Y.
+MIN_WIDTH = 128  # working width never goes below this (see downsample)
+FRONT_VIEW_WORLD_TO_FRAME = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def world_to_frame_from_camera(camera_rotation: np.ndarray) -> np.ndarray:
+    """World->light-frame matrix for a camera whose world rotation (3x3, columns = camera local
+    X, Y, Z axes in world space) is given. Blender cameras look down local -Z with +Y up, which is
+    exactly the light frame, so this is the transpose."""
+    r = np.asarray(camera_rotation, dtype=np.float64)
+    return r.T
+
+
+def yaw_world(degrees: float) -> np.ndarray:
+    """Rotation of world directions about world +Z (Blender's world mapping rotation Z)."""
+    a = math.radians(degrees)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def pixel_row_solid_angles(height: int, width: int) -> np.ndarray:
+    """(height,) solid angle of one pixel in each row of an equirectangular image."""
+    e = np.linspace(0.0, math.pi, height + 1)  # polar angle from world +Z, top row first
+    return (np.cos(e[:-1]) - np.cos(e[1:])) * (2.0 * math.pi / width)
+
+
+def pixel_directions(height: int, width: int, rows: slice | None = None) -> np.ndarray:
+    """(h, width, 3) world directions of pixel centres (Blender convention), top row first."""
+    rows = rows or slice(0, height)
+    v = (np.arange(rows.start, rows.stop, dtype=np.float64) + 0.5) / height
+    u = (np.arange(width, dtype=np.float64) + 0.5) / width
+    elev = math.pi / 2 - math.pi * v
+    azim = math.pi - 2.0 * math.pi * u
+    ce, se = np.cos(elev)[:, None], np.sin(elev)[:, None]
+    return np.stack(np.broadcast_arrays(ce * np.cos(azim)[None, :], ce * np.sin(azim)[None, :], se),
+                    axis=-1)
+
+
+def check_equirect(image: np.ndarray, what: str = "HDRI", repair: bool = False) -> np.ndarray:
+    """Validate an (H, W, C>=3) equirectangular radiance image; return float32 RGB (H, W, 3).
+
+    Raises InputError for the wrong shape and LightingError for NaN/Inf/negative pixels unless
+    ``repair`` is set, in which case those pixels become 0 (counted in the message of nothing;
+    the caller decides whether to warn)."""
+    img = np.asarray(image)
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4):
+        raise InputError(f"The {what} must be an image with 1, 3 or 4 channels, got shape "
+                         f"{np.shape(image)}.")
+    h, w = img.shape[:2]
+    if h < 2 or abs(w - 2 * h) > 1:
+        raise InputError(
+            f"The {what} is {w}x{h} pixels; an equirectangular (latitude-longitude) map is twice "
+            "as wide as it is tall. Convert it to equirectangular, or pick another HDRI.")
+    rgb = img[..., :3] if img.shape[2] >= 3 else np.repeat(img, 3, axis=2)
+    rgb = rgb.astype(np.float32)
+    bad = ~np.isfinite(rgb) | (rgb < 0)
+    if bad.any():
+        if not repair:
+            n_nan = int(np.isnan(rgb).any(axis=2).sum())
+            n_inf = int(np.isinf(rgb).any(axis=2).sum())
+            n_neg = int((rgb < 0).any(axis=2).sum())
+            raise LightingError(
+                f"The {what} has {n_nan} NaN, {n_inf} infinite and {n_neg} negative pixels. "
+                "Fix the file, or enable 'Repair HDRI' to treat those pixels as black.")
+        rgb = np.where(bad, 0.0, rgb).astype(np.float32)
+    return rgb
+
+
+def _block_reduce(rgb: np.ndarray, max_width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Area-weighted box reduction by an integer factor; returns (image, per-row pixel solid angle).
+
+    Only factors that divide both sides are used, so no pixel is dropped and energy is exact."""
+    h, w = rgb.shape[:2]
+    omega = pixel_row_solid_angles(h, w)
+    f = 1
+    for cand in range(max(1, math.ceil(w / max_width)), w + 1):
+        if h % cand == 0 and w % cand == 0:
+            f = cand
+            break
+    if f == 1:
+        return rgb.astype(np.float64), omega
+    weighted = rgb.astype(np.float64) * omega[:, None, None]
+    summed = weighted.reshape(h // f, f, w // f, f, 3).sum(axis=(1, 3))
+    omega_blk = omega.reshape(h // f, f).sum(axis=1) * f
+    return summed / omega_blk[:, None, None], omega_blk
+
+
+def downsample(image: np.ndarray, world_to_frame: np.ndarray | None = None,
+               yaw_degrees: float = 0.0, strength: float = 1.0, max_width: int = 512,
+               repair: bool = False) -> np.ndarray:
+    """Down-sample an equirectangular HDRI (Blender world convention) to a light vector.
+
+    Every (pre-reduced) pixel is binned into the light-vector cell that holds its direction in the
+    light frame, weighted by its solid angle; each cell is the weighted mean of its pixels, so a
+    uniform map gives exactly ``strength`` everywhere and total power is conserved to the binning
+    error (well under 1% for max_width >= 128).
+
+    ``world_to_frame``: 3x3 matrix taking world directions into the light frame (see
+    ``world_to_frame_from_camera``); defaults to the front view. ``yaw_degrees`` rotates the HDRI
+    about world Z first, like the Z rotation of a Mapping node. ``max_width`` trades accuracy for
+    time: the map is first box-reduced to at most that width.
+    """
+    rgb = upsample_small(check_equirect(image, repair=repair))
+    src, omega = _block_reduce(rgb, max(int(max_width), MIN_WIDTH))
+    h, w = src.shape[:2]
+    m = (FRONT_VIEW_WORLD_TO_FRAME if world_to_frame is None
+         else np.asarray(world_to_frame, dtype=np.float64)) @ yaw_world(yaw_degrees)
+    acc = np.zeros((lightvec.ROWS * lightvec.COLS, 3), dtype=np.float64)
+    wsum = np.zeros(lightvec.ROWS * lightvec.COLS, dtype=np.float64)
+    chunk = max(1, 65536 // w)
+    for r0 in range(0, h, chunk):
+        rs = slice(r0, min(h, r0 + chunk))
+        d = pixel_directions(h, w, rs) @ m.T
+        row, col = lightvec.directions_to_cells(d)
+        idx = (row * lightvec.COLS + col).reshape(-1)
+        om = np.broadcast_to(omega[rs, None], row.shape).reshape(-1)
+        wsum += np.bincount(idx, weights=om, minlength=acc.shape[0])
+        vals = src[rs].reshape(-1, 3) * om[:, None]
+        for ch in range(3):
+            acc[:, ch] += np.bincount(idx, weights=vals[:, ch], minlength=acc.shape[0])
+    # MIN_WIDTH guarantees several pixel centres per cell even at the poles after any rotation.
+    assert np.all(wsum > 0), "every light cell must catch at least one HDRI pixel"
+    out = (acc / wsum[:, None]).reshape(lightvec.SHAPE) * float(strength)
+    if not np.all(np.isfinite(out)):
+        raise LightingError("The HDRI is too bright to represent (radiance overflows); "
+                            "lower its strength.")
+    return out.astype(np.float32)
+
+
+def upsample_small(image: np.ndarray, min_width: int = 2 * MIN_WIDTH) -> np.ndarray:
+    """Nearest-neighbour enlargement of a small map (exact: every pixel keeps its radiance)."""
+    h, w = image.shape[:2]
+    if w >= min_width:
+        return image
+    f = math.ceil(min_width / w)
+    return np.repeat(np.repeat(image, f, axis=0), f, axis=1)
