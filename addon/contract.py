@@ -1,0 +1,24 @@
+"""The ONNX contract between training (which exports models) and the engine (which runs them).
+
+Bump CONTRACT_VERSION when any of this changes; the engine refuses a model card whose contract it
+does not know. training/ imports these names so the two sides cannot drift apart.
+"""
+
+CONTRACT_VERSION = "relight-onnx/1"
+KNOWN_CONTRACTS = (CONTRACT_VERSION,)
+
+INPUT_IMAGE = "image"            # float32 [N, 3, H, W], linear Rec.709, normalised (normalise.py)
+INPUT_LIGHT = "target_light"     # float32 [N, 3, 16, 16], light vector channels-first, unit power
+OUTPUT_RELIT = "relit"           # float32 [N, 3, H, W], same units as the input image
+OUTPUT_SOURCE_LIGHT = "source_light"  # float32 [N, 3, 16, 16], in the normalised image's units
+OUTPUT_PARSING = "parsing"       # float32 [N, K, H, W] in [0, 1], one sigmoid per class
+
+# Parsing classes, in channel order. Channel 0 is the portrait foreground (the matte); the others
+# are semantic regions (multi-label: each its own sigmoid). Models list theirs in the card.
+PARSING_CLASSES = ("foreground", "skin", "hair", "brows", "eyes", "lips_mouth", "teeth", "neck",
+                   "clothes")
+FOREGROUND_CLASS = "foreground"
+
+# Model card keys every card must have (models/<name>.json).
+REQUIRED_CARD_KEYS = ("contract", "name", "preset", "onnx", "sha256", "inputs", "outputs",
+                      "stride", "working_size", "colour", "classes", "training", "metrics", "cost")
