@@ -2,6 +2,7 @@
 
 import json
 import pathlib
+import re
 import shutil
 import subprocess
 
@@ -46,7 +47,7 @@ def compile_job(tmp_path, **settings):
 
 def chunk_frames(task):
     args = task["commands"][0]["params"]["args"]
-    first, last = map(int, args[args.index("--frames") + 1].split("-"))
+    first, last = map(int, re.fullmatch(r"(-?\d+)-(-?\d+)", args[args.index("--frames") + 1]).groups())
     return list(range(first, last + 1))
 
 
