@@ -1,0 +1,286 @@
+"""The relighting network of the paper (sec. 4): an encoder-decoder run per frame.
+
+    L_hat, F, e = encoder(I)                 source light, skip features, structure code
+    I_relit, P  = decoder(L, F, e)           L: a target light, or L_hat for self-reconstruction
+
+Built for speed on a CPU (onnxruntime, 2 cores): the image is folded to 1/4 resolution at once
+(pixel unshuffle), all convolutions are depthwise-separable inverted residuals, and the full
+resolution only sees element-wise work: the relit image is ``gain * image + residual`` where the
+gain is a smooth (bilinearly up-sampled) shading ratio and the residual adds light the input lacks.
+
+Units (see addon/normalise.py): the network sees ``image / s``; the decoder sees a light of unit
+mean power (``light / k``) and its relit output is in the units of ``image / (s k)``. The source light
+is returned in the normalised image's units (``light_i / s``): the light that renders ``image / s``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from addon import contract, lightvec
+
+STEM = 4  # the image is folded to 1/STEM resolution by pixel unshuffle before any convolution
+LIGHT_SHAPE = (3, lightvec.ROWS, lightvec.COLS)  # channels-first light vector, as in the contract
+LIGHT_SIZE = 3 * lightvec.ROWS * lightvec.COLS
+INPUT_CEILING = 1e4  # normalised radiance above this is clipped: keeps fp16/exp paths finite
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Width and depth of one preset. ``widths[i]`` is the channel count at stride 4 * 2**i."""
+
+    widths: tuple = (24, 32, 64, 96)
+    blocks: tuple = (1, 2, 2, 2)  # residual blocks per encoder level (the decoder uses one fewer)
+    expand: int = 2  # inverted-residual expansion factor
+    code: int = 64  # channels of the structure code e
+    light_embed: int = 64  # width of the light MLP
+    classes: int = len(contract.PARSING_CLASSES)
+
+    @property
+    def stride(self) -> int:
+        """Input height and width must be multiples of this (the engine pads)."""
+        return STEM * 2 ** (len(self.widths) - 1)
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+
+PRESETS = {
+    "draft": NetConfig(widths=(16, 24, 48, 64), blocks=(1, 1, 1, 1), expand=2, code=32,
+                       light_embed=48),
+    "standard": NetConfig(widths=(32, 48, 96, 128), blocks=(1, 2, 2, 2), expand=2, code=64,
+                          light_embed=64),
+    "final": NetConfig(widths=(48, 64, 128, 192), blocks=(2, 2, 3, 3), expand=3, code=128,
+                       light_embed=128),
+}
+
+
+def config_for(preset: str, **overrides) -> NetConfig:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    return NetConfig(**{**asdict(PRESETS[preset]), **overrides})
+
+
+# ----------------------------------------------------------------------------------- building blocks
+
+class InvertedResidual(nn.Module):
+    """MobileNetV2 block: 1x1 expand, 3x3 depthwise (optionally strided/dilated), 1x1 project."""
+
+    def __init__(self, cin: int, cout: int, expand: int, stride: int = 1, dilation: int = 1):
+        super().__init__()
+        mid = cin * expand
+        self.residual = stride == 1 and cin == cout
+        self.body = nn.Sequential(
+            nn.Conv2d(cin, mid, 1), nn.ReLU(inplace=True),
+            nn.Conv2d(mid, mid, 3, stride, padding=dilation, dilation=dilation, groups=mid),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(mid, cout, 1))
+        if self.residual:
+            # Zero-init the last projection: each residual block starts as the identity, which
+            # keeps training stable without normalisation layers (none to fold at export).
+            nn.init.zeros_(self.body[-1].weight)
+            nn.init.zeros_(self.body[-1].bias)
+
+    def forward(self, x):
+        y = self.body(x)
+        return x + y if self.residual else y
+
+
+def _stage(cin: int, cout: int, n: int, expand: int, stride: int) -> nn.Sequential:
+    layers = [InvertedResidual(cin, cout, expand, stride)]
+    layers += [InvertedResidual(cout, cout, expand) for _ in range(max(n - 1, 0))]
+    return nn.Sequential(*layers)
+
+
+class LightMLP(nn.Module):
+    """Light vector -> per-level FiLM scale and shift (the decoder's only view of the light)."""
+
+    def __init__(self, embed: int, level_widths: list[int]):
+        super().__init__()
+        self.trunk = nn.Sequential(nn.Linear(LIGHT_SIZE, embed), nn.ReLU(inplace=True),
+                                   nn.Linear(embed, embed), nn.ReLU(inplace=True))
+        self.heads = nn.ModuleList(nn.Linear(embed, 2 * w) for w in level_widths)
+        for h in self.heads:  # start as the identity modulation
+            nn.init.zeros_(h.weight)
+            nn.init.zeros_(h.bias)
+
+    def forward(self, light):
+        # log1p tames peaky point lights (texels of hundreds) next to dim environments
+        z = self.trunk(torch.log1p(light.clamp(min=0)).flatten(1))
+        return [h(z) for h in self.heads]
+
+
+def film(x, gb):
+    gamma, beta = gb[:, :, None, None].chunk(2, dim=1)
+    return x * (1.0 + gamma) + beta
+
+
+# ------------------------------------------------------------------------------------ encoder/decoder
+
+class Encoder(nn.Module):
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        w, x = cfg.widths, cfg.expand
+        self.stem = nn.Sequential(nn.Conv2d(3 * STEM * STEM, w[0], 1), nn.ReLU(inplace=True))
+        self.levels = nn.ModuleList([_stage(w[0], w[0], cfg.blocks[0], x, 1)] + [
+            _stage(w[i - 1], w[i], cfg.blocks[i], x, 2) for i in range(1, len(w))])
+        # The structure code: dilated blocks widen the receptive field without a further stride
+        # (which would raise the padding stride), plus a global-context term.
+        c = w[-1]
+        self.context = nn.Sequential(InvertedResidual(c, c, x, dilation=2),
+                                     InvertedResidual(c, c, x, dilation=4))
+        self.global_ctx = nn.Linear(c, c)
+        self.to_code = nn.Conv2d(c, cfg.code, 1)
+        # Source light: attention-weighted pooling of the bottleneck, then a linear map to 16x16x3.
+        self.attn = nn.Conv2d(c + cfg.code, 1, 1)
+        self.feat = nn.Conv2d(c + cfg.code, 2 * cfg.light_embed, 1)
+        self.to_light = nn.Sequential(nn.ReLU(inplace=True),
+                                      nn.Linear(2 * cfg.light_embed, LIGHT_SIZE))
+
+    def forward(self, image):
+        x = torch.log1p(image.clamp(0.0, INPUT_CEILING))  # HDR-safe view of the image
+        x = self.stem(F.pixel_unshuffle(x, STEM))
+        skips = []
+        for level in self.levels:
+            x = level(x)
+            skips.append(x)
+        c = self.context(x)
+        c = c + self.global_ctx(c.mean(dim=(2, 3)))[:, :, None, None]
+        code = self.to_code(c)
+        h = torch.cat([x, code], dim=1)
+        a = torch.softmax(self.attn(h).flatten(2), dim=-1)  # (N, 1, hw)
+        pooled = (self.feat(h).flatten(2) * a).sum(-1)
+        # log1p(L) = softplus(.) so the paper's log-space light loss sees an unconstrained output
+        light = torch.exp(F.softplus(self.to_light(pooled))) - 1.0  # expm1 has no ONNX op
+        return light.view(-1, *LIGHT_SHAPE), skips, code
+
+
+class Decoder(nn.Module):
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        w, x = cfg.widths, cfg.expand
+        n = len(w)
+        self.light = LightMLP(cfg.light_embed, [w[i] for i in reversed(range(n))])
+        self.bottleneck = nn.Sequential(nn.Conv2d(w[-1] + cfg.code, w[-1], 1), nn.ReLU(inplace=True))
+        self.blocks = nn.ModuleList()
+        self.merge = nn.ModuleList()
+        for i in reversed(range(n)):
+            if i < n - 1:
+                self.merge.append(nn.Sequential(nn.Conv2d(w[i + 1] + w[i], w[i], 1),
+                                                nn.ReLU(inplace=True)))
+            self.blocks.append(_stage(w[i], w[i], max(cfg.blocks[i] - 1, 1), x, 1))
+        # Heads at 1/4 resolution: a 3-channel shading gain (smooth, up-sampled bilinearly), a
+        # residual folded back to full resolution (pixel shuffle), and parsing logits.
+        self.gain = nn.Conv2d(w[0], 3, 1)
+        self.residual = nn.Conv2d(w[0], 3 * STEM * STEM, 1)
+        self.parsing = nn.Conv2d(w[0], cfg.classes, 1)
+        for m in (self.gain, self.residual):
+            nn.init.zeros_(m.weight)
+            nn.init.zeros_(m.bias)
+        nn.init.constant_(self.gain.bias, 1.0)  # start as relit = image
+
+    def forward(self, image, light, skips, code):
+        films = self.light(light)
+        x = self.bottleneck(torch.cat([skips[-1], code], dim=1))
+        for j, block in enumerate(self.blocks):
+            if j > 0:
+                skip = skips[-1 - j]
+                x = F.interpolate(x, size=skip.shape[-2:], mode="nearest")
+                x = self.merge[j - 1](torch.cat([x, skip], dim=1))
+            x = block(film(x, films[j]))
+        size = image.shape[-2:]
+        gain = F.interpolate(self.gain(x), size=size, mode="bilinear", align_corners=False)
+        residual = F.pixel_shuffle(self.residual(x), STEM)
+        relit = gain * image.clamp(0.0, INPUT_CEILING) + residual
+        parsing = F.interpolate(self.parsing(x), size=size, mode="bilinear", align_corners=False)
+        return relit, parsing  # parsing as logits: the BCE loss is stabler on logits
+
+
+class RelightNet(nn.Module):
+    """The whole network. ``forward`` is the ONNX contract; training uses ``encode``/``decode``."""
+
+    def __init__(self, cfg: NetConfig = NetConfig()):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = Encoder(cfg)
+        self.decoder = Decoder(cfg)
+
+    def encode(self, image):
+        return self.encoder(image)
+
+    def decode(self, image, light, skips, code):
+        """Relit image (same units as ``image / k(light)``; may be slightly negative while
+        training) and parsing logits, for a light of any power (normalised here)."""
+        return self.decoder(image, light, skips, code)
+
+    def relight_by(self, image, light, skips, code):
+        """Relit image under a light given in the normalised image's units (e.g. the estimated
+        source light): scaled to unit power for the decoder, the output scaled back."""
+        k = light_power(light).clamp(min=1e-6)
+        relit, logits = self.decoder(image, light / k[:, None, None, None], skips, code)
+        return relit * k[:, None, None, None], logits
+
+    def forward(self, image, target_light):
+        """The ONNX contract: image [N,3,H,W] (normalised), target_light [N,3,16,16] (unit power)
+        -> relit [N,3,H,W], source_light [N,3,16,16], parsing [N,K,H,W] in [0,1]."""
+        source, skips, code = self.encoder(image)
+        relit, logits = self.decoder(image, target_light, skips, code)
+        return relit.clamp(min=0.0), source, torch.sigmoid(logits)
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+def _solid_angles() -> torch.Tensor:
+    return torch.from_numpy(lightvec.solid_angles().astype(np.float32))
+
+
+def light_power(light: torch.Tensor) -> torch.Tensor:
+    """k of addon.normalise.light_scale for a batch of channels-first lights [N,3,16,16]."""
+    omega = _solid_angles().to(light.device, light.dtype)
+    return (light * omega).sum(dim=(1, 2, 3)) / (3.0 * 4.0 * math.pi)
+
+
+def to_channels_first(light_hwc: np.ndarray) -> np.ndarray:
+    """(…,16,16,3) light vectors -> (…,3,16,16), the contract's layout."""
+    return np.ascontiguousarray(np.moveaxis(np.asarray(light_hwc, np.float32), -1, -3))
+
+
+def count_flops(model: RelightNet, height: int, width: int) -> float:
+    """Multiply-adds x 2 of the convolutions and linear layers for one frame (element-wise ops,
+    resizes and activations are not counted)."""
+    total = [0.0]
+
+    def conv_hook(m, inp, out):
+        k = m.kernel_size[0] * m.kernel_size[1] * (m.in_channels // m.groups)
+        total[0] += 2.0 * out.numel() * k
+
+    def linear_hook(m, inp, out):
+        total[0] += 2.0 * out.numel() * m.in_features
+
+    hooks = [m.register_forward_hook(conv_hook if isinstance(m, nn.Conv2d) else linear_hook)
+             for m in model.modules() if isinstance(m, (nn.Conv2d, nn.Linear))]
+    try:
+        with torch.no_grad():
+            model(torch.zeros(1, 3, height, width), torch.ones(1, *LIGHT_SHAPE))
+    finally:
+        for h in hooks:
+            h.remove()
+    return total[0]
+
+
+def parameter_count(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+def build(preset: str = "standard", **overrides) -> RelightNet:
+    return RelightNet(config_for(preset, **overrides))
+
+
+__all__ = ["NetConfig", "PRESETS", "RelightNet", "build", "config_for", "count_flops",
+           "light_power", "parameter_count", "to_channels_first"]

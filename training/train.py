@@ -1,0 +1,344 @@
+"""Train one preset of the relighting network on the synthetic light stage.
+
+    python -m training.train --preset draft --minutes 25 --out runs/draft-01
+
+The run folder gets ``recipe.json`` (every argument, git commit, data seed, versions, machine) at
+the start, ``log.jsonl`` (losses over time) and ``checkpoint.pt`` (weights + config + recipe);
+training/export.py copies the recipe into the model card. Training is time-boxed (``--minutes``):
+the learning-rate schedule, the progressive resolutions and the start of adversarial training are
+all fractions of that budget, so a run's recipe is reproducible on the same machine class.
+
+``--measure-speed`` times training steps for fp32 / bf16 autocast / channels-last instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import inspect
+import json
+import math
+import os
+import pathlib
+import platform
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from addon import normalise
+
+from . import losses, network, warp
+
+IMAGE_KEYS = ("img_t", "img_t1", "gt_t", "gt_t1")
+MASK_KEYS = ("mask_t", "mask_t1", "parsing_t", "parsing_t1")
+
+
+# ------------------------------------------------------------------------------------ data to units
+
+def _hwc(img: np.ndarray) -> np.ndarray:
+    return np.moveaxis(img, 0, -1) if img.shape[0] == 3 else img
+
+
+def normalise_sample(sample: dict) -> dict:
+    """A light-stage sample (absolute radiance) -> the network's normalised units, exactly as the
+    engine will see a clip: one exposure scale s for both frames (one clip), the target light at
+    unit power (k), ground truth relit / (s k), source lights / s. Images stay channels-first."""
+    f32 = lambda a: np.asarray(a, dtype=np.float32)  # noqa: E731
+    s = normalise.exposure_scale([_hwc(f32(sample["img_t_i"])), _hwc(f32(sample["img_t1_j"]))])
+    unit_k, k = normalise.normalise_light(f32(sample["light_k"]))
+    gain = 1.0 / (s * k) if k > 0 else 0.0  # an all-dark target: black ground truth
+    out = {
+        "img_t": f32(sample["img_t_i"]) / s, "img_t1": f32(sample["img_t1_j"]) / s,
+        "gt_t": f32(sample["gt_t_k"]) * gain, "gt_t1": f32(sample["gt_t1_k"]) * gain,
+        "light_k": network.to_channels_first(unit_k),
+        "src_t": network.to_channels_first(f32(sample["light_i"]) / s),
+        "src_t1": network.to_channels_first(f32(sample["light_j"]) / s),
+        "scale": np.float32(s), "light_scale": np.float32(k),
+    }
+    for key in MASK_KEYS + ("flow_fw", "flow_bw", "valid_fw", "valid_bw"):
+        out[key] = f32(sample[key])
+    return out
+
+
+def collate(samples: list[dict], device="cpu") -> dict:
+    return {k: torch.from_numpy(np.stack([s[k] for s in samples])).to(device) for k in samples[0]}
+
+
+def _min_pool(x, f):
+    return -F.max_pool2d(-x, f)
+
+
+def downsample_batch(b: dict, factor: int) -> dict:
+    """The batch at 1/factor resolution (progressive training): area-averaged images and labels,
+    flows scaled, validity kept only where every source pixel was valid."""
+    if factor == 1:
+        return b
+    out = dict(b)
+    for k in IMAGE_KEYS + MASK_KEYS:
+        out[k] = F.avg_pool2d(b[k], factor)
+    for k in ("flow_fw", "flow_bw"):
+        out[k] = warp.downsample_flow(b[k], factor)
+    for k in ("valid_fw", "valid_bw"):
+        out[k] = _min_pool(b[k], factor)
+    return out
+
+
+# ---------------------------------------------------------------------------------------- recipe
+
+def git_commit() -> str:
+    root = pathlib.Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "training", "addon"],
+                               cwd=root, capture_output=True, text=True).stdout.strip()
+        return head + ("+uncommitted" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def machine() -> dict:
+    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(), "torch": torch.__version__,
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+
+
+# -------------------------------------------------------------------------------------- schedule
+
+def parse_stages(text: str) -> list[tuple[float, int]]:
+    """"0.4:4,0.75:2,1:1" -> [(0.4, 4), (0.75, 2), (1.0, 1)]: down-sampling factor until each
+    fraction of the time budget (progressive training, low resolution first)."""
+    stages = []
+    for part in text.split(","):
+        frac, factor = part.split(":")
+        stages.append((float(frac), int(factor)))
+    if stages[-1][0] < 1.0:
+        raise ValueError("the last progressive stage must reach fraction 1")
+    return stages
+
+
+def factor_at(stages, frac: float) -> int:
+    for until, factor in stages:
+        if frac < until:
+            return factor
+    return stages[-1][1]
+
+
+def lr_at(base: float, frac: float) -> float:
+    """Cosine decay over the time budget to 5% of the base rate."""
+    return base * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * min(frac, 1.0))))
+
+
+# ---------------------------------------------------------------------------------------- dataset
+
+def make_dataset(split: str, resolution: int, seed: int, sampling: bool = True, **kwargs):
+    """The synthetic light stage (training.dataset), with lighting sampling off for that ablation."""
+    from .dataset import LightStageDataset  # lazy: tests use a stand-in dataset
+
+    params = inspect.signature(LightStageDataset).parameters
+    if not sampling:
+        if "sampling" not in params:
+            raise ValueError("this LightStageDataset has no 'sampling' switch; the no_sampling "
+                             "ablation needs one")
+        kwargs["sampling"] = False
+    kwargs = {k: v for k, v in kwargs.items() if k in params}
+    return LightStageDataset(split, resolution, seed, **kwargs)
+
+
+class Batches:
+    """Endless shuffled batches of normalised samples from a map-style dataset."""
+
+    def __init__(self, dataset, batch: int, seed: int, device="cpu"):
+        self.ds, self.batch, self.device = dataset, batch, device
+        self.rng = np.random.default_rng(seed)
+        self.order, self.pos = [], 0
+
+    def __next__(self) -> dict:
+        picks = []
+        while len(picks) < self.batch:
+            if self.pos >= len(self.order):
+                self.order, self.pos = self.rng.permutation(len(self.ds)), 0
+            picks.append(normalise_sample(self.ds[int(self.order[self.pos])]))
+            self.pos += 1
+        return collate(picks, self.device)
+
+
+# ----------------------------------------------------------------------------------------- steps
+
+class Trainer:
+    def __init__(self, net, sw: losses.Switches, args, device="cpu"):
+        self.net, self.sw, self.args, self.device = net, sw, args, device
+        if args.optim == "rmsprop":  # the paper: RMSprop 5e-5 for every network
+            self.opt = torch.optim.RMSprop(net.parameters(), lr=args.lr)
+        else:
+            self.opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+        self.critic = losses.Critic(args.critic_width).to(device) if sw.adversarial else None
+        self.opt_d = losses.make_critic_optimizer(self.critic) if self.critic else None
+        if args.channels_last:
+            self.net.to(memory_format=torch.channels_last)
+            if self.critic:
+                self.critic.to(memory_format=torch.channels_last)
+
+    def autocast(self):
+        if self.args.bf16:
+            return torch.autocast(device_type=self.device.type if hasattr(self.device, "type")
+                                  else str(self.device), dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def _layout(self, b):
+        if not self.args.channels_last:
+            return b
+        return {k: v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 else v
+                for k, v in b.items()}
+
+    def step(self, b: dict, lr: float, adv_on: bool) -> dict:
+        b = self._layout(b)
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        use_adv = adv_on and self.critic is not None
+        with self.autocast():
+            total, parts, fake = losses.generator_objective(
+                self.net, b, self.sw, self.critic if use_adv else None)
+        self.opt.zero_grad(set_to_none=True)
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(self.net.parameters(), 5.0)
+        self.opt.step()
+        if use_adv:
+            for _ in range(self.args.n_critic):
+                with self.autocast():
+                    d = losses.critic_loss(self.critic, b["img_t"], b["gt_t"], fake, b["light_k"])
+                self.opt_d.zero_grad(set_to_none=True)
+                d.backward()
+                self.opt_d.step()
+                self.critic.clip_weights(0.01)
+            parts["critic"] = float(d.detach())
+        parts["total"] = float(total.detach())
+        return parts
+
+
+def save_checkpoint(path, net, recipe, step, extra=None):
+    torch.save({"state_dict": net.state_dict(), "config": net.cfg.to_dict(), "recipe": recipe,
+                "step": step, **(extra or {})}, path)
+
+
+def load_checkpoint(path, map_location="cpu"):
+    ck = torch.load(path, map_location=map_location, weights_only=False)
+    cfg = network.NetConfig(**{k: tuple(v) if isinstance(v, list) else v
+                               for k, v in ck["config"].items()})
+    net = network.RelightNet(cfg)
+    net.load_state_dict(ck["state_dict"])
+    return net.eval(), ck
+
+
+def train(args) -> pathlib.Path:
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(args.seed)
+    device = torch.device("cuda" if torch.cuda.is_available() and not args.cpu else "cpu")
+    if device.type == "cpu" and args.threads:
+        torch.set_num_threads(args.threads)
+    sw = losses.Switches.ablation(args.ablation)
+    net = network.build(args.preset).to(device)
+    recipe = {"command": "python -m training.train " + " ".join(sys.argv[1:]), "args": vars(args),
+              "switches": sw.to_dict(), "net": net.cfg.to_dict(), "git_commit": git_commit(),
+              "data_seed": args.seed, "machine": machine(), "device": str(device),
+              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
+    ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling)
+    batches = Batches(ds, args.batch, args.seed, device)
+    trainer = Trainer(net, sw, args, device)
+    stages = parse_stages(args.progressive)
+    budget, start, step = args.minutes * 60.0, time.monotonic(), 0
+    with open(out / "log.jsonl", "w") as log:
+        while True:
+            frac = (time.monotonic() - start) / budget
+            if frac >= 1.0 or (args.max_steps and step >= args.max_steps):
+                break
+            b = downsample_batch(next(batches), factor_at(stages, frac))
+            parts = trainer.step(b, lr_at(args.lr, frac), adv_on=frac >= args.adv_start)
+            step += 1
+            if step % args.log_every == 0 or step == 1:
+                parts.update(step=step, minutes=round((time.monotonic() - start) / 60, 2),
+                             size=int(b["img_t"].shape[-1]))
+                log.write(json.dumps(parts) + "\n")
+                log.flush()
+                print(json.dumps(parts), flush=True)
+            if step % args.save_every == 0:
+                save_checkpoint(out / "checkpoint.pt", net, recipe, step)
+    recipe["steps"] = step
+    recipe["trained_minutes"] = round((time.monotonic() - start) / 60, 2)
+    (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
+    save_checkpoint(out / "checkpoint.pt", net, recipe, step)
+    return out
+
+
+# ------------------------------------------------------------------------------ speed measurement
+
+def measure_speed(args, batch_fn) -> list[dict]:
+    """Training steps per second for fp32 / bf16 / channels-last on this machine."""
+    rows = []
+    for bf16, cl in ((False, False), (True, False), (False, True), (True, True)):
+        torch.manual_seed(0)
+        a = argparse.Namespace(**{**vars(args), "bf16": bf16, "channels_last": cl})
+        trainer = Trainer(network.build(args.preset), losses.Switches(), a)
+        b = batch_fn()
+        trainer.step(b, args.lr, adv_on=True)  # warm-up
+        t0 = time.perf_counter()
+        for _ in range(args.speed_steps):
+            trainer.step(b, args.lr, adv_on=True)
+        dt = (time.perf_counter() - t0) / args.speed_steps
+        rows.append({"bf16": bf16, "channels_last": cl, "s_per_step": round(dt, 3),
+                     "pairs_per_s": round(args.batch / dt, 2)})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--preset", default="standard", choices=sorted(network.PRESETS))
+    p.add_argument("--minutes", type=float, default=100.0, help="wall-clock training budget")
+    p.add_argument("--max-steps", type=int, default=0, help="stop early after this many steps")
+    p.add_argument("--out", default="runs/latest")
+    p.add_argument("--ablation", default="full",
+                   choices=["full", "no_structure", "no_temporal", "no_parsing", "no_sampling"])
+    p.add_argument("--resolution", type=int, default=128, help="light-stage render size")
+    p.add_argument("--batch", type=int, default=4)
+    p.add_argument("--seed", type=int, default=0, help="torch and data seed")
+    p.add_argument("--optim", default="adam", choices=["adam", "rmsprop"],
+                   help="network optimiser; the paper's is rmsprop at 5e-5 (the critic always is)")
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--progressive", default="0.3:2,1:1",
+                   help="fraction:downsample stages (low resolution first)")
+    p.add_argument("--adv-start", type=float, default=0.3,
+                   help="fraction of the budget after which adversarial training starts")
+    p.add_argument("--n-critic", type=int, default=1)
+    p.add_argument("--critic-width", type=int, default=32)
+    p.add_argument("--bf16", action="store_true", help="bf16 autocast")
+    p.add_argument("--channels-last", action="store_true")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--cpu", action="store_true", help="ignore a GPU")
+    p.add_argument("--log-every", type=int, default=20)
+    p.add_argument("--save-every", type=int, default=200)
+    p.add_argument("--measure-speed", action="store_true")
+    p.add_argument("--speed-steps", type=int, default=5)
+    return p
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
+    if args.measure_speed:
+        torch.set_num_threads(args.threads)
+        ds = make_dataset("train", args.resolution, args.seed)
+        batches = Batches(ds, args.batch, args.seed)
+        b = next(batches)
+        measure_speed(args, lambda: b)
+        return
+    print(f"run folder: {train(args)}")
+
+
+if __name__ == "__main__":
+    main()
