@@ -1,0 +1,123 @@
+"""ONNX export round trip, int8 quantisation, the model card, and the card's metrics."""
+
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+import standin
+from addon import contract
+from training import evaluate, export, network
+
+torch.set_num_threads(1)
+TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,
+                         light_embed=16)
+
+
+@pytest.fixture(scope="module")
+def net():
+    torch.manual_seed(0)
+    n = network.RelightNet(TINY)
+    with torch.no_grad():  # move off the identity start so every output depends on the weights
+        for p in n.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return n.eval()
+
+
+@pytest.fixture(scope="module")
+def onnx_path(net, tmp_path_factory):
+    return export.export_onnx(net, tmp_path_factory.mktemp("m") / "tiny.onnx")
+
+
+def test_export_uses_contract_names_opset_and_dynamic_size(onnx_path):
+    m = onnx.load(str(onnx_path))
+    assert max(o.version for o in m.opset_import if o.domain in ("", "ai.onnx")) >= 17
+    assert [i.name for i in m.graph.input] == [contract.INPUT_IMAGE, contract.INPUT_LIGHT]
+    assert [o.name for o in m.graph.output] == [contract.OUTPUT_RELIT,
+                                                contract.OUTPUT_SOURCE_LIGHT,
+                                                contract.OUTPUT_PARSING]
+    dims = m.graph.input[0].type.tensor_type.shape.dim
+    assert dims[2].dim_param and dims[3].dim_param  # H and W are symbolic
+
+
+def test_onnx_matches_torch_within_the_stated_tolerance(net, onnx_path):
+    report = export.verify(net, onnx_path, sizes=((32, 32), (64, 96)))
+    assert report["max_abs_diff"][contract.OUTPUT_RELIT] <= export.TOLERANCE["atol"] * 10
+
+
+def test_verify_catches_a_model_that_differs(net, onnx_path):
+    other = network.RelightNet(TINY).eval()  # fresh weights: not what was exported
+    with pytest.raises(AssertionError, match="differs"):
+        export.verify(other, onnx_path, sizes=((32, 32),))
+
+
+def test_card_has_every_required_key_and_the_file_checksum(net, onnx_path):
+    cost = export.measure_cost(onnx_path, sizes=(32,), threads=1, repeats=2)
+    card = export.make_card("tiny", "draft", onnx_path, net, {"recipe": {}},
+                            {"model": {"rmse": 0.1}}, {"cpu": cost}, working_size=64)
+    assert set(contract.REQUIRED_CARD_KEYS) <= set(card)
+    assert card["sha256"] == export.sha256(onnx_path) and card["stride"] == TINY.stride
+    assert card["classes"][0] == contract.FOREGROUND_CLASS
+    assert cost["per_size"]["32"]["ms"] > 0
+    path = export.write_card(card, onnx_path)
+    assert json.loads(path.read_text())["onnx"] == "tiny.onnx"
+    engine = pytest.importorskip("addon.engine")
+    loaded = engine.load_card(onnx_path)  # the engine accepts what export writes
+    assert loaded.stride == TINY.stride and loaded.sha256 == card["sha256"]
+
+
+def test_int8_quantisation_stays_close_to_fp32(net, onnx_path, tmp_path):
+    feeds = export.calibration_feeds([standin.sample(64, i) for i in range(4)], TINY.stride)
+    q = export.quantize_int8(onnx_path, tmp_path / "tiny-int8.onnx", feeds)
+    ops = {n.op_type for n in onnx.load(str(q)).graph.node}
+    assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
+    a = export.session(onnx_path).run(None, feeds[0])[0]
+    b = export.session(q).run(None, feeds[0])[0]
+    assert np.abs(a - b).mean() < 0.05 * np.abs(a).mean()
+
+
+# ---- held-out metrics (training/evaluate.py)
+
+def test_metrics_of_a_perfect_prediction():
+    s = standin.sample(48, 0)
+    mask = s["mask_t"][0] > 0.5
+    m = evaluate.image_metrics(s["gt_t_k"], s["gt_t_k"], mask)
+    assert m["rmse"] == 0.0 and m["psnr"] >= 199 and m["ssim"] == pytest.approx(1.0)
+
+
+def test_metrics_only_see_the_portrait_region():
+    s = standin.sample(48, 0)
+    mask = s["mask_t"][0] > 0.5
+    pred = s["gt_t_k"].copy()
+    pred[:, ~mask] = 100.0  # garbage outside the portrait
+    assert evaluate.image_metrics(pred, s["gt_t_k"], mask)["rmse"] == 0.0
+    pred = s["gt_t_k"] * 0.5
+    worse = evaluate.image_metrics(pred, s["gt_t_k"], mask)
+    assert 0.05 < worse["rmse"] < 1 and worse["ssim"] < 1
+
+
+def test_irradiance_ratio_baseline_is_exact_for_a_scaled_light():
+    s = standin.sample(48, 0)
+    s["light_k"] = s["light_i"] * 3.0
+    s["gt_t_k"] = s["img_t_i"] * 3.0
+    mask = s["mask_t"][0] > 0.5
+    m = evaluate.image_metrics(evaluate.baseline_irradiance_ratio(s), s["gt_t_k"], mask)
+    assert m["rmse"] < 1e-6
+    assert evaluate.image_metrics(evaluate.baseline_identity(s), s["gt_t_k"], mask)["rmse"] > 0.1
+
+
+def test_evaluate_runs_onnx_and_torch_predictors_alike(net, onnx_path):
+    ds = standin.StandinDataset(resolution=64, n=2)
+    a = evaluate.evaluate(evaluate.onnx_predictor(export.session(onnx_path), TINY.stride), ds)
+    b = evaluate.evaluate(evaluate.torch_predictor(net), ds, baselines=False)
+    assert a["samples"] == 2 and set(a) >= {"model", "identity", "irradiance_ratio"}
+    assert a["model"]["rmse"] == pytest.approx(b["model"]["rmse"], abs=1e-4)
+    assert 0 <= a["model"]["foreground_iou"] <= 1
+
+
+def test_empty_mask_is_refused():
+    s = standin.sample(32, 0)
+    with pytest.raises(ValueError, match="empty"):
+        evaluate.image_metrics(s["gt_t_k"], s["gt_t_k"], np.zeros((32, 32), bool))

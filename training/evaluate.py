@@ -1,0 +1,196 @@
+"""Held-out accuracy: RMSE, PSNR and SSIM on the portrait region, as in the paper (sec. 5.1).
+
+    python -m training.evaluate --run runs/draft-01 --n 48
+    python -m training.evaluate --onnx models/relight-draft.onnx --n 48
+
+How values are "normalised to [0, 1]" (the paper's images are display images): each prediction and
+its ground truth (absolute linear radiance) are divided by the ground truth's 99th-percentile
+channel value inside the portrait mask, clipped to [0, 1] and sRGB-encoded. RMSE and SSIM are taken
+over the mask's pixels only (SSIM: 11x11 Gaussian window, sigma 1.5, per channel, the map averaged
+over the mask); PSNR = 20 log10(1 / RMSE). Each figure is the mean over the held-out samples.
+
+Baselines: ``identity`` outputs the input unchanged; ``irradiance_ratio`` scales the input per
+channel by total_power(L^k) / total_power(L^i) with the true source light (an oracle on lighting).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import numpy as np
+
+from addon import lightvec
+
+WHITE_PERCENTILE = 99.0
+_SSIM_C1, _SSIM_C2 = 0.01 ** 2, 0.03 ** 2
+
+
+def srgb_encode(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def to_unit(img: np.ndarray, white: float) -> np.ndarray:
+    return srgb_encode(np.asarray(img, np.float64) / white)
+
+
+def white_level(gt: np.ndarray, mask: np.ndarray) -> float:
+    """gt (3,H,W) absolute, mask (H,W) bool -> the level that maps to 1."""
+    vals = gt[:, mask].reshape(-1) if mask.any() else gt.reshape(-1)
+    w = float(np.percentile(vals, WHITE_PERCENTILE)) if vals.size else 0.0
+    return w if np.isfinite(w) and w > 1e-12 else 1.0
+
+
+def _gauss_kernel(size=11, sigma=1.5) -> np.ndarray:
+    x = np.arange(size) - size // 2
+    g = np.exp(-(x ** 2) / (2 * sigma ** 2))
+    return g / g.sum()
+
+
+def _blur(img: np.ndarray) -> np.ndarray:
+    """Separable Gaussian blur of (C,H,W) with reflected borders."""
+    g = _gauss_kernel()
+    r = len(g) // 2
+    out = np.pad(img, ((0, 0), (r, r), (0, 0)), mode="reflect")
+    out = sum(g[i] * out[:, i:i + img.shape[1]] for i in range(len(g)))
+    out = np.pad(out, ((0, 0), (0, 0), (r, r)), mode="reflect")
+    return sum(g[i] * out[:, :, i:i + img.shape[2]] for i in range(len(g)))
+
+
+def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-pixel SSIM (C,H,W) of two images in [0, 1]."""
+    mu_a, mu_b = _blur(a), _blur(b)
+    saa = _blur(a * a) - mu_a ** 2
+    sbb = _blur(b * b) - mu_b ** 2
+    sab = _blur(a * b) - mu_a * mu_b
+    return (((2 * mu_a * mu_b + _SSIM_C1) * (2 * sab + _SSIM_C2))
+            / ((mu_a ** 2 + mu_b ** 2 + _SSIM_C1) * (saa + sbb + _SSIM_C2)))
+
+
+def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
+    """pred, gt (3,H,W) absolute linear; mask (H,W) bool (the portrait region)."""
+    if not mask.any():
+        raise ValueError("the portrait mask is empty; nothing to measure")
+    w = white_level(gt, mask)
+    p, g = to_unit(np.nan_to_num(pred, nan=0.0, posinf=w, neginf=0.0), w), to_unit(gt, w)
+    rmse = float(np.sqrt(np.mean((p[:, mask] - g[:, mask]) ** 2)))
+    psnr = 20.0 * math.log10(1.0 / max(rmse, 1e-10))
+    ssim = float(np.mean(ssim_map(p, g)[:, mask]))
+    return {"rmse": rmse, "psnr": psnr, "ssim": ssim}
+
+
+def baseline_identity(sample: dict) -> np.ndarray:
+    return np.asarray(sample["img_t_i"], np.float32)
+
+
+def baseline_irradiance_ratio(sample: dict) -> np.ndarray:
+    src = lightvec.total_power(sample["light_i"])
+    dst = lightvec.total_power(sample["light_k"])
+    ratio = np.where(src > 0, dst / np.maximum(src, 1e-12), 0.0)
+    return (np.asarray(sample["img_t_i"], np.float64) * ratio[:, None, None]).astype(np.float32)
+
+
+def mean_metrics(rows: list[dict]) -> dict:
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
+
+
+def evaluate(predict, dataset, n: int | None = None, baselines: bool = True) -> dict:
+    """``predict(sample) -> (relit (3,H,W) absolute, extras dict)`` over the first n samples."""
+    n = len(dataset) if n is None else min(n, len(dataset))
+    rows = {"model": [], "identity": [], "irradiance_ratio": []}
+    fg_iou = []
+    for idx in range(n):
+        s = dataset[idx]
+        mask = np.asarray(s["mask_t"])[0] > 0.5
+        gt = np.asarray(s["gt_t_k"], np.float32)
+        pred, extras = predict(s)
+        rows["model"].append(image_metrics(pred, gt, mask))
+        if "foreground" in extras:
+            fg = extras["foreground"] > 0.5
+            fg_iou.append(float((fg & mask).sum() / max((fg | mask).sum(), 1)))
+        if baselines:
+            rows["identity"].append(image_metrics(baseline_identity(s), gt, mask))
+            rows["irradiance_ratio"].append(image_metrics(baseline_irradiance_ratio(s), gt, mask))
+    out = {name: mean_metrics(r) for name, r in rows.items() if r}
+    if fg_iou:
+        out["model"]["foreground_iou"] = float(np.mean(fg_iou))
+    out["samples"] = n
+    return out
+
+
+# --------------------------------------------------------------------------------- predictors
+
+def _normalised_inputs(sample: dict):
+    """The engine's path: one exposure scale for the clip, the target light at unit power."""
+    from . import train  # training-side normalisation == the engine's (addon.normalise)
+
+    n = train.normalise_sample(sample)
+    return n["img_t"][None], n["light_k"][None], float(n["scale"]), float(n["light_scale"])
+
+
+def _pad(img: np.ndarray, stride: int) -> np.ndarray:
+    h, w = img.shape[-2:]
+    return np.pad(img, ((0, 0), (0, 0), (0, -h % stride), (0, -w % stride)), mode="reflect")
+
+
+def onnx_predictor(session, stride: int):
+    def predict(sample):
+        img, light, s, k = _normalised_inputs(sample)
+        h, w = img.shape[-2:]
+        relit, _, parsing = session.run(None, {"image": _pad(img, stride), "target_light": light})
+        return relit[0, :, :h, :w] * s * k, {"foreground": parsing[0, 0, :h, :w]}
+    return predict
+
+
+def torch_predictor(net):
+    import torch
+
+    def predict(sample):
+        img, light, s, k = _normalised_inputs(sample)
+        h, w = img.shape[-2:]
+        with torch.no_grad():
+            relit, _, parsing = net(torch.from_numpy(_pad(img, net.cfg.stride)),
+                                    torch.from_numpy(light))
+        return relit[0, :, :h, :w].numpy() * s * k, {"foreground": parsing[0, 0, :h, :w].numpy()}
+    return predict
+
+
+def heldout_dataset(resolution: int, seed: int = 12345, split: str = "test"):
+    from .train import make_dataset
+
+    return make_dataset(split, resolution, seed)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description="held-out RMSE / PSNR / SSIM on the portrait region")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--run", help="a training run folder (uses its checkpoint.pt)")
+    src.add_argument("--onnx", help="an exported model")
+    p.add_argument("--n", type=int, default=48)
+    p.add_argument("--resolution", type=int, default=128)
+    p.add_argument("--split", default="test")
+    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--threads", type=int, default=2)
+    a = p.parse_args(argv)
+    ds = heldout_dataset(a.resolution, a.seed, a.split)
+    if a.run:
+        import torch
+
+        from .train import load_checkpoint
+        torch.set_num_threads(a.threads)
+        net, _ = load_checkpoint(f"{a.run}/checkpoint.pt")
+        predict = torch_predictor(net)
+    else:
+        import onnxruntime as ort
+
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = a.threads
+        card = json.loads(open(a.onnx[:-5] + ".json").read()) if a.onnx.endswith(".onnx") else {}
+        predict = onnx_predictor(ort.InferenceSession(a.onnx, so), int(card.get("stride", 32)))
+    print(json.dumps(evaluate(predict, ds, a.n), indent=2))
+
+
+if __name__ == "__main__":
+    main()
