@@ -1,0 +1,232 @@
+"""RELIGHT_OT_relight_strip: relight a footage strip and add the result as a new strip.
+
+In the UI the pipeline runs on a worker thread driven by a modal timer (progress bar, ESC cancels);
+under ``bpy.app.background`` timers never fire, so the same pipeline runs synchronously and prints
+its progress. The worker touches no Blender data: everything it needs is gathered beforehand."""
+
+from __future__ import annotations
+
+import pathlib
+import threading
+import time
+
+import bpy
+import numpy as np
+
+from ..addon.errors import Cancelled, InputError, RelightError
+from . import bridge, preview_light
+
+RELIT_SUFFIX = " relit"
+MATTE_SUFFIX = " matte"
+
+
+def schedule_lights(context, job: bridge.Job) -> np.ndarray:
+    """(F, 16, 16, 3) target light per frame of ``job`` (one per scene frame, even if static)."""
+    from . import scene_light
+
+    schedule = scene_light.light_schedule(context.scene, list(job.scene_frames), **job.light_args)
+    lights = np.asarray(schedule.lights, dtype=np.float32)
+    if lights.shape[0] == 1 and len(job.scene_frames) > 1:
+        lights = np.broadcast_to(lights, (len(job.scene_frames),) + lights.shape[1:])
+    return lights, list(getattr(schedule, "warnings", ()))
+
+
+def run_pipeline(job: bridge.Job, lights, on_progress=None, should_cancel=None):
+    """The Blender-free part of a run (safe on a worker thread)."""
+    from ..addon import pipeline
+
+    return pipeline.relight_clip(job.clip, lights, job.out_dir, job.options,
+                                 frames=list(job.clip_frames), on_progress=on_progress,
+                                 should_cancel=should_cancel)
+
+
+def add_image_strip(scene, name: str, files: list[pathlib.Path], channel: int, frame_start: int,
+                    colorspace: str):
+    strips = scene.sequence_editor.strips
+    old = strips.get(name)
+    if old is not None:  # a re-run replaces its own strip instead of stacking copies
+        strips.remove(old)
+    channel = bridge.free_channel(strips, channel, frame_start, frame_start + len(files))
+    strip = strips.new_image(name, str(files[0]), channel, frame_start)
+    for path in files[1:]:
+        strip.elements.append(path.name)
+    strip.colorspace_settings.name = colorspace
+    return strip
+
+
+def add_result_strips(context, job: bridge.Job, result) -> list:
+    """The relit strip above the source (and the matte above that), with the source's timing.
+
+    Only a run that covers every visible frame gets strips; a farm chunk just writes frames."""
+    from ..addon import pipeline
+
+    frames = range(job.frame_count)
+    relit = [pathlib.Path(pipeline.relit_path(job.out_dir, i)) for i in frames]
+    if not all(p.is_file() for p in relit):
+        return []
+    scene = context.scene
+    added = [add_image_strip(scene, job.strip_name + RELIT_SUFFIX, relit, job.channel + 1,
+                             job.frame_start, bridge.LINEAR)]
+    if job.options.write_matte:
+        matte = [pathlib.Path(pipeline.matte_path(job.out_dir, i)) for i in frames]
+        if all(p.is_file() for p in matte):
+            strip = add_image_strip(scene, job.strip_name + MATTE_SUFFIX, matte,
+                                    added[0].channel + 1, job.frame_start, "Non-Color")
+            strip.mute = True  # an opaque matte above would hide the relit strip
+            added.append(strip)
+    return added
+
+
+def show_source_light(job: bridge.Job) -> None:
+    """Preview the mean source light the network estimated (saved by the pipeline as .npy)."""
+    files = sorted((job.out_dir / "source_light").glob("*.npy"))
+    if files:
+        lights = [np.load(f) for f in files[:64]]
+        preview_light.set_preview(preview_light.SOURCE_IMAGE, np.mean(lights, axis=0))
+
+
+class RELIGHT_OT_relight_strip(bpy.types.Operator):
+    """Relight the active footage strip under the chosen lighting; adds a relit EXR strip above"""
+    bl_idname = "relight.relight_strip"
+    bl_label = "Relight Strip"
+    bl_options = {'REGISTER'}
+
+    strip: bpy.props.StringProperty(name="Strip", options={'SKIP_SAVE'},
+                                    description="Strip to relight; empty uses the active strip")
+    models_dir: bpy.props.StringProperty(name="Models Folder", options={'SKIP_SAVE', 'HIDDEN'},
+                                         description="Overrides the preferences' models folder")
+
+    _timer = None
+    _thread = None
+    _state = None
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None
+
+    def _strip(self, context):
+        editor = context.scene.sequence_editor
+        if self.strip:
+            found = editor.strips.get(self.strip) if editor else None
+            if found is None:
+                raise InputError(f"There is no strip named '{self.strip}' in the scene "
+                                        f"'{context.scene.name}'.")
+            return found
+        return editor.active_strip if editor else None
+
+    def _prepare(self, context):
+        job = bridge.gather_job(context, self._strip(context), models_override=self.models_dir)
+        lights, warnings = schedule_lights(context, job)
+        return job, lights, warnings
+
+    def _finish(self, context, job, result, warnings, seconds):
+        for warning in [*warnings, *getattr(result, "warnings", ())]:
+            self.report({'WARNING'}, str(warning))
+        show_source_light(job)
+        added = add_result_strips(context, job, result)
+        n = len(job.clip_frames)
+        where = (f"added strip '{added[0].name}'" if added
+                 else "no strip added (the other frames are not relit yet)")
+        self.report({'INFO'}, f"Relit {n} frames of '{job.strip_name}' in {seconds:.1f} s "
+                              f"({result.resumed} resumed) into {job.out_dir}; {where}")
+
+    # Synchronous: background mode, scripts, and tests.
+    def execute(self, context):
+        started = time.perf_counter()
+        try:
+            job, lights, warnings = self._prepare(context)
+            result = run_pipeline(job, lights, on_progress=_print_progress)
+            self._finish(context, job, result, warnings, time.perf_counter() - started)
+        except RelightError as err:
+            self.report({'ERROR'}, str(err))
+            return {'CANCELLED'}
+        return {'FINISHED'}
+
+    # Interactive: a worker thread, polled by a timer.
+    def invoke(self, context, event):
+        if bpy.app.background:
+            return self.execute(context)
+        try:
+            job, lights, warnings = self._prepare(context)
+        except RelightError as err:
+            self.report({'ERROR'}, str(err))
+            return {'CANCELLED'}
+        self._state = _WorkerState(job=job, warnings=warnings, started=time.perf_counter())
+        self._thread = threading.Thread(target=self._state.run, args=(lights,), daemon=True)
+        self._thread.start()
+        wm = context.window_manager
+        wm.progress_begin(0, max(1, len(job.clip_frames)))
+        self._timer = wm.event_timer_add(0.2, window=context.window)
+        wm.modal_handler_add(self)
+        self.report({'INFO'}, f"Relighting '{job.strip_name}'... (Esc cancels)")
+        return {'RUNNING_MODAL'}
+
+    def modal(self, context, event):
+        state = self._state
+        if event.type == 'ESC':
+            state.cancel.set()
+        if event.type != 'TIMER':
+            return {'PASS_THROUGH'}
+        context.window_manager.progress_update(state.done)
+        context.workspace.status_text_set(
+            f"Relighting {state.job.strip_name}: {state.done}/{len(state.job.clip_frames)} "
+            "frames (Esc cancels)")
+        if self._thread.is_alive():
+            return {'RUNNING_MODAL'}
+        self._end_modal(context)
+        if isinstance(state.error, Cancelled):
+            self.report({'WARNING'}, f"{state.error} Run Relight again to resume.")
+            return {'CANCELLED'}
+        if isinstance(state.error, RelightError):
+            self.report({'ERROR'}, str(state.error))
+            return {'CANCELLED'}
+        if state.error is not None:  # a bug: surface it with its traceback, never swallow it
+            raise state.error
+        self._finish(context, state.job, state.result, state.warnings,
+                     time.perf_counter() - state.started)
+        return {'FINISHED'}
+
+    def _end_modal(self, context):
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        context.workspace.status_text_set(None)
+
+
+class _WorkerState:
+    """What the worker thread shares with the modal operator: progress in, cancel flag out."""
+
+    def __init__(self, job, warnings, started):
+        self.job, self.warnings, self.started = job, warnings, started
+        self.done = 0
+        self.cancel = threading.Event()
+        self.result = None
+        self.error = None
+
+    def progress(self, done, total=None, *_):
+        self.done = int(done)
+
+    def run(self, lights):
+        try:
+            self.result = run_pipeline(self.job, lights, on_progress=self.progress,
+                                       should_cancel=self.cancel.is_set)
+        except BaseException as err:  # handed to the main thread, which reports or re-raises
+            self.error = err
+
+
+def _print_progress(done, total=None, *_):
+    if total:
+        print(f"relight: {done}/{total} frames ({100.0 * done / total:.0f}%)", flush=True)
+
+
+classes = (RELIGHT_OT_relight_strip,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,85 @@
+"""Scene settings: everything the artist sets lives under one pointer property, ``Scene.relight``."""
+
+import bpy
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
+                       StringProperty)
+
+from ..ops import bridge
+
+LIGHT_SOURCES = (
+    ("WORLD", "World", "The scene world's environment texture (HDRI)"),
+    ("LAMPS", "Lamps", "The scene's point, sun, spot and area lamps"),
+    ("WORLD_AND_LAMPS", "World and Lamps", "The world HDRI plus the scene's lamps"),
+    ("HDRI_FILE", "HDRI File", "An equirectangular HDRI file on disk"),
+    ("BUILTIN", "Studio HDRI", "One of Blender's bundled studio HDRIs"),
+)
+
+# Enum items built by callbacks must stay referenced from Python, or Blender shows garbage.
+_enum_cache = {}
+
+
+def _builtin_items(self, context):
+    names = bridge.builtin_hdri_names()
+    items = [(n, n.replace("_", " ").title(), f"Blender's bundled '{n}' HDRI") for n in names]
+    _enum_cache["builtin"] = items or [("NONE", "None found", "Blender's studio HDRIs are missing")]
+    return _enum_cache["builtin"]
+
+
+def _preset_items(self, context):
+    cards = bridge.model_cards(bridge.models_dir(context))
+    items = [(c.preset, c.preset.title(), f"{c.name}: {c.summary}") for c in cards]
+    _enum_cache["preset"] = items or [("NONE", "No model installed",
+                                       "Put a model (.onnx with its .json card) in the models folder")]
+    return _enum_cache["preset"]
+
+
+def _is_camera(self, obj):
+    return obj.type == 'CAMERA'
+
+
+class RELIGHT_PG_settings(bpy.types.PropertyGroup):
+    light_source: EnumProperty(name="Light", items=LIGHT_SOURCES, default='WORLD',
+                               description="Where the target lighting comes from")
+    hdri_path: StringProperty(name="HDRI", subtype='FILE_PATH',
+                              description="Equirectangular HDRI (EXR or HDR)")
+    builtin_hdri: EnumProperty(name="Studio HDRI", items=_builtin_items)
+    rotation: FloatProperty(name="Rotation", subtype='ANGLE', default=0.0,
+                            description="Turns the lighting about the vertical axis (animatable)")
+    exposure: FloatProperty(name="Exposure", default=0.0, soft_min=-10.0, soft_max=10.0,
+                            description="Scales the lighting by 2^exposure (animatable)")
+    subject: PointerProperty(name="Subject", type=bpy.types.Object,
+                             description="Where the person stands; empty uses the camera's focus point")
+    camera: PointerProperty(name="Camera", type=bpy.types.Object, poll=_is_camera,
+                            description="Defines the light frame; empty uses the scene camera")
+    subject_radius: FloatProperty(name="Subject Radius", default=0.15, min=0.01, soft_max=2.0,
+                                  unit='LENGTH', description="Size of the head, for near lamps")
+    preset: EnumProperty(name="Quality", items=_preset_items,
+                         description="Model preset: each trades accuracy for time")
+    output_dir: StringProperty(name="Output", subtype='DIR_PATH', default="//relit/",
+                               description="Folder for the relit EXR frames (one sub-folder per strip)")
+    write_matte: BoolProperty(name="Matte Strip", default=False,
+                              description="Also write the portrait matte and add it as a strip")
+    detail_transfer: BoolProperty(name="Keep Fine Detail", default=True,
+                                  description="Bring the footage's full-resolution detail back "
+                                              "into the relit frames")
+    overwrite: BoolProperty(name="Overwrite", default=False,
+                            description="Replace an earlier run's frames instead of resuming it")
+    use_frame_range: BoolProperty(name="Frame Range", default=False,
+                                  description="Relight only these scene frames (render farm chunks)")
+    frame_start: IntProperty(name="Start", default=1, min=0)
+    frame_end: IntProperty(name="End", default=250, min=0)
+
+
+classes = (RELIGHT_PG_settings,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.relight = PointerProperty(type=RELIGHT_PG_settings)
+
+
+def unregister():
+    del bpy.types.Scene.relight
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
