@@ -14,6 +14,13 @@ from bpy.props import BoolProperty, CollectionProperty, IntProperty, StringPrope
 from ..addon.errors import InputError, RelightError
 from . import bridge
 
+
+def probe_clip(path_or_files):
+    """Size, length and frame rate of footage; InputError for anything unreadable or gappy."""
+    from ..addon.frames import probe_clip as probe  # PyAV and OpenEXR load on first use
+
+    return probe(path_or_files)
+
 MOVIE_SUFFIXES = {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mxf"}
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff"}
 LINEAR_SUFFIXES = {".exr"}  # EXR holds scene-linear light; the others are display-encoded
@@ -21,23 +28,15 @@ _NUMBERED = re.compile(r"^(.*?)(\d+)(\.[^.]+)$")
 
 
 def sequence_files(path: pathlib.Path) -> list[pathlib.Path]:
-    """All frames of the numbered image sequence that ``path`` belongs to, in frame order.
-
-    InputError if numbers are missing in the middle: a gap would shift every later frame."""
+    """All frames of the numbered image sequence that ``path`` belongs to, in frame order
+    (the file browser hands over one file; the artist means its whole sequence)."""
     m = _NUMBERED.match(path.name)
     if not m:
         return [path]
-    prefix, digits, suffix = m.groups()
+    prefix, _, suffix = m.groups()
     pattern = re.compile(re.escape(prefix) + r"(\d+)" + re.escape(suffix) + "$")
     numbered = sorted((int(mm.group(1)), p) for p in path.parent.iterdir()
                       if (mm := pattern.match(p.name)) and p.is_file())
-    numbers = [n for n, _ in numbered]
-    missing = sorted(set(range(numbers[0], numbers[-1] + 1)) - set(numbers))
-    if missing:
-        shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
-        raise InputError(f"The image sequence {prefix}#{suffix} is missing {len(missing)} frames "
-                         f"({shown}). Render or copy the missing frames, or import the part "
-                         "before the gap by selecting those files.")
     return [p for _, p in numbered]
 
 
@@ -111,13 +110,13 @@ class RELIGHT_OT_import_footage(bpy.types.Operator):
         kind, files = footage_files(self.filepath, self.directory, [f.name for f in self.files])
         start = scene.frame_current if self.frame_start < 0 else self.frame_start
         strips = scene.sequence_editor_create().strips
+        info = probe_clip([str(f) for f in files] if kind == "images" else str(files[0]))
+        if info.frame_count < 1:
+            raise InputError(f"{files[0].name} holds no frames.")
         if kind == "movie":
             channel = bridge.free_channel(strips, self.channel, start, start + 1)
             strip = strips.new_movie(files[0].stem, str(files[0]), channel, start)
-            if strip.frame_final_duration < 1:
-                strips.remove(strip)
-                raise InputError(f"{files[0].name} holds no video frames Blender can read.")
-            fps = strip.fps
+            fps = info.fps or strip.fps
         else:
             channel = bridge.free_channel(strips, self.channel, start, start + len(files))
             strip = strips.new_image(files[0].stem, str(files[0]), channel, start)
