@@ -1,0 +1,141 @@
+"""Colour spaces a Blender strip can declare, converted to scene linear (linear Rec.709).
+
+The matrices are Blender 5.0's own (``datafiles/colormanagement/config.ocio``: each space's
+``from_scene_reference`` matrix out of CIE XYZ D65); a test compares them with that file where the
+``bpy`` module is installed. Spaces whose transform is a view transform or a log curve (AgX, Filmic,
+ACES output transforms, ...) are not invertible to scene light here, and are refused with a message
+that says what to do, never passed through silently.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+# XYZ (D65) -> RGB matrices, rows as in config.ocio (out = M @ xyz).
+XYZ_TO_REC709 = np.array([[3.2409699, -1.5373832, -0.4986108],
+                          [-0.9692436, 1.8759675, 0.0415551],
+                          [0.0556301, -0.2039770, 1.0569715]])
+XYZ_TO_P3D65 = np.array([[2.4934969, -0.9313836, -0.4027108],
+                         [-0.8294890, 1.7626641, 0.0236247],
+                         [0.0358458, -0.0761724, 0.9568845]])
+XYZ_TO_REC2020 = np.array([[1.7166512, -0.3556708, -0.2533663],
+                           [-0.6666844, 1.6164812, 0.0157685],
+                           [0.0176399, -0.0427706, 0.9421031]])
+XYZ_TO_EGAMUT = np.array([[1.5250528, -0.3159135, -0.1226583],
+                          [-0.5091526, 1.3333274, 0.1382844],
+                          [0.0957153, 0.0508974, 0.7879558]])
+# Blender's luts/xyz_E_to_D65.spimtx (a chromatic adaptation of XYZ from illuminant E to D65).
+XYZ_E_TO_D65 = np.array([[0.95318743, -0.02659057, 0.02387315],
+                         [-0.03824666, 1.02884062, 0.00940604],
+                         [0.00260677, -0.00303325, 1.08925647]])
+
+
+def _to_709(xyz_to_space: np.ndarray) -> np.ndarray:
+    return XYZ_TO_REC709 @ np.linalg.inv(xyz_to_space)
+
+
+@dataclass(frozen=True)
+class ColourSpace:
+    """How to bring a declared colour space to linear Rec.709."""
+    name: str
+    curve: str                 # 'linear' | 'srgb' | 'gamma24'
+    matrix: np.ndarray | None  # 3x3 to linear Rec.709 after the curve; None = identity
+    is_data: bool = False      # Non-Color: numbers, not light (treated as linear, with a note)
+
+
+_IDENTITY = None
+SPACES = {
+    s.name: s for s in (
+        ColourSpace("sRGB", "srgb", _IDENTITY),
+        ColourSpace("Linear Rec.709", "linear", _IDENTITY),
+        ColourSpace("Non-Color", "linear", _IDENTITY, is_data=True),
+        ColourSpace("Rec.1886", "gamma24", _IDENTITY),
+        ColourSpace("Rec.2020", "gamma24", _to_709(XYZ_TO_REC2020)),
+        ColourSpace("Display P3", "srgb", _to_709(XYZ_TO_P3D65)),
+        ColourSpace("Linear Rec.2020", "linear", _to_709(XYZ_TO_REC2020)),
+        ColourSpace("Linear DCI-P3 D65", "linear", _to_709(XYZ_TO_P3D65)),
+        ColourSpace("Linear FilmLight E-Gamut", "linear", _to_709(XYZ_TO_EGAMUT)),
+        ColourSpace("Linear CIE-XYZ D65", "linear", XYZ_TO_REC709),
+        ColourSpace("Linear CIE-XYZ E", "linear", XYZ_TO_REC709 @ XYZ_E_TO_D65),
+    )
+}
+# Older and alternative names Blender and OCIO configs use for the same spaces.
+ALIASES = {
+    "Linear": "Linear Rec.709", "Linear BT.709": "Linear Rec.709", "lin_rec709_scene":
+    "Linear Rec.709", "scene_linear": "Linear Rec.709", "Raw": "Non-Color",
+    "Non-Colour Data": "Non-Color", "Generic Data": "Non-Color", "Utility - Raw": "Non-Color",
+    "BT.1886": "Rec.1886", "XYZ": "Linear CIE-XYZ D65", "Linear CIE-XYZ I-E": "Linear CIE-XYZ E",
+    "srgb_rec709_scene": "sRGB", "Utility - sRGB - Texture": "sRGB",
+}
+
+
+def lookup(name: str) -> ColourSpace:
+    """The ColourSpace for a Blender colour-space name, or InputError saying what to do."""
+    key = ALIASES.get(name, name)
+    space = SPACES.get(key)
+    if space is None:
+        known = ", ".join(sorted(SPACES))
+        raise InputError(
+            f"The strip's colour space '{name}' cannot be converted back to scene light by the "
+            f"relighter (it is a view transform, a log encoding or unknown). If the file really "
+            f"holds sRGB or linear footage, set the strip's colour space to that; otherwise convert "
+            f"the footage first. Supported: {known}.")
+    return space
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 piecewise decode; negative values are mirrored so the curve stays odd."""
+    x = np.asarray(x, dtype=np.float32)
+    a = np.abs(x)
+    lin = np.where(a <= 0.04045, a / 12.92, ((a + 0.055) / 1.055) ** 2.4)
+    return (np.sign(x) * lin).astype(np.float32)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float32)
+    a = np.abs(x)
+    enc = np.where(a <= 0.0031308, a * 12.92, 1.055 * a ** (1 / 2.4) - 0.055)
+    return (np.sign(x) * enc).astype(np.float32)
+
+
+def _decode_curve(x: np.ndarray, curve: str) -> np.ndarray:
+    if curve == "srgb":
+        return srgb_to_linear(x)
+    if curve == "gamma24":
+        x = np.asarray(x, dtype=np.float32)
+        return (np.sign(x) * np.abs(x) ** 2.4).astype(np.float32)
+    return np.asarray(x, dtype=np.float32)
+
+
+def integer_lut(space: ColourSpace, bits: int) -> np.ndarray:
+    """A (2**bits,) float32 table from code value to linear (curve only, before the matrix).
+
+    Integer footage is decoded through this table: one gather per pixel instead of a power."""
+    return _lut(space.curve, bits)
+
+
+@functools.lru_cache(maxsize=8)
+def _lut(curve: str, bits: int) -> np.ndarray:
+    codes = np.arange(2 ** bits, dtype=np.float64) / (2 ** bits - 1)
+    lut = _decode_curve(codes, curve).astype(np.float32)
+    lut.flags.writeable = False  # shared between calls
+    return lut
+
+
+def to_linear(pixels: np.ndarray, space: ColourSpace) -> np.ndarray:
+    """(H, W, 3) pixels in ``space`` to float32 linear Rec.709.
+
+    uint8/uint16 pixels are normalised to [0, 1] code values; float pixels are taken as they are."""
+    px = np.asarray(pixels)
+    if px.dtype == np.uint8 or px.dtype == np.uint16:
+        lin = integer_lut(space, 8 * px.dtype.itemsize)[px]
+    else:
+        lin = _decode_curve(px, space.curve)
+    if space.matrix is not None:
+        lin = (lin @ space.matrix.T.astype(np.float32)).astype(np.float32)
+    return np.ascontiguousarray(lin, dtype=np.float32)

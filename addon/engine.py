@@ -1,0 +1,241 @@
+"""The onnxruntime engine: model cards, checked loading, and one relighting call split into
+pre-process / process / post-process (after rembg's session classes).
+
+The session object holds only what loading decided (the onnxruntime session, the card, the
+providers); every call passes its data through arguments and return values, so one session can
+serve several threads and a resumed run behaves exactly like a fresh one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pathlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import contract, lightvec
+from .errors import DependencyError, ModelError
+
+# Fastest first. The CPU provider is always last so a machine without a GPU still runs.
+PROVIDER_PREFERENCE = ("CUDAExecutionProvider", "CoreMLExecutionProvider",
+                       "DmlExecutionProvider", "CPUExecutionProvider")
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    """The parts of a model card (models/<name>.json) the engine relies on; ``data`` holds it all."""
+    card_path: pathlib.Path
+    onnx_path: pathlib.Path
+    name: str
+    preset: str
+    contract: str
+    sha256: str
+    stride: int
+    working_size: int
+    classes: tuple[str, ...]
+    data: dict
+
+    @property
+    def foreground_channel(self) -> int:
+        return self.classes.index(contract.FOREGROUND_CLASS)
+
+
+def card_path_for(model_path) -> pathlib.Path:
+    return pathlib.Path(model_path).with_suffix(".json")
+
+
+def load_card(model_path) -> ModelCard:
+    """Read and check the card beside ``model_path`` (same stem, .json). Raises ModelError."""
+    onnx_path = pathlib.Path(model_path)
+    card_path = card_path_for(onnx_path)
+    if not onnx_path.is_file():
+        raise ModelError(f"The model file {onnx_path} does not exist. Install a model (see "
+                         "models/README.md) or pick another preset.")
+    if not card_path.is_file():
+        raise ModelError(f"The model {onnx_path.name} has no model card ({card_path.name} is "
+                         "missing beside it); reinstall the model with its card.")
+    try:
+        data = json.loads(card_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ModelError(f"The model card {card_path} cannot be read ({err}); reinstall the "
+                         "model.") from err
+    if not isinstance(data, dict):
+        raise ModelError(f"The model card {card_path} is not a JSON object; reinstall the model.")
+    missing = [k for k in contract.REQUIRED_CARD_KEYS if k not in data]
+    if missing:
+        raise ModelError(f"The model card {card_path.name} lacks {', '.join(missing)}; it was not "
+                         "made for this add-on. Reinstall the model.")
+    if data["contract"] not in contract.KNOWN_CONTRACTS:
+        raise ModelError(
+            f"The model {card_path.stem} uses contract '{data['contract']}', which this version "
+            f"of the add-on does not know (it knows {', '.join(contract.KNOWN_CONTRACTS)}). "
+            "Update the add-on, or use a model made for this version.")
+    classes = tuple(data["classes"])
+    if contract.FOREGROUND_CLASS not in classes:
+        raise ModelError(f"The model card {card_path.name} has no '{contract.FOREGROUND_CLASS}' "
+                         "parsing class; the matte cannot be made. Reinstall the model.")
+    try:
+        stride, working = int(data["stride"]), int(data["working_size"])
+    except (TypeError, ValueError) as err:
+        raise ModelError(f"The model card {card_path.name} has a non-integer stride or "
+                         "working_size; reinstall the model.") from err
+    if stride < 1 or working < stride:
+        raise ModelError(f"The model card {card_path.name} has stride {stride} and working size "
+                         f"{working}, which cannot work; reinstall the model.")
+    return ModelCard(card_path, onnx_path, str(data["name"]), str(data["preset"]),
+                     data["contract"], str(data["sha256"]).lower(), stride, working, classes, data)
+
+
+def file_sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def verify_checksum(card: ModelCard) -> None:
+    """Refuse a model file whose sha256 differs from its card (truncated download, edited file)."""
+    actual = file_sha256(card.onnx_path)
+    if actual != card.sha256:
+        raise ModelError(
+            f"The model file {card.onnx_path.name} is corrupt or not the one its card describes "
+            f"(sha256 {actual[:12]}... instead of {card.sha256[:12]}...). Download or reinstall "
+            "the model.")
+
+
+def choose_providers(available, requested=None) -> list[str]:
+    """Execution providers to use, best first, always ending with the CPU provider.
+
+    ``requested`` (names, in order) overrides the preference; names not available here are
+    dropped, and if none remain the preference order applies."""
+    available = list(available)
+    order = list(requested) if requested else list(PROVIDER_PREFERENCE)
+    chosen = [p for p in order if p in available]
+    if not chosen:
+        chosen = [p for p in PROVIDER_PREFERENCE if p in available]
+    if "CPUExecutionProvider" in available and "CPUExecutionProvider" not in chosen:
+        chosen.append("CPUExecutionProvider")
+    return chosen
+
+
+def _import_onnxruntime():
+    try:
+        import onnxruntime
+    except ImportError as err:  # the extension still loads and can say what is missing
+        raise DependencyError(
+            "onnxruntime is not installed or cannot load on this system; reinstall the "
+            f"extension for your platform ({err}).") from err
+    return onnxruntime
+
+
+def session_options(ort, threads: int | None = None, spin: bool = True):
+    """Explicit options: all graph optimisations, sequential execution, ``threads`` intra-op
+    threads (None = one per core). ``spin=False`` stops idle worker threads spinning, which
+    matters when decode/write threads share the cores."""
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.intra_op_num_threads = int(threads) if threads else 0
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3  # errors only: warnings about unused providers are noise here
+    if not spin:
+        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return so
+
+
+@dataclass(frozen=True)
+class EngineResult:
+    relit: np.ndarray         # (H, W, 3) float32, same units as the image given to pre-process
+    source_light: np.ndarray  # (16, 16, 3) float32
+    parsing: np.ndarray       # (K, H, W) float32 in [0, 1], channel order = card.classes
+
+
+@dataclass(frozen=True)
+class Prepared:
+    feeds: dict
+    height: int
+    width: int
+
+
+class RelightSession:
+    """A loaded model: ``run(image, light)`` or the three stages separately."""
+
+    def __init__(self, session, card: ModelCard, providers: list[str]):
+        self.session = session
+        self.card = card
+        self.providers = providers
+        self._check_io()
+
+    def _check_io(self) -> None:
+        ins = {i.name for i in self.session.get_inputs()}
+        outs = {o.name for o in self.session.get_outputs()}
+        need_in = {contract.INPUT_IMAGE, contract.INPUT_LIGHT}
+        need_out = {contract.OUTPUT_RELIT, contract.OUTPUT_SOURCE_LIGHT, contract.OUTPUT_PARSING}
+        if not need_in <= ins or not need_out <= outs:
+            raise ModelError(
+                f"The model {self.card.onnx_path.name} does not follow contract "
+                f"{self.card.contract}: it needs inputs {sorted(need_in)} and outputs "
+                f"{sorted(need_out)}, it has {sorted(ins)} and {sorted(outs)}. Reinstall it.")
+
+    def preprocess(self, image: np.ndarray, light: np.ndarray) -> Prepared:
+        """(H, W, 3) normalised linear image and a (16, 16, 3) normalised light -> feeds, with
+        the image reflect-padded at the bottom and right to a multiple of the model's stride."""
+        img = np.asarray(image, dtype=np.float32)
+        if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
+            raise ValueError(f"image must be (H, W, 3), got {img.shape}")
+        h, w = img.shape[:2]
+        s = self.card.stride
+        ph, pw = -h % s, -w % s
+        if ph or pw:
+            img = np.pad(img, ((0, ph), (0, pw), (0, 0)), mode="reflect")
+        chw = np.ascontiguousarray(img.transpose(2, 0, 1)[None])
+        lt = np.ascontiguousarray(lightvec.validate(light).transpose(2, 0, 1)[None])
+        return Prepared({contract.INPUT_IMAGE: chw, contract.INPUT_LIGHT: lt}, h, w)
+
+    def process(self, prepared: Prepared) -> dict:
+        names = [contract.OUTPUT_RELIT, contract.OUTPUT_SOURCE_LIGHT, contract.OUTPUT_PARSING]
+        return dict(zip(names, self.session.run(names, prepared.feeds)))
+
+    def postprocess(self, outputs: dict, prepared: Prepared) -> EngineResult:
+        """Crop the padding away and go back to channels-last; check every shape."""
+        h, w = prepared.height, prepared.width
+        hp, wp = prepared.feeds[contract.INPUT_IMAGE].shape[2:]
+        relit = outputs[contract.OUTPUT_RELIT]
+        src = outputs[contract.OUTPUT_SOURCE_LIGHT]
+        par = outputs[contract.OUTPUT_PARSING]
+        k = len(self.card.classes)
+        if (relit.shape != (1, 3, hp, wp) or src.shape != (1, 3, 16, 16)
+                or par.shape != (1, k, hp, wp)):
+            raise ModelError(
+                f"The model {self.card.onnx_path.name} returned shapes relit {relit.shape}, "
+                f"source_light {src.shape}, parsing {par.shape} for a {hp}x{wp} input; the "
+                f"contract needs (1,3,{hp},{wp}), (1,3,16,16), (1,{k},{hp},{wp}). The model "
+                "or its card is wrong; reinstall it.")
+        return EngineResult(
+            relit=np.ascontiguousarray(relit[0, :, :h, :w].transpose(1, 2, 0), dtype=np.float32),
+            source_light=np.ascontiguousarray(src[0].transpose(1, 2, 0), dtype=np.float32),
+            parsing=np.ascontiguousarray(par[0, :, :h, :w], dtype=np.float32))
+
+    def run(self, image: np.ndarray, light: np.ndarray) -> EngineResult:
+        prepared = self.preprocess(image, light)
+        return self.postprocess(self.process(prepared), prepared)
+
+
+def new_session(model_path, providers=None, threads: int | None = None, spin: bool = True,
+                verify: bool = True) -> RelightSession:
+    """Load a model after checking its card and checksum. Raises ModelError / DependencyError."""
+    card = load_card(model_path)
+    if verify:
+        verify_checksum(card)
+    ort = _import_onnxruntime()
+    chosen = choose_providers(ort.get_available_providers(), providers)
+    try:
+        sess = ort.InferenceSession(str(card.onnx_path), sess_options=session_options(
+            ort, threads, spin), providers=chosen)
+    except Exception as err:  # onnxruntime raises its own untyped errors for bad files
+        raise ModelError(f"onnxruntime cannot load {card.onnx_path.name} ({err}). The file is "
+                         "damaged or made for a newer onnxruntime; reinstall the model.") from err
+    return RelightSession(sess, card, sess.get_providers())

@@ -1,0 +1,522 @@
+"""The per-clip pipeline: footage + one light vector per frame in, half-float EXR frames out.
+
+One function, ``relight_clip``, serves the modal operator (on_progress / should_cancel), the
+batch script and render-farm chunks (``frames``). Per frame:
+
+    decode -> linear (colour.py) -> / s -> area-resize to the working size -> network (light / k)
+    -> full-resolution transfer (detail.py) -> * s * k -> finite, half range -> EXR
+
+``s`` is one exposure scale per clip from fixed sample frames over the whole clip, so chunks and
+resumed runs agree bit for bit; ``k`` is the target light's mean radiance (k == 0: black frame,
+network not run). Decoding runs in a worker thread and writing in another while onnxruntime
+runs, so the three overlap.
+
+Outputs (i = 0-based clip frame index): relit/relit_{i:06d}.exr, matte/matte_{i:06d}.exr (optional),
+source_light/source_{i:06d}.npy, and relight_run.json (the run's identity). A frame is finished
+when its relit file exists: it is renamed into place last, after its matte and source light.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pathlib
+import queue
+import threading
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from . import colour, detail, engine, frames, lightvec, normalise
+from .errors import Cancelled, InputError, LightingError, OutputError
+from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
+
+RUN_FILE = "relight_run.json"
+RUN_FORMAT = "relight-run/1"
+
+
+@dataclass(frozen=True)
+class ClipSpec:
+    kind: str                  # 'movie' | 'images'
+    path: str                  # movie file; for 'images' the folder
+    files: tuple[str, ...]     # for 'images': ordered absolute file paths, one per source frame
+    first: int                 # 0-based index within the source of the first frame to relight
+    count: int                 # number of frames to relight
+    colorspace: str            # Blender colour-space name of the strip
+    fps: float
+
+
+@dataclass(frozen=True)
+class RelightOptions:
+    model_path: str            # the .onnx; its card is the same stem + '.json'
+    working_size: int | None = None   # network working resolution (long side); None = card
+    detail_transfer: bool = True
+    write_matte: bool = False
+    providers: tuple[str, ...] | None = None
+    threads: int | None = None
+    overwrite: bool = False    # replace another run's output in out_dir instead of refusing
+    exr_compression: str = "none"     # see frames.COMPRESSIONS; not part of the run identity
+
+
+@dataclass
+class RunResult:
+    out_dir: str
+    relit_files: list[str]
+    matte_files: list[str]
+    written: int
+    resumed: int
+    exposure_scale: float
+    warnings: list[str] = field(default_factory=list)
+
+
+def relit_path(out_dir, i) -> str:
+    return os.path.join(str(out_dir), "relit", f"relit_{int(i):06d}.exr")
+
+
+def matte_path(out_dir, i) -> str:
+    return os.path.join(str(out_dir), "matte", f"matte_{int(i):06d}.exr")
+
+
+def source_path(out_dir, i) -> str:
+    return os.path.join(str(out_dir), "source_light", f"source_{int(i):06d}.npy")
+
+
+class Log:
+    """Collects warnings (each once) and passes every message to the caller's ``log``."""
+
+    def __init__(self, sink=None):
+        self.sink = sink
+        self.warnings: list[str] = []
+
+    def info(self, msg: str) -> None:
+        if self.sink:
+            self.sink(msg)
+
+    def warn(self, msg: str) -> None:
+        if msg not in self.warnings:
+            self.warnings.append(msg)
+            self.info("Warning: " + msg)
+
+
+# ---- checks and identity ------------------------------------------------------------------
+
+def _check_clip(clip: ClipSpec) -> ClipInfo:
+    if clip.kind not in ("movie", "images"):
+        raise InputError(f"Unknown clip kind '{clip.kind}'; expected 'movie' or 'images'.")
+    if clip.count < 1 or clip.first < 0:
+        raise InputError(f"The clip range (first {clip.first}, {clip.count} frames) is empty or "
+                         "negative; check the strip's trim.")
+    if clip.kind == "images":
+        if not clip.files:
+            raise InputError("The image strip lists no files.")
+        frames.check_sequence(clip.files[clip.first:clip.first + clip.count])
+        info = probe_clip(list(clip.files[clip.first:clip.first + clip.count]))
+        total = len(clip.files)
+    else:
+        info = probe_clip(clip.path)
+        total = info.frame_count
+    if clip.first + clip.count > total:
+        raise InputError(f"The strip asks for source frames {clip.first}..{clip.first + clip.count - 1}"
+                         f" but the footage has {total}; the file is shorter than the strip.")
+    return info
+
+
+def _check_lights(lights, count: int) -> np.ndarray:
+    arr = np.asarray(lights)
+    if arr.ndim != 4 or arr.shape[1:] != lightvec.SHAPE or arr.shape[0] not in (1, count):
+        raise LightingError(f"Lights must have shape (1 or {count}, 16, 16, 3) for a clip of "
+                            f"{count} frames, got {arr.shape}.")
+    return np.stack([lightvec.validate(x, f"light vector of frame {i}")
+                     for i, x in enumerate(arr)])
+
+
+def _check_frames(frames_sel, count: int) -> list[int]:
+    sel = list(range(count)) if frames_sel is None else sorted(set(int(i) for i in frames_sel))
+    bad = [i for i in sel if not 0 <= i < count]
+    if bad:
+        raise InputError(f"Frames {bad[:5]} are outside the clip (0..{count - 1}).")
+    if not sel:
+        raise InputError("No frames to relight: the frame range is empty.")
+    return sel
+
+
+def _file_stamp(path) -> list:
+    st = os.stat(path)
+    return [os.path.abspath(path), st.st_size, st.st_mtime_ns]
+
+
+def _source_files(clip: ClipSpec) -> list[str]:
+    if clip.kind == "movie":
+        return [clip.path]
+    return list(clip.files[clip.first:clip.first + clip.count])
+
+
+def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,
+                 card: engine.ModelCard, working: int) -> dict:
+    """What makes two runs produce the same frames (the chunk and resume state do not)."""
+    src = hashlib.sha256(json.dumps([_file_stamp(f) for f in _source_files(clip)]).encode())
+    light_hash = hashlib.sha256(str(lights.shape).encode() + lights.tobytes()).hexdigest()
+    return {
+        "format": RUN_FORMAT,
+        "source": {"kind": clip.kind, "path": os.path.abspath(clip.path),
+                   "files_sha256": src.hexdigest()},
+        "range": {"first": clip.first, "count": clip.count},
+        "colorspace": clip.colorspace,
+        "lights_sha256": light_hash,
+        "model_sha256": card.sha256,
+        "settings": {"working_size": working, "detail_transfer": options.detail_transfer,
+                     "write_matte": options.write_matte},
+    }
+
+
+def _read_run(out_dir: str) -> dict | None:
+    p = os.path.join(out_dir, RUN_FILE)
+    if not os.path.isfile(p):
+        return None
+    try:
+        with open(p, encoding="utf-8") as f:
+            return json.load(f)
+    except (OSError, json.JSONDecodeError):
+        return {}  # unreadable: treated as another run
+
+
+def _atomic_write_text(path: str, text: str) -> None:
+    tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def _clear_outputs(out_dir: str) -> None:
+    """Remove a previous run's frames (only files this pipeline names; nothing else)."""
+    for sub, prefix, ext in (("relit", "relit_", ".exr"), ("matte", "matte_", ".exr"),
+                             ("source_light", "source_", ".npy")):
+        d = pathlib.Path(out_dir, sub)
+        if d.is_dir():
+            for p in d.iterdir():
+                if p.name.startswith(prefix) and p.name.endswith(ext):
+                    p.unlink()
+
+
+def _check_not_source(clip: ClipSpec, out_dir: str) -> None:
+    outs = {os.path.realpath(os.path.join(out_dir, s)) for s in ("relit", "matte",
+                                                                   "source_light")}
+    for f in _source_files(clip):
+        if os.path.realpath(os.path.dirname(f)) in outs or os.path.realpath(f) == os.path.realpath(
+                os.path.join(out_dir, RUN_FILE)):
+            raise OutputError(f"The output folder {out_dir} would write where the source footage "
+                              f"lives ({f}); choose another output folder.")
+
+
+def prepare_output(out_dir: str, identity: dict, overwrite: bool) -> dict | None:
+    """Create the folders; return the stored run record when resuming, else None. Refuses a
+    folder holding another run (or unknown relit frames) unless ``overwrite``."""
+    try:
+        for sub in ("relit", "matte", "source_light"):
+            os.makedirs(os.path.join(out_dir, sub), exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"Cannot create the output folder {out_dir} ({err}); choose a folder "
+                          "you can write to.") from err
+    if not os.access(out_dir, os.W_OK):
+        raise OutputError(f"The output folder {out_dir} is not writable; choose another.")
+    stored = _read_run(out_dir)
+    if stored is not None and stored.get("identity") == identity:
+        return stored
+    has_frames = any(pathlib.Path(out_dir, "relit").glob("relit_*.exr"))
+    if stored is None and not has_frames:
+        return None
+    if not overwrite:
+        what = "another relight run" if stored else "relit frames from an unknown run"
+        diff = ""
+        if stored and isinstance(stored.get("identity"), dict):
+            keys = [k for k in identity if stored["identity"].get(k) != identity[k]]
+            diff = f" (it differs in: {', '.join(keys)})"
+        raise OutputError(f"The output folder {out_dir} already holds {what}{diff}. Choose "
+                          "another folder, or enable Overwrite to replace it.")
+    _clear_outputs(out_dir)
+    return None
+
+
+# ---- per-frame stages (also timed one by one by bench/pipeline_1080p.py) --------------------
+
+@dataclass(frozen=True)
+class Plan:
+    """Everything a frame needs that is fixed for the run."""
+    space: colour.ColourSpace
+    scale: float               # s, exposure scale
+    size: tuple[int, int]      # full (width, height)
+    working: tuple[int, int]   # working (height, width)
+    detail_transfer: bool
+    write_matte: bool
+    compression: str
+
+
+def linearise(pixels: np.ndarray, plan: Plan) -> tuple[np.ndarray, int]:
+    """Code values -> exposure-normalised linear (H, W, 3); NaN/Inf/negative become 0.
+    Returns (image, number of values replaced)."""
+    lin = colour.to_linear(pixels, plan.space)
+    bad = 0
+    # Integer code values through a curve are finite and non-negative; floats and gamut
+    # matrices can give NaN, Inf or negatives.
+    if not np.issubdtype(pixels.dtype, np.integer) or plan.space.matrix is not None:
+        mask = ~np.isfinite(lin) | (lin < 0)
+        bad = int(np.count_nonzero(mask))
+        if bad:
+            lin[mask] = 0.0
+    lin *= np.float32(1.0 / plan.scale)
+    return lin, bad
+
+
+def shrink(x_full: np.ndarray, plan: Plan) -> np.ndarray:
+    return detail.resize(x_full, *plan.working)
+
+
+def infer(session: engine.RelightSession, x_low: np.ndarray, light: np.ndarray):
+    """(relit_low, source_light, foreground, k) in normalised units; k == 0: nothing run."""
+    light_n, k = normalise.normalise_light(light)
+    if k <= 0:
+        return None, np.zeros(lightvec.SHAPE, np.float32), None, 0.0
+    res = session.run(x_low, light_n)
+    fg = res.parsing[session.card.foreground_channel]
+    return res.relit, res.source_light, fg, k
+
+
+def finish(x_full: np.ndarray, x_low: np.ndarray, relit_low, k: float, plan: Plan) -> np.ndarray:
+    """Full-resolution relit image in scene-linear units (may hold non-finite values; the writer
+    makes them finite)."""
+    h, w = x_full.shape[:2]
+    if relit_low is None:
+        return np.zeros((h, w, 3), np.float32)
+    if plan.detail_transfer:
+        out = detail.transfer(x_full, x_low, relit_low)
+    else:
+        out = detail.upsample_only(relit_low, h, w)
+    out *= np.float32(plan.scale * k)
+    return out
+
+
+def matte_full(fg, plan: Plan) -> np.ndarray:
+    w, h = plan.size
+    if fg is None:
+        return np.zeros((h, w), np.float32)
+    m = detail.resize(np.nan_to_num(fg)[..., None], h, w)[..., 0]
+    return np.clip(m, 0.0, 1.0)
+
+
+def _save_npy(path: str, arr: np.ndarray) -> None:
+    tmp = f"{path}.{os.getpid()}.partial"
+    with open(tmp, "wb") as f:
+        np.save(f, arr)
+    os.replace(tmp, path)
+
+
+def write_frame(out_dir: str, i: int, relit: np.ndarray, matte, source: np.ndarray,
+                plan: Plan) -> int:
+    """Write one frame's files, relit last. Returns the number of relit values clamped."""
+    _save_npy(source_path(out_dir, i), np.nan_to_num(source).astype(np.float32))
+    if plan.write_matte:
+        frames.write_exr(matte_path(out_dir, i), matte, plan.compression)
+    return frames.write_exr(relit_path(out_dir, i), relit, plan.compression)
+
+
+# ---- exposure -----------------------------------------------------------------------------
+
+def clip_exposure(clip: ClipSpec, plan: Plan) -> float:
+    """s from normalise.sample_frame_indices over the whole clip (never the chunk)."""
+    idx = normalise.sample_frame_indices(clip.count)
+    probe = Plan(plan.space, 1.0, plan.size, plan.working, False, False, plan.compression)
+    lows = [shrink(linearise(d.pixels, probe)[0], probe)
+            for d in frames.iter_frames(clip.kind, clip.path, clip.files,
+                                        [clip.first + i for i in idx], plan.size)]
+    return normalise.exposure_scale(lows)
+
+
+# ---- the run ------------------------------------------------------------------------------
+
+_DONE = object()
+
+
+class _Worker(threading.Thread):
+    """A thread that runs ``fn`` and keeps its exception for the main thread to raise."""
+
+    def __init__(self, fn, name):
+        super().__init__(name=name, daemon=True)
+        self.fn, self.error = fn, None
+
+    def run(self):
+        try:
+            self.fn()
+        except BaseException as err:  # re-raised in the main thread by _raise_if_failed
+            self.error = err
+
+
+def _raise_if_failed(*workers):
+    for w in workers:
+        if w.error is not None:
+            raise w.error
+
+
+def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: RelightOptions,
+                 frames: range | None = None, on_progress=None, should_cancel=None,
+                 log=None) -> RunResult:
+    """Relight ``frames`` (0-based clip indices; None = all) of ``clip`` into ``out_dir``.
+
+    Raises InputError / LightingError / ModelError / OutputError with a message for the user,
+    and Cancelled when ``should_cancel()`` turns true (finished frames are kept; run again to
+    resume)."""
+    out = Log(log)
+    out_dir = str(out_dir)
+    info = _check_clip(clip)
+    lights = _check_lights(lights, clip.count)
+    selected = _check_frames(frames, clip.count)
+    space = colour.lookup(clip.colorspace)
+    if space.is_data:
+        out.warn(f"The strip's colour space is {clip.colorspace}; its values are relit as if "
+                 "they were linear light.")
+    if info.has_alpha:
+        out.warn("The footage has an alpha channel; it is ignored (the relit frames are "
+                 "opaque).")
+    if info.channels in (1, 2):
+        out.warn("The footage is greyscale; it is relit as grey RGB.")
+    session = engine.new_session(options.model_path, options.providers, options.threads)
+    working = int(options.working_size or session.card.working_size)
+    if working < 1:
+        raise InputError(f"The working size must be positive, got {working}.")
+    _check_not_source(clip, out_dir)
+    identity = run_identity(clip, lights, options, session.card, working)
+    stored = prepare_output(out_dir, identity, options.overwrite)
+    plan = Plan(space, 1.0, (info.width, info.height),
+                detail.working_shape(info.height, info.width, working),
+                options.detail_transfer, options.write_matte, options.exr_compression)
+    if stored is not None:
+        scale = float(stored["exposure_scale"])
+    else:
+        scale = clip_exposure(clip, plan)
+        _atomic_write_text(os.path.join(out_dir, RUN_FILE), json.dumps(
+            {"identity": identity, "exposure_scale": scale, "model": session.card.name,
+             "providers": session.providers}, indent=2))
+    plan = Plan(space, scale, plan.size, plan.working, plan.detail_transfer, plan.write_matte,
+                plan.compression)
+    out.info(f"Relighting {len(selected)} frames at {plan.working[1]}x{plan.working[0]} with "
+             f"{session.card.name} on {session.providers[0]}; exposure scale {scale:.6g}.")
+
+    todo = [i for i in selected if not os.path.isfile(relit_path(out_dir, i))]
+    resumed = len(selected) - len(todo)
+    if resumed:
+        out.info(f"Resuming: {resumed} of {len(selected)} frames are already done.")
+    written = _run_frames(clip, lights, out_dir, plan, session, todo, resumed, len(selected),
+                          on_progress, should_cancel, out)
+    return RunResult(out_dir, [relit_path(out_dir, i) for i in selected],
+                     [matte_path(out_dir, i) for i in selected] if options.write_matte else [],
+                     written, resumed, scale, out.warnings)
+
+
+def _run_frames(clip, lights, out_dir, plan, session, todo, resumed, total, on_progress,
+                should_cancel, out: Log) -> int:
+    stop = threading.Event()
+    decoded: queue.Queue = queue.Queue(maxsize=2)
+    results: queue.Queue = queue.Queue(maxsize=2)
+    counts = {"bad_in": 0, "clamped": 0, "written": 0}
+
+    def produce():
+        try:
+            for d in frames.iter_frames(clip.kind, clip.path, clip.files,
+                                        [clip.first + i for i in todo], plan.size):
+                if stop.is_set():
+                    return
+                x_full, bad = linearise(d.pixels, plan)
+                counts["bad_in"] += bad
+                _put(decoded, (d.index - clip.first, x_full, shrink(x_full, plan)), stop)
+        finally:
+            _put(decoded, _DONE, stop, force=True)
+
+    def consume():
+        while True:
+            item = results.get()
+            if item is _DONE:
+                return
+            i, relit, matte, source = item
+            counts["clamped"] += write_frame(out_dir, i, relit, matte, source, plan)
+            counts["written"] += 1
+
+    reported = [-1]
+
+    def progress():  # called from this (the caller's) thread only, once per new count
+        done = resumed + counts["written"]
+        if on_progress and done != reported[0]:
+            reported[0] = done
+            on_progress(done, total, f"{done} of {total} frames")
+
+    reader, writer = _Worker(produce, "relight-decode"), _Worker(consume, "relight-write")
+    reader.start()
+    writer.start()
+    cancelled = False
+    try:
+        while True:
+            progress()
+            if should_cancel and should_cancel():
+                cancelled = True
+                break
+            item = _get(decoded, reader)
+            if item is _DONE:
+                break
+            i, x_full, x_low = item
+            relit_low, source, fg, k = infer(session, x_low, lights[min(i, len(lights) - 1)])
+            relit = finish(x_full, x_low, relit_low, k, plan)
+            matte = matte_full(fg, plan) if plan.write_matte else None
+            _put(results, (i, relit, matte, source * np.float32(plan.scale)), stop,
+                 alive=writer)
+            _raise_if_failed(writer)
+    finally:
+        stop.set()
+        _drain(decoded)
+        _put(results, _DONE, threading.Event(), alive=writer)
+        writer.join()
+        reader.join(timeout=10)
+    _raise_if_failed(reader, writer)
+    progress()
+    if counts["bad_in"]:
+        out.warn(f"{counts['bad_in']} input values were NaN, infinite or negative and were "
+                 "treated as 0.")
+    if counts["clamped"]:
+        out.warn(f"{counts['clamped']} output values exceeded the half-float range (65504) or "
+                 "were not finite, and were clamped; lower the light or the exposure.")
+    if cancelled:
+        raise Cancelled(f"Cancelled after {resumed + counts['written']} of {total} frames; the "
+                        "finished frames are kept, run again to resume.")
+    return counts["written"]
+
+
+def _put(q: queue.Queue, item, stop: threading.Event, force=False, alive=None) -> None:
+    """Put with a timeout loop, giving up when ``stop`` is set (unless ``force``: then make
+    room by dropping what nobody will read) or when the ``alive`` consumer has died."""
+    while True:
+        if stop.is_set() and not force:
+            return
+        if alive is not None and not alive.is_alive():
+            return
+        try:
+            q.put(item, timeout=0.1)
+            return
+        except queue.Full:
+            if force and stop.is_set():
+                _drain(q)
+
+
+def _get(q: queue.Queue, producer: _Worker):
+    while True:
+        try:
+            return q.get(timeout=0.1)
+        except queue.Empty:
+            if not producer.is_alive() and q.empty():
+                _raise_if_failed(producer)
+                return _DONE
+
+
+def _drain(q: queue.Queue) -> None:
+    try:
+        while True:
+            q.get_nowait()
+    except queue.Empty:
+        pass
