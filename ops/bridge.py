@@ -132,7 +132,7 @@ def choose_model(context, preset: str, override_dir: str = "") -> ModelCard:
     for card in cards:
         if card.preset == preset:
             return card
-    if preset in ("", "NONE"):
+    if not preset:
         return cards[0]
     raise ModelError(f"No model for the quality preset '{preset}' in {folder}; available: "
                      f"{', '.join(c.preset for c in cards)}.")
@@ -190,14 +190,14 @@ def clip_spec(strip, scene):
     colorspace = strip.colorspace_settings.name
     if strip.type == 'MOVIE':
         path = bpy.path.abspath(strip.filepath)
-        return ClipSpec(kind="movie", path=path, files=None, first=first, count=count,
+        return ClipSpec(kind="movie", path=path, files=(), first=first, count=count,
                         colorspace=colorspace, fps=float(strip.fps))
     files = image_files(strip)
     if first + count > len(files):
         raise InputError(f"The strip '{strip.name}' shows {first + count - len(files)} frames "
                          "past the end of its image sequence; trim it to the images it has.")
     fps = scene.render.fps / scene.render.fps_base
-    return ClipSpec(kind="images", path=str(pathlib.Path(files[0]).parent), files=files,
+    return ClipSpec(kind="images", path=str(pathlib.Path(files[0]).parent), files=tuple(files),
                     first=first, count=count, colorspace=colorspace, fps=float(fps))
 
 

@@ -20,24 +20,24 @@ RELIT_SUFFIX = " relit"
 MATTE_SUFFIX = " matte"
 
 
-def schedule_lights(context, job: bridge.Job) -> np.ndarray:
-    """(F, 16, 16, 3) target light per frame of ``job`` (one per scene frame, even if static)."""
+def schedule_lights(context, job: bridge.Job):
+    """(lights, warnings): the target light of every visible frame of the strip, or one light
+    when the lighting is static. Always the whole strip, even for a farm chunk: the pipeline
+    indexes lights by clip frame, and every chunk must describe the same run."""
     from . import scene_light
 
-    schedule = scene_light.light_schedule(context.scene, list(job.scene_frames), **job.light_args)
-    lights = np.asarray(schedule.lights, dtype=np.float32)
-    if lights.shape[0] == 1 and len(job.scene_frames) > 1:
-        lights = np.broadcast_to(lights, (len(job.scene_frames),) + lights.shape[1:])
-    return lights, list(getattr(schedule, "warnings", ()))
+    frames = range(job.frame_start, job.frame_start + job.frame_count)
+    schedule = scene_light.light_schedule(context.scene, frames, **job.light_args)
+    return np.asarray(schedule.lights, dtype=np.float32), list(schedule.warnings)
 
 
-def run_pipeline(job: bridge.Job, lights, on_progress=None, should_cancel=None):
+def run_pipeline(job: bridge.Job, lights, on_progress=None, should_cancel=None, log=None):
     """The Blender-free part of a run (safe on a worker thread)."""
     from ..addon import pipeline
 
     return pipeline.relight_clip(job.clip, lights, job.out_dir, job.options,
                                  frames=list(job.clip_frames), on_progress=on_progress,
-                                 should_cancel=should_cancel)
+                                 should_cancel=should_cancel, log=log)
 
 
 def add_image_strip(scene, name: str, files: list[pathlib.Path], channel: int, frame_start: int,
@@ -135,7 +135,7 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
         started = time.perf_counter()
         try:
             job, lights, warnings = self._prepare(context)
-            result = run_pipeline(job, lights, on_progress=_print_progress)
+            result = run_pipeline(job, lights, on_progress=_print_progress, log=_print_log)
             self._finish(context, job, result, warnings, time.perf_counter() - started)
         except RelightError as err:
             self.report({'ERROR'}, str(err))
@@ -215,8 +215,17 @@ class _WorkerState:
 
 
 def _print_progress(done, total=None, *_):
-    if total:
+    # The pipeline reports before every frame; print each change once.
+    if total and _print_progress.last != (done, total):
+        _print_progress.last = (done, total)
         print(f"relight: {done}/{total} frames ({100.0 * done / total:.0f}%)", flush=True)
+
+
+_print_progress.last = None
+
+
+def _print_log(message: str) -> None:
+    print(f"relight: {message}", flush=True)
 
 
 classes = (RELIGHT_OT_relight_strip,)

@@ -69,9 +69,10 @@ class RELIGHT_PT_sequencer(bpy.types.Panel):
         else:
             box.prop(settings, "preset", text="")
             col = box.column(align=True)
+            chosen = settings.preset or cards[0].preset
             for card in cards:
                 col.label(text=f"{card.preset}: {card.summary}",
-                          icon='CHECKMARK' if card.preset == settings.preset else 'BLANK1')
+                          icon="CHECKMARK" if card.preset == chosen else "BLANK1")
         for problem in problems[:3]:
             box.label(text=problem[:90], icon='ERROR')
         box.prop(settings, "detail_transfer")

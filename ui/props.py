@@ -25,12 +25,9 @@ def _builtin_items(self, context):
     return _enum_cache["builtin"]
 
 
-def _preset_items(self, context):
+def _preset_search(self, context, edit_text):
     cards = bridge.model_cards(bridge.models_dir(context))
-    items = [(c.preset, c.preset.title(), f"{c.name}: {c.summary}") for c in cards]
-    _enum_cache["preset"] = items or [("NONE", "No model installed",
-                                       "Put a model (.onnx with its .json card) in the models folder")]
-    return _enum_cache["preset"]
+    return [(c.preset, c.summary) for c in cards if edit_text.lower() in c.preset.lower()]
 
 
 def _is_camera(self, obj):
@@ -53,8 +50,11 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
                             description="Defines the light frame; empty uses the scene camera")
     subject_radius: FloatProperty(name="Subject Radius", default=0.15, min=0.01, soft_max=2.0,
                                   unit='LENGTH', description="Size of the head, for near lamps")
-    preset: EnumProperty(name="Quality", items=_preset_items,
-                         description="Model preset: each trades accuracy for time")
+    # A name, not an enum: the models folder may change between sessions and machines (a farm),
+    # and a saved enum index would then silently point at another model.
+    preset: StringProperty(name="Quality", default="", search=_preset_search,
+                           description="Model preset, each trading accuracy for time; "
+                                       "empty uses the fastest installed model")
     output_dir: StringProperty(name="Output", subtype='DIR_PATH', default="//relit/",
                                description="Folder for the relit EXR frames (one sub-folder per strip)")
     write_matte: BoolProperty(name="Matte Strip", default=False,
@@ -66,8 +66,8 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
                             description="Replace an earlier run's frames instead of resuming it")
     use_frame_range: BoolProperty(name="Frame Range", default=False,
                                   description="Relight only these scene frames (render farm chunks)")
-    frame_start: IntProperty(name="Start", default=1, min=0)
-    frame_end: IntProperty(name="End", default=250, min=0)
+    frame_start: IntProperty(name="Start", default=1)
+    frame_end: IntProperty(name="End", default=250)
 
 
 classes = (RELIGHT_PG_settings,)

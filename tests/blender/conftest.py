@@ -88,3 +88,37 @@ def write_movie(path: pathlib.Path, count: int = 8, size=(64, 64), fps: int = 25
         for packet in stream.encode():
             container.mux(packet)
     return path
+
+
+@pytest.fixture(scope="session")
+def toy_models(tmp_path_factory) -> pathlib.Path:
+    """A models folder holding the toy ONNX model of tests/onnx_fixtures.py and its card."""
+    from onnx_fixtures import write_toy_model
+
+    folder = tmp_path_factory.mktemp("models")
+    write_toy_model(folder)
+    return folder
+
+
+def write_hdri(path: pathlib.Path, size=(32, 64), sun=(4, 40)) -> pathlib.Path:
+    """A small equirectangular EXR: dim uniform sky plus one bright texel (a sun)."""
+    import OpenEXR
+
+    rgb = np.full(size + (3,), 0.2, np.float32)
+    rgb[sun] = 50.0
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, {"RGB": rgb}) as f:
+        f.write(str(path))
+    return path
+
+
+def footage_scene(tmp_path: pathlib.Path, count: int = 8, frame_start: int = 1):
+    """An empty file with one imported 64x64 PNG strip, lit by a small HDRI file, writing into
+    tmp_path/out; returns the strip."""
+    files = write_png_sequence(tmp_path / "footage", count=count)
+    bpy.ops.relight.import_footage(filepath=str(files[0]), frame_start=frame_start)
+    settings = bpy.context.scene.relight
+    settings.light_source = 'HDRI_FILE'
+    settings.hdri_path = str(write_hdri(tmp_path / "sky.exr"))
+    settings.output_dir = str(tmp_path / "out") + "/"
+    return bpy.context.scene.sequence_editor.active_strip

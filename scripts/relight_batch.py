@@ -1,0 +1,213 @@
+"""Relight a strip headless: on a workstation, in CI, or as one chunk of a render-farm job.
+
+    blender -b scene.blend -P scripts/relight_batch.py -- --strip NAME \\
+        [--hdri PATH | --scene-lights | --studio NAME] [--preset P] [--out DIR] [--frames A-B]
+    python scripts/relight_batch.py [scene.blend] --strip NAME ...      (the bpy module)
+    python scripts/relight_batch.py --demo                              (the built-in demo clip)
+
+Without a lighting option the lighting set in the .blend's Relight panel is used. --frames takes
+scene frames; outputs do not depend on how a clip is split, so chunks may run anywhere, in any
+order, at the same time. Exit status: 0 done; 1 a problem with the input, model or output (the
+message says what to do); 2 bad arguments; 3 an unexpected error (rerun with --debug).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import pathlib
+import re
+import sys
+import time
+
+EXT_ID = "portrait_relight"
+HERE = pathlib.Path(__file__).resolve().parent
+DEMO_STUDIO = "sunset"  # the demo's lighting: one of Blender's bundled studio HDRIs
+
+
+class BatchError(Exception):
+    """A failure with a message for the user (exit status 1)."""
+
+
+def script_args(argv: list[str]) -> list[str]:
+    """The script's own arguments: after "--" under Blender, else everything after argv[0]."""
+    return argv[argv.index("--") + 1:] if "--" in argv else argv[1:]
+
+
+def frame_range(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(-?\d+)\s*(?:-\s*(-?\d+)\s*)?", text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a frame range like 1-250")
+    start = int(m.group(1))
+    end = int(m.group(2)) if m.group(2) is not None else start
+    if end < start:
+        raise argparse.ArgumentTypeError(f"the frame range {text} ends before it starts")
+    return start, end
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="relight_batch", description=__doc__.split("\n\n")[0])
+    p.add_argument("blend", nargs="?", help="the .blend file to open (with the bpy module)")
+    p.add_argument("--strip", help="name of the movie or image strip to relight")
+    p.add_argument("--demo", action="store_true", help="relight the built-in demo clip")
+    light = p.add_mutually_exclusive_group()
+    light.add_argument("--hdri", metavar="PATH", help="light with this equirectangular HDRI")
+    light.add_argument("--scene-lights", action="store_true", help="light with the scene's lamps")
+    light.add_argument("--world", action="store_true", help="light with the scene's world HDRI")
+    light.add_argument("--studio", metavar="NAME", help="light with a bundled studio HDRI")
+    p.add_argument("--rotation", type=float, metavar="DEG", help="turn the lighting (degrees)")
+    p.add_argument("--exposure", type=float, metavar="EV", help="scale the lighting by 2^EV")
+    p.add_argument("--preset", help="quality preset (model) to use")
+    p.add_argument("--models", metavar="DIR", help="folder of models (default: preferences)")
+    p.add_argument("--out", metavar="DIR", help="output folder (default: the .blend's setting)")
+    p.add_argument("--frames", type=frame_range, metavar="A-B", help="scene frames to relight")
+    p.add_argument("--matte", action="store_true", help="also write the portrait matte")
+    p.add_argument("--overwrite", action="store_true", help="redo frames an earlier run made")
+    p.add_argument("--save", action="store_true", help="save the .blend with the relit strip")
+    p.add_argument("--debug", action="store_true", help="show tracebacks of unexpected errors")
+    args = p.parse_args(argv)
+    if bool(args.strip) == bool(args.demo):
+        p.error("give either --strip NAME or --demo")
+    return args
+
+
+def load_extension():
+    """The extension package: the installed, enabled copy if there is one, else the extension
+    folder that holds this script (loaded under its id, as Blender would; no sys.path edits)."""
+    import bpy
+
+    for name in bpy.context.preferences.addons.keys():
+        if name == EXT_ID or name.endswith("." + EXT_ID):
+            return importlib.import_module(name)
+    if EXT_ID in sys.modules:
+        return sys.modules[EXT_ID]
+    root = HERE.parent
+    if not (root / "blender_manifest.toml").is_file():
+        raise BatchError(f"The Portrait Relight extension is not enabled, and {root} is not the "
+                         "extension folder. Install and enable the extension, or run this script "
+                         "from the extension's own scripts/ folder.")
+    spec = importlib.util.spec_from_file_location(
+        EXT_ID, root / "__init__.py", submodule_search_locations=[str(root)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[EXT_ID] = module
+    spec.loader.exec_module(module)
+    module.register()
+    return module
+
+
+def open_blend(path: str) -> None:
+    import bpy
+
+    blend = pathlib.Path(path).resolve()
+    if not blend.is_file():
+        raise BatchError(f"The .blend file {blend} does not exist.")
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+
+
+def demo_frames() -> pathlib.Path:
+    """The first frame of the built-in demo clip (a synthetic portrait made by the project)."""
+    folder = HERE.parent / "demo"
+    frames = sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".png", ".exr")
+                    and re.search(r"\d+$", p.stem)) if folder.is_dir() else []
+    if not frames:
+        raise BatchError(f"The demo clip is missing: {folder} holds no numbered PNG or EXR frames. "
+                         "It is made by the project's demo script (see README.md).")
+    return frames[0]
+
+
+def set_up_demo(args) -> str:
+    import bpy
+
+    bpy.ops.wm.read_homefile(use_empty=True)
+    call(bpy.ops.relight.import_footage, filepath=str(demo_frames()), frame_start=1)
+    if not (args.hdri or args.scene_lights or args.world or args.studio):
+        args.studio = DEMO_STUDIO
+    if args.out is None:
+        args.out = str(HERE.parent / "out" / "demo")
+    return bpy.context.scene.sequence_editor.active_strip.name
+
+
+def apply_settings(scene, args) -> None:
+    import math
+
+    s = scene.relight
+    if args.hdri:
+        s.light_source, s.hdri_path = 'HDRI_FILE', str(pathlib.Path(args.hdri).resolve())
+    elif args.scene_lights:
+        s.light_source = 'LAMPS'
+    elif args.world:
+        s.light_source = 'WORLD'
+    elif args.studio:
+        s.light_source = 'BUILTIN'
+        try:
+            s.builtin_hdri = args.studio
+        except TypeError:
+            raise BatchError(f"There is no studio HDRI named '{args.studio}'.") from None
+    if args.rotation is not None:
+        s.rotation = math.radians(args.rotation)
+    if args.exposure is not None:
+        s.exposure = args.exposure
+    if args.preset:
+        s.preset = args.preset
+    if args.out:
+        s.output_dir = str(pathlib.Path(args.out).resolve()) + "/"
+    s.use_frame_range = args.frames is not None
+    if args.frames:
+        s.frame_start, s.frame_end = args.frames
+    s.write_matte = args.matte or s.write_matte
+    s.overwrite = args.overwrite
+
+
+def call(op, **kwargs) -> None:
+    """Run an operator; its error report becomes a BatchError with the operator's message."""
+    try:
+        op(**kwargs)
+    except RuntimeError as err:
+        raise BatchError(re.sub(r"^Error:\s*", "", str(err).strip())) from None
+
+
+def run(args) -> None:
+    import bpy
+
+    if args.blend:
+        open_blend(args.blend)
+    load_extension()
+    strip = set_up_demo(args) if args.demo else args.strip
+    if args.models:
+        args.models = str(pathlib.Path(args.models).resolve())
+    apply_settings(bpy.context.scene, args)
+    started = time.perf_counter()
+    call(bpy.ops.relight.relight_strip, strip=strip, models_dir=args.models or "")
+    print(f"relight_batch: done in {time.perf_counter() - started:.1f} s; frames are in "
+          f"{bpy.path.abspath(bpy.context.scene.relight.output_dir)}", flush=True)
+    if args.save:
+        if not bpy.data.filepath:
+            raise BatchError("--save needs a .blend file to save into; open one first.")
+        bpy.ops.wm.save_mainfile()
+
+
+def main(argv=None) -> int:
+    args = parse_args(script_args(sys.argv if argv is None else argv))
+    try:
+        import bpy  # noqa: F401  (Blender, or the bpy module)
+    except ImportError:
+        print("relight_batch: error: needs Blender (blender -b -P ...) or the bpy module "
+              "(pip install bpy)", file=sys.stderr)
+        return 1
+    try:
+        run(args)
+    except BatchError as err:
+        print(f"relight_batch: error: {err}", file=sys.stderr)
+        return 1
+    except Exception as err:  # noqa: BLE001 - the last line of defence: one clear line
+        if args.debug:
+            raise
+        print(f"relight_batch: unexpected error ({type(err).__name__}: {err}); rerun with "
+              "--debug for the traceback and report it", file=sys.stderr)
+        return 3
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
