@@ -1,0 +1,113 @@
+"""scripts/relight_batch.py as a subprocess with plain python on the bpy module: farm chunks,
+a real kill half-way, and clear failures."""
+
+import hashlib
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+
+import bpy
+import pytest
+
+from conftest import ROOT, footage_scene
+
+SCRIPT = ROOT / "scripts" / "relight_batch.py"
+
+
+def save_scene(tmp_path, count=8):
+    strip = footage_scene(tmp_path, count=count, frame_start=1)
+    blend = tmp_path / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    return blend, strip.name
+
+
+def batch_cmd(blend, strip, toy_models, out, *extra):
+    return [sys.executable, str(SCRIPT), str(blend), "--strip", strip, "--models",
+            str(toy_models), "--out", str(out), *extra]
+
+
+def run(cmd, **kw):
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT, **kw)
+
+
+def relit_digests(out, strip):
+    folder = pathlib.Path(out) / strip / "relit"
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir())}
+
+
+def test_two_concurrent_chunks_equal_one_run(extension, toy_models, tmp_path):
+    blend, strip = save_scene(tmp_path, count=8)
+    whole = run(batch_cmd(blend, strip, toy_models, tmp_path / "whole"))
+    assert whole.returncode == 0, whole.stderr
+    assert "8/8 frames" in whole.stdout
+    chunks = [subprocess.Popen(batch_cmd(blend, strip, toy_models, tmp_path / "chunked",
+                                         "--frames", frames),
+                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+              for frames in ("1-4", "5-8")]
+    for p in chunks:
+        out, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err
+    expected = relit_digests(tmp_path / "whole", strip)
+    assert len(expected) == 8
+    assert relit_digests(tmp_path / "chunked", strip) == expected
+
+
+def test_killed_run_resumes_to_identical_output(extension, toy_models, tmp_path):
+    blend, strip = save_scene(tmp_path, count=24)
+    whole = run(batch_cmd(blend, strip, toy_models, tmp_path / "whole"))
+    assert whole.returncode == 0, whole.stderr
+    killed = subprocess.Popen(batch_cmd(blend, strip, toy_models, tmp_path / "killed"),
+                              cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                              text=True)
+    for line in killed.stdout:
+        if "relight: 2/24 frames" in line:
+            os.kill(killed.pid, signal.SIGKILL)    # a real kill, mid-run, no clean-up
+            break
+    killed.wait(timeout=60)
+    assert killed.returncode == -signal.SIGKILL
+    partial = relit_digests(tmp_path / "killed", strip)
+    assert 2 <= len(partial) < 24, "the kill must land half-way for this test to mean anything"
+    resumed = run(batch_cmd(blend, strip, toy_models, tmp_path / "killed"))
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resumed" in resumed.stdout.lower()
+    assert relit_digests(tmp_path / "killed", strip) == relit_digests(tmp_path / "whole", strip)
+    leftovers = [p.name for p in (tmp_path / "killed").rglob("*") if p.name.endswith(".partial")]
+    assert leftovers == [] or all(".exr" in n or ".npy" in n for n in leftovers)
+
+
+@pytest.mark.parametrize("args,code,message", [
+    (["{blend}", "--strip", "Nope", "--models", "{models}"], 1, "no strip named 'Nope'"),
+    (["{blend}", "--strip", "x", "--frames", "9-1"], 2, "ends before it starts"),
+    (["{blend}", "--demo", "--strip", "x"], 2, "either --strip NAME or --demo"),
+    (["{tmp}/missing.blend", "--strip", "x"], 1, "does not exist"),
+    (["{blend}", "--strip", "{strip}", "--models", "{models}", "--preset", "ultra"], 1,
+     "No model for the quality preset 'ultra'"),
+    (["{blend}", "--strip", "{strip}", "--models", "{tmp}/empty"], 1,
+     "No relighting model is installed"),
+    (["{blend}", "--strip", "{strip}", "--models", "{models}", "--hdri", "{tmp}/no.exr"], 1,
+     "no.exr"),
+])
+def test_failures_exit_non_zero_with_a_message(extension, toy_models, tmp_path, args, code,
+                                               message):
+    blend, strip = save_scene(tmp_path, count=2)
+    names = dict(blend=blend, strip=strip, models=toy_models, tmp=tmp_path)
+    done = run([sys.executable, str(SCRIPT), *(a.format(**names) for a in args)])
+    assert done.returncode == code, done.stdout + done.stderr
+    assert message in done.stderr
+    assert "Traceback" not in done.stderr
+    assert not list(tmp_path.glob("**/relit_*.exr"))
+
+
+def test_blender_style_arguments_after_double_dash():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("relight_batch", SCRIPT)
+    batch = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(batch)
+    argv = ["blender", "-b", "shot.blend", "-P", "relight_batch.py", "--", "--strip", "A",
+            "--frames", "10-20"]
+    args = batch.parse_args(batch.script_args(argv))
+    assert (args.strip, args.frames, args.blend) == ("A", (10, 20), None)
+    assert batch.script_args(["relight_batch.py", "s.blend", "--demo"]) == ["s.blend", "--demo"]
