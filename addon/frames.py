@@ -392,7 +392,7 @@ def write_exr(path, pixels: np.ndarray, compression: str = "none") -> int:
         with OpenEXR.File(header, channels) as f:
             f.write(tmp)
         os.replace(tmp, path)
-    except OSError as err:
+    except (OSError, RuntimeError) as err:  # OpenEXR reports I/O failures as RuntimeError
         _remove_quietly(tmp)
         raise OutputError(f"Cannot write {path} ({err}); check the output folder is writable "
                           "and the disk has space.") from err

@@ -1,0 +1,108 @@
+"""Full-resolution transfer, measured against a synthetic ground truth.
+
+The scene: a textured albedo (pixel-level texture the working resolution cannot see) with a
+sharp-edged disc, lit by a smooth gradient; the target lighting is another gradient that also
+changes exactly at the disc's edge. The "network" is perfect at the working resolution (the
+area-averaged ground truth), so every error below is the transfer's own."""
+
+import numpy as np
+import pytest
+
+from addon import detail
+
+
+def scene(h=192, w=256, seed=0):
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32) / max(h, w)
+    tex = 0.6 + 0.3 * rng.random((h, w, 1)).astype(np.float32)
+    disc = ((x - 0.5) ** 2 + (y - 0.4) ** 2 < 0.09)[..., None]
+    albedo = np.where(disc, np.float32([0.8, 0.55, 0.45]), np.float32([0.1, 0.3, 0.2])) * tex
+    shade_in = (0.3 + 0.7 * x)[..., None] * np.ones(3, np.float32)
+    shade_out = (1.2 - 0.9 * x)[..., None] * np.float32([1.0, 0.9, 1.1]) * np.where(disc, 1, 0.25)
+    return (albedo * shade_in).astype(np.float32), (albedo * shade_out).astype(np.float32)
+
+
+def rel_rmse(a, b):
+    return float(np.sqrt(np.mean((a - b) ** 2)) / np.sqrt(np.mean(b ** 2)))
+
+
+def low(inp, truth, factor):
+    h, w = inp.shape[0] // factor, inp.shape[1] // factor
+    return detail.resize(inp, h, w), detail.resize(truth, h, w)
+
+
+@pytest.mark.parametrize("factor,bound", [(2, 0.025), (4, 0.04)])
+def test_transfer_beats_the_alternatives(factor, bound):
+    inp, truth = scene()
+    il, rl = low(inp, truth, factor)
+    h, w = inp.shape[:2]
+    guided = rel_rmse(detail.transfer(inp, il, rl), truth)
+    plain = rel_rmse(detail.upsample_only(rl, h, w), truth)
+    ratio = rel_rmse(detail.ratio_transfer(inp, il, rl), truth)
+    assert guided < bound
+    # measured: x2 1.8% (ratio 5.9%, plain 12.5%); x4 3.4% (ratio 6.8%, plain 15.2%)
+    assert guided < 0.6 * ratio and guided < 0.25 * plain
+
+
+def test_no_halo_at_a_lighting_edge():
+    # 1-D step: the light changes exactly where the albedo does. Overshoot past the truth's
+    # range would be a halo.
+    w = 128
+    albedo = np.where(np.arange(w) < 61, 0.2, 0.8).astype(np.float32)
+    inp = np.repeat(np.tile(albedo[None, :, None], (16, 1, 3)), 1, axis=0)
+    light_out = np.where(np.arange(w) < 61, 3.0, 0.5).astype(np.float32)
+    truth = inp * light_out[None, :, None]
+    il, rl = low(inp, truth, 4)
+    out = detail.transfer(inp, il, rl)
+    assert out.min() >= truth.min() - 0.02 and out.max() <= truth.max() + 0.02
+    far = np.r_[0:52, 70:w]  # away from the edge's own low-res pixel, the result is exact
+    np.testing.assert_allclose(out[:, far], truth[:, far], rtol=0.02)
+
+
+def test_dark_noisy_pixels_do_not_blow_up():
+    rng = np.random.default_rng(3)
+    h, w = 64, 96
+    inp = np.abs(rng.normal(0.0, 1e-4, (h, w, 3))).astype(np.float32)  # near-black, noisy
+    truth = np.full((h, w, 3), 0.5, np.float32)  # a new light fills the shadow
+    il, rl = low(inp, truth, 4)
+    out = detail.transfer(inp, il, rl)
+    assert np.all(np.isfinite(out))
+    assert abs(out.mean() - 0.5) < 0.01 and out.max() < 0.6 and out.min() > 0.4
+
+
+def test_non_finite_low_res_values_do_not_spread():
+    inp, truth = scene(64, 64)
+    il, rl = low(inp, truth, 2)
+    rl[3, 3] = np.nan
+    out = detail.transfer(inp, il, rl)
+    assert np.all(np.isfinite(out))
+
+
+def test_same_resolution_is_identity_and_odd_sizes_work():
+    inp, truth = scene(17, 9)
+    np.testing.assert_array_equal(detail.transfer(inp, inp, truth), truth)
+    il, rl = detail.resize(inp, 5, 3), detail.resize(truth, 5, 3)
+    assert detail.transfer(inp, il, rl).shape == (17, 9, 3)
+    one = np.ones((1, 1, 3), np.float32)
+    assert detail.transfer(np.ones((3, 2, 3), np.float32), one, 2 * one).shape == (3, 2, 3)
+
+
+def test_area_resize_keeps_means_exact():
+    rng = np.random.default_rng(0)
+    x = rng.random((108, 192, 3)).astype(np.float32)
+    for h, w in [(54, 96), (29, 51), (1, 1)]:
+        y = detail.resize(x, h, w)
+        assert y.shape == (h, w, 3)
+        np.testing.assert_allclose(y.mean(axis=(0, 1)), x.mean(axis=(0, 1)), rtol=2e-3)
+    np.testing.assert_allclose(detail.resize(np.full((30, 40, 3), 7.0, np.float32), 11, 13), 7.0,
+                               rtol=1e-6)
+    block = detail.resize(x, 54, 96)  # exact factor 2: plain 2x2 means
+    np.testing.assert_allclose(block, x.reshape(54, 2, 96, 2, 3).mean(axis=(1, 3)), rtol=1e-5)
+
+
+@pytest.mark.parametrize("h,w,size,want", [(1080, 1920, 512, (288, 512)),
+                                           (1920, 1080, 512, (512, 288)),
+                                           (100, 80, 512, (100, 80)), (1, 1, 512, (1, 1)),
+                                           (4320, 7680, 384, (216, 384))])
+def test_working_shape(h, w, size, want):
+    assert detail.working_shape(h, w, size) == want

@@ -1,0 +1,182 @@
+import json
+import sys
+
+import numpy as np
+import onnx
+import pytest
+
+from addon import contract, engine, lightvec
+from addon.errors import DependencyError, ModelError
+from tests.onnx_fixtures import TOY_CLASSES, toy_reference, write_conv_model, write_toy_model
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    return write_toy_model(tmp_path_factory.mktemp("toy"))
+
+
+@pytest.fixture(scope="module")
+def session(toy):
+    return engine.new_session(toy, threads=1)
+
+
+def _rewrite_card(model, **changes):
+    card = engine.card_path_for(model)
+    data = json.loads(card.read_text())
+    data.update(changes)
+    card.write_text(json.dumps(data))
+
+
+@pytest.mark.parametrize("h,w", [(1, 1), (7, 13), (30, 45), (64, 64), (3, 200)])
+def test_toy_runs_at_any_size_through_padding(session, h, w):
+    rng = np.random.default_rng(h * 1000 + w)
+    img = rng.random((h, w, 3)).astype(np.float32)
+    light = rng.random(lightvec.SHAPE).astype(np.float32)
+    res = session.run(img, light)
+    assert res.relit.shape == (h, w, 3)
+    assert res.parsing.shape == (len(TOY_CLASSES), h, w)
+    assert res.source_light.shape == lightvec.SHAPE
+    ref = toy_reference(img.transpose(2, 0, 1), light).transpose(1, 2, 0)
+    np.testing.assert_allclose(res.relit, ref, rtol=1e-5, atol=1e-7)
+    assert np.all((res.parsing >= 0) & (res.parsing <= 1))
+
+
+def test_the_toy_really_needs_its_stride(toy):
+    # Without the engine's padding the toy cannot keep its parsing the input's size.
+    import onnxruntime as ort
+    raw = ort.InferenceSession(str(toy), providers=["CPUExecutionProvider"])
+    out = raw.run(None, {contract.INPUT_IMAGE: np.zeros((1, 3, 30, 45), np.float32),
+                         contract.INPUT_LIGHT: np.ones((1, 3, 16, 16), np.float32)})
+    assert out[2].shape[2:] != (30, 45)
+
+
+def test_padding_is_reflective_and_cropped_back(session):
+    img = np.arange(5 * 6 * 3, dtype=np.float32).reshape(5, 6, 3)
+    prep = session.preprocess(img, lightvec.uniform(1.0))
+    x = prep.feeds[contract.INPUT_IMAGE]
+    assert x.shape == (1, 3, 8, 8) and (prep.height, prep.width) == (5, 6)
+    np.testing.assert_array_equal(x[0, :, 5, :6], img[3].T)  # row 5 mirrors row 3
+    np.testing.assert_array_equal(x[0, :, :5, 6], img[:, 4].T)
+
+
+def test_twice_the_light_twice_the_output(session):
+    img = np.random.default_rng(1).random((16, 24, 3)).astype(np.float32)
+    light = lightvec.splat_direction([0.3, 0.2, 1.0], [1.0, 0.5, 0.2])
+    a = session.run(img, light).relit
+    b = session.run(img, 2 * light).relit
+    np.testing.assert_allclose(b, 2 * a, rtol=1e-6)
+
+
+def test_session_keeps_no_per_call_state(session):
+    before = dict(vars(session))
+    session.run(np.ones((9, 9, 3), np.float32), lightvec.uniform(1.0))
+    assert vars(session) == before
+
+
+def test_bad_light_is_refused(session):
+    from addon.errors import LightingError
+    bad = lightvec.uniform(1.0)
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(LightingError):
+        session.run(np.ones((8, 8, 3), np.float32), bad)
+
+
+def test_missing_model_and_missing_card(tmp_path, toy):
+    with pytest.raises(ModelError, match="does not exist"):
+        engine.new_session(tmp_path / "nope.onnx")
+    lone = tmp_path / "lone.onnx"
+    lone.write_bytes(toy.read_bytes())
+    with pytest.raises(ModelError, match="no model card"):
+        engine.new_session(lone)
+
+
+def test_checksum_mismatch_is_refused(tmp_path):
+    model = write_toy_model(tmp_path)
+    data = bytearray(model.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    model.write_bytes(bytes(data))
+    with pytest.raises(ModelError, match="corrupt"):
+        engine.new_session(model)
+
+
+def test_corrupt_file_with_matching_card_is_a_model_error(tmp_path):
+    model = write_toy_model(tmp_path)
+    model.write_bytes(b"this is not an onnx file")
+    _rewrite_card(model, sha256=engine.file_sha256(model))
+    with pytest.raises(ModelError, match="cannot load"):
+        engine.new_session(model)
+
+
+def test_unknown_contract_and_bad_cards_are_refused(tmp_path):
+    model = write_toy_model(tmp_path)
+    _rewrite_card(model, contract="relight-onnx/99")
+    with pytest.raises(ModelError, match="relight-onnx/99"):
+        engine.new_session(model)
+    model = write_toy_model(tmp_path / "b")
+    card = json.loads(engine.card_path_for(model).read_text())
+    del card["stride"]
+    engine.card_path_for(model).write_text(json.dumps(card))
+    with pytest.raises(ModelError, match="stride"):
+        engine.new_session(model)
+    model = write_toy_model(tmp_path / "c")
+    engine.card_path_for(model).write_text("{not json")
+    with pytest.raises(ModelError, match="cannot be read"):
+        engine.new_session(model)
+
+
+def test_model_that_breaks_the_contract_is_refused(tmp_path):
+    model = write_toy_model(tmp_path)
+    m = onnx.load(str(model))
+    m.graph.output[2].name = "mask"
+    m.graph.node[-1].output[0] = "mask"
+    model.write_bytes(m.SerializeToString())
+    _rewrite_card(model, sha256=engine.file_sha256(model))
+    with pytest.raises(ModelError, match="does not follow contract"):
+        engine.new_session(model)
+
+
+def test_card_with_wrong_class_count_is_caught_at_run(tmp_path):
+    model = write_toy_model(tmp_path)
+    _rewrite_card(model, classes=["foreground", "skin", "hair"])
+    s = engine.new_session(model)
+    with pytest.raises(ModelError, match="returned shapes"):
+        s.run(np.ones((8, 8, 3), np.float32), lightvec.uniform(1.0))
+
+
+def test_provider_choice():
+    prefs = engine.choose_providers
+    assert prefs(["CPUExecutionProvider", "CUDAExecutionProvider"]) == [
+        "CUDAExecutionProvider", "CPUExecutionProvider"]
+    assert prefs(["CPUExecutionProvider", "CoreMLExecutionProvider", "DmlExecutionProvider"]) == [
+        "CoreMLExecutionProvider", "DmlExecutionProvider", "CPUExecutionProvider"]
+    assert prefs(["CPUExecutionProvider", "CUDAExecutionProvider"],
+                 ["CPUExecutionProvider"]) == ["CPUExecutionProvider"]
+    assert prefs(["CPUExecutionProvider"], ["CUDAExecutionProvider"]) == ["CPUExecutionProvider"]
+    assert prefs(["AzureExecutionProvider", "CPUExecutionProvider"]) == ["CPUExecutionProvider"]
+
+
+def test_session_options_are_explicit():
+    import onnxruntime as ort
+    so = engine.session_options(ort, threads=3, spin=False)
+    assert so.intra_op_num_threads == 3 and so.inter_op_num_threads == 1
+    assert so.graph_optimization_level == ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    assert so.execution_mode == ort.ExecutionMode.ORT_SEQUENTIAL
+    assert so.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+
+
+def test_missing_onnxruntime_is_a_dependency_error(monkeypatch, toy):
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)
+    with pytest.raises(DependencyError, match="onnxruntime"):
+        engine.new_session(toy)
+
+
+def test_conv_model_has_the_requested_cost_and_contract(tmp_path):
+    model = write_conv_model(tmp_path, gflops_at_512=0.2, name="small")
+    card = json.loads(model.with_suffix(".json").read_text())
+    assert 0.2 <= card["cost"]["gflops_at_512"] < 0.35
+    s = engine.new_session(model, threads=1)
+    res = s.run(np.random.default_rng(0).random((20, 36, 3)).astype(np.float32),
+                lightvec.uniform(1.0))
+    assert res.relit.shape == (20, 36, 3) and np.all(np.isfinite(res.relit))
+    assert res.parsing.shape == (len(contract.PARSING_CLASSES), 20, 36)
+    assert np.all(res.source_light >= 0)
