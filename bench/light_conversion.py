@@ -237,7 +237,7 @@ def world_case(path: str, folder, res=48, samples=256, mapping_z_deg=0.0, widths
             scene_light.HDRI_WIDTH = width
             light, seconds = convert(scene, camera, sphere, source='WORLD')
             out[width] = dict(error=rel_rmse(shade(light, normals), truth, inside),
-                              seconds=seconds, light=light)
+                              seconds=seconds, light=light, truth=truth, mask=inside)
     finally:
         scene_light.HDRI_WIDTH = saved
     return out

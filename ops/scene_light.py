@@ -158,7 +158,9 @@ class _Context:
 
     def lamps_light(self, to_frame: np.ndarray) -> np.ndarray:
         centre = self.subject_centre()
-        objs = [o for o in self.scene.objects if o.type == 'LIGHT' and not o.hide_render]
+        # A lamp hidden from diffuse rays does not light skin in Cycles either.
+        objs = [o for o in self.scene.objects if o.type == 'LIGHT' and not o.hide_render
+                and getattr(o, "visible_diffuse", True)]
         gathered = [(o, self.lamp_from_object(o, centre, to_frame)) for o in objs]
         gathered = [(o, lamp) for o, lamp in gathered if lamp is not None]
         light, skipped = lamps.lamps_to_light([lamp for _, lamp in gathered], self.radius,
@@ -173,7 +175,8 @@ class _Context:
         rot = rot / np.where(scale > 0, scale, 1.0)
         pos = to_frame @ (np.array(obj.matrix_world.translation) - centre)
         emit = to_frame @ -rot[:, 2]
-        colour = np.array(data.color[:], dtype=np.float64) * float(data.diffuse_factor)
+        # diffuse_factor is EEVEE's; Cycles ignores it (the referee test shows it).
+        colour = np.array(data.color[:], dtype=np.float64)
         if getattr(data, "use_temperature", False):
             colour = colour * np.array(data.temperature_color[:], dtype=np.float64)
         self.warn_unsupported(obj, scale)
