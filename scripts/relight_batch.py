@@ -72,14 +72,27 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return args
 
 
-def load_extension():
-    """The extension package: the installed, enabled copy if there is one, else the extension
-    folder that holds this script (loaded under its id, as Blender would; no sys.path edits)."""
+def enabled_extension():
     import bpy
 
     for name in bpy.context.preferences.addons.keys():
         if name == EXT_ID or name.endswith("." + EXT_ID):
             return importlib.import_module(name)
+    return None
+
+
+def load_extension():
+    """The extension package: the installed, enabled copy if there is one, else the extension
+    folder that holds this script (loaded under its id, as Blender would; no sys.path edits)."""
+    import bpy
+
+    ext = enabled_extension()
+    if ext is None and not bpy.app.binary_path:
+        # The bpy module starts without the user's preferences; Blender itself has them loaded.
+        bpy.ops.wm.read_userpref()
+        ext = enabled_extension()
+    if ext is not None:
+        return ext
     if EXT_ID in sys.modules:
         return sys.modules[EXT_ID]
     root = HERE.parent

@@ -104,6 +104,8 @@ def stage_sources(stage: pathlib.Path) -> None:
 
 
 def _copy(path: pathlib.Path, stage: pathlib.Path) -> None:
+    if not path.is_file():
+        raise BuildError(f"{path.relative_to(ROOT)} is missing from the checkout")
     dest = stage / path.relative_to(ROOT)
     dest.parent.mkdir(parents=True, exist_ok=True)
     shutil.copy2(path, dest)
@@ -132,10 +134,10 @@ def run_tool(tool: pathlib.Path, *args: str) -> str:
 
 
 def build(platforms: list[str], out_dir: pathlib.Path, wheel_dir: pathlib.Path,
-          offline: bool = False) -> list[pathlib.Path]:
+          offline: bool = False, stage: pathlib.Path | None = None) -> list[pathlib.Path]:
     pins = pinned_versions(ROOT / "requirements.txt")
     tool = blender_ext_tool()
-    stage = ROOT / "build" / "stage"
+    stage = stage or ROOT / "build" / "stage"
     shutil.rmtree(stage, ignore_errors=True)
     (stage / "wheels").mkdir(parents=True)
     names = []

@@ -4,9 +4,9 @@ import bpy
 
 
 def test_register_adds_operators_panel_and_settings(extension):
-    assert hasattr(bpy.ops.relight, "import_footage")
-    assert hasattr(bpy.ops.relight, "relight_strip")
-    assert hasattr(bpy.ops.relight, "preview_light")
+    # bpy.ops.relight.<name> exists for any name; the RNA type exists only once registered.
+    for name in ("import_footage", "relight_strip", "preview_light"):
+        assert getattr(bpy.ops.relight, name).get_rna_type().identifier == f"RELIGHT_OT_{name}"
     assert "RELIGHT_PT_sequencer" in dir(bpy.types)
     settings = bpy.context.scene.relight
     assert settings.light_source == 'WORLD'
