@@ -129,11 +129,30 @@ def demo_frames() -> pathlib.Path:
     return frames[0]
 
 
-def set_up_demo(args) -> str:
+def demo_preflight(ext, args) -> pathlib.Path:
+    """The demo's first frame, or one BatchError naming everything the demo still lacks."""
     import bpy
 
+    missing = []
+    try:
+        first = demo_frames()
+    except BatchError as err:
+        missing.append(str(err))
+    folder = ext.ops.bridge.models_dir(bpy.context, args.models or "")
+    if not ext.ops.bridge.model_cards(folder):
+        missing.append(f"No trained model is installed in {folder}: it needs an .onnx model "
+                       "with its .json card (made by the training, see README.md).")
+    if missing:
+        raise BatchError("cannot run the demo yet:\n  - " + "\n  - ".join(missing))
+    return first
+
+
+def set_up_demo(ext, args) -> str:
+    import bpy
+
+    first = demo_preflight(ext, args)
     bpy.ops.wm.read_homefile(use_empty=True)
-    call(bpy.ops.relight.import_footage, filepath=str(demo_frames()), frame_start=1)
+    call(bpy.ops.relight.import_footage, filepath=str(first), frame_start=1)
     if not (args.hdri or args.scene_lights or args.world or args.studio):
         args.studio = DEMO_STUDIO
     if args.out is None:
@@ -185,10 +204,10 @@ def run(args) -> None:
 
     if args.blend:
         open_blend(args.blend)
-    load_extension()
-    strip = set_up_demo(args) if args.demo else args.strip
+    ext = load_extension()
     if args.models:
         args.models = str(pathlib.Path(args.models).resolve())
+    strip = set_up_demo(ext, args) if args.demo else args.strip
     apply_settings(bpy.context.scene, args)
     started = time.perf_counter()
     call(bpy.ops.relight.relight_strip, strip=strip, models_dir=args.models or "")

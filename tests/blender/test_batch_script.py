@@ -82,6 +82,7 @@ def test_killed_run_resumes_to_identical_output(extension, toy_models, tmp_path)
     (["{blend}", "--strip", "x", "--frames", "9-1"], 2, "ends before it starts"),
     (["{blend}", "--demo", "--strip", "x"], 2, "either --strip NAME or --demo"),
     (["{tmp}/missing.blend", "--strip", "x"], 1, "does not exist"),
+    (["--demo", "--models", "{tmp}/empty"], 1, "No trained model is installed"),
     (["{blend}", "--strip", "{strip}", "--models", "{models}", "--preset", "ultra"], 1,
      "No model for the quality preset 'ultra'"),
     (["{blend}", "--strip", "{strip}", "--models", "{tmp}/empty"], 1,
