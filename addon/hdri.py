@@ -116,8 +116,9 @@ def downsample(image: np.ndarray, world_to_frame: np.ndarray | None = None,
     error (well under 1% for max_width >= 128).
 
     ``world_to_frame``: 3x3 matrix taking world directions into the light frame (see
-    ``world_to_frame_from_camera``); defaults to the front view. ``yaw_degrees`` rotates the HDRI
-    about world Z first, like the Z rotation of a Mapping node. ``max_width`` trades accuracy for
+    ``world_to_frame_from_camera``); defaults to the front view. ``yaw_degrees`` turns the HDRI
+    about world Z first (counter-clockwise seen from above); a world Mapping node (Point) with Z
+    rotation +a turns it by -a (tests/blender/test_cycles_referee.py). ``max_width`` trades accuracy for
     time: the map is first box-reduced to at most that width.
     """
     rgb = upsample_small(check_equirect(image, repair=repair))

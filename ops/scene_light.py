@@ -46,7 +46,8 @@ def light_schedule(scene, frames, *, source: str, hdri_path: str | None = None,
                    subject=None, camera=None, subject_radius: float = 0.15) -> LightSchedule:
     """Light vectors for ``frames`` of ``scene`` (see the module docstring).
 
-    ``rotation_deg`` turns the lighting about world Z (world and lamps alike); ``exposure`` scales
+    ``rotation_deg`` turns the lighting about world Z (world and lamps alike) the way a Mapping
+    node's Z rotation turns a world texture; ``exposure`` scales
     it by 2^exposure. Each may be a number or a callable frame -> number; a number is re-read
     per frame from ``scene.relight`` when that property is animated. ``camera`` defaults to the
     scene camera; without any camera the front view is the light frame, and ``rotation_deg`` must
@@ -63,6 +64,8 @@ def light_schedule(scene, frames, *, source: str, hdri_path: str | None = None,
                          "Add a camera (or pick one), or set a lighting rotation.")
     if camera is not None and camera.type != 'CAMERA':
         raise InputError(f"'{camera.name}' is not a camera; pick a camera object for the light frame.")
+    for layer in scene.view_layers[:1]:  # object matrices are stale until the depsgraph updates
+        layer.update()
     ctx = _Context(scene, source, subject, camera, float(subject_radius), rotation_deg, exposure)
     ctx.load_hdri(hdri_path, hdri_builtin)
     static = not _lighting_is_animated(ctx)
@@ -111,7 +114,9 @@ class _Context:
 
     # -- per frame ---------------------------------------------------------------------------
     def light_at(self, frame: int) -> np.ndarray:
-        to_frame = self.world_to_frame() @ hdri.yaw_world(self.setting("rotation", frame))
+        # The rotation turns the lighting like a Mapping node's Z rotation on the world texture
+        # (same number, same look), which turns the picture by minus that angle about world Z.
+        to_frame = self.world_to_frame() @ hdri.yaw_world(-self.setting("rotation", frame))
         out = lightvec.zeros()
         if self.source in ('HDRI_FILE', 'BUILTIN'):
             out = self.downsample(self.image, to_frame, 1.0, "The HDRI")
