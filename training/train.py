@@ -149,6 +149,52 @@ def make_dataset(split: str, resolution: int, seed: int, sampling: bool = True, 
     return LightStageDataset(split, resolution, seed, **kwargs)
 
 
+# Samples are costly to render (~0.5 s at 128 px on one core) and a pure function of
+# (seed, split, idx), so a renderer process can fill a folder while training reads what is there.
+_HALF = ("img_t_i", "img_t1_j", "gt_t_k", "gt_t1_k", "flow_fw", "flow_bw")
+
+
+def render_cache(folder, split: str, resolution: int, seed: int, start: int, count: int,
+                 sampling: bool = True) -> None:
+    """Render samples start..start+count-1 into ``folder`` (one .npz each, skipping those there)."""
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    ds = make_dataset(split, resolution, seed, sampling=sampling)
+    (folder / "cache.json").write_text(json.dumps(
+        {"split": split, "resolution": resolution, "seed": seed, "sampling": sampling,
+         "dataset": "training.dataset.LightStageDataset", "git_commit": git_commit()}, indent=2))
+    for idx in range(start, start + count):
+        path = folder / f"{idx:07d}.npz"
+        if path.exists():
+            continue
+        s = ds[idx]
+        # half floats hold the radiance range here (< 65504) and halve the disk and reads
+        s = {k: v.astype(np.float16) if k in _HALF else v for k, v in s.items()}
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **s)
+        tmp.rename(path)  # readers never see a half-written file
+
+
+class CachedSamples:
+    """The samples rendered so far into a cache folder (the list is refreshed as it grows)."""
+
+    def __init__(self, folder):
+        self.folder = pathlib.Path(folder)
+        self.refresh()
+
+    def refresh(self):
+        self.files = sorted(p for p in self.folder.glob("*.npz") if not p.name.endswith(".tmp.npz"))
+        if not self.files:
+            raise FileNotFoundError(f"no rendered samples in {self.folder} yet")
+
+    def __len__(self):
+        return len(self.files)
+
+    def __getitem__(self, i):
+        with np.load(self.files[i]) as z:
+            return {k: z[k].astype(np.float32) for k in z.files}
+
+
 class Batches:
     """Endless shuffled batches of normalised samples from a map-style dataset."""
 
@@ -161,6 +207,8 @@ class Batches:
         picks = []
         while len(picks) < self.batch:
             if self.pos >= len(self.order):
+                if hasattr(self.ds, "refresh"):
+                    self.ds.refresh()
                 self.order, self.pos = self.rng.permutation(len(self.ds)), 0
             picks.append(normalise_sample(self.ds[int(self.order[self.pos])]))
             self.pos += 1
@@ -248,7 +296,11 @@ def train(args) -> pathlib.Path:
               "data_seed": args.seed, "machine": machine(), "device": str(device),
               "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
-    ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling)
+    if args.cache:
+        ds = CachedSamples(args.cache)
+        recipe["data_cache"] = json.loads((pathlib.Path(args.cache) / "cache.json").read_text())
+    else:
+        ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling)
     batches = Batches(ds, args.batch, args.seed, device)
     trainer = Trainer(net, sw, args, device)
     stages = parse_stages(args.progressive)
@@ -323,6 +375,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--cpu", action="store_true", help="ignore a GPU")
     p.add_argument("--log-every", type=int, default=20)
     p.add_argument("--save-every", type=int, default=200)
+    p.add_argument("--cache", help="read rendered samples from this folder (see --render)")
+    p.add_argument("--render", metavar="FOLDER",
+                   help="render training samples into FOLDER instead of training")
+    p.add_argument("--start", type=int, default=0, help="first sample index for --render")
+    p.add_argument("--count", type=int, default=1000, help="samples for --render")
     p.add_argument("--measure-speed", action="store_true")
     p.add_argument("--speed-steps", type=int, default=5)
     return p
@@ -330,6 +387,11 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None):
     args = parser().parse_args(argv)
+    if args.render:
+        torch.set_num_threads(args.threads)
+        render_cache(args.render, "train", args.resolution, args.seed, args.start, args.count,
+                     sampling=losses.Switches.ablation(args.ablation).sampling)
+        return
     if args.measure_speed:
         torch.set_num_threads(args.threads)
         ds = make_dataset("train", args.resolution, args.seed)
