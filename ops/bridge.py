@@ -25,14 +25,17 @@ class ModelCard:
     name: str
     preset: str
     onnx_path: pathlib.Path
-    ms_per_frame: float | None
-    error: float | None
+    ms_per_frame: float | None     # network time per frame, as measured for the card
+    timed_at: str                  # what the time refers to, e.g. "512 px, CPU"
+    error: float | None            # held-out error
     error_name: str
 
     @property
     def summary(self) -> str:
-        t = f"{self.ms_per_frame:.0f} ms/frame" if self.ms_per_frame is not None else "time unmeasured"
-        e = f"{self.error_name} {self.error:.3g}" if self.error is not None else "error unmeasured"
+        t = (f"{self.ms_per_frame:.0f} ms/frame ({self.timed_at})"
+             if self.ms_per_frame is not None else "time not measured")
+        e = (f"held-out {self.error_name} {self.error:.3g}" if self.error is not None
+             else "error not measured")
         return f"{t}, {e}"
 
 
@@ -90,17 +93,41 @@ def _leaf_number(value):
     return None
 
 
+def card_time(data: dict, working_size: int) -> tuple[float | None, str]:
+    """(ms per frame, what it refers to): the card's CPU time at its working size (or the
+    nearest size measured); any other time-like number when the card is laid out otherwise."""
+    for provider, cost in (data.get("cost") or {}).items():
+        sizes = cost.get("per_size") if isinstance(cost, dict) else None
+        if sizes:
+            size = min(sizes, key=lambda k: abs(int(k) - working_size) if k.isdigit() else 1e9)
+            ms = _leaf_number(sizes[size].get("ms")) if isinstance(sizes[size], dict) else None
+            if ms is not None:
+                return ms, f"{size} px, {provider.upper()}"
+    hit = _first_number(data.get("cost") or {}, ("ms", "time", "latency"))
+    return (hit[1], hit[0]) if hit else (None, "")
+
+
+def card_error(data: dict) -> tuple[float | None, str]:
+    """(held-out error, its name): the model's RMSE where the card has the usual layout."""
+    metrics = data.get("metrics") or {}
+    model = metrics.get("model") if isinstance(metrics.get("model"), dict) else metrics
+    for key in ("rmse", "mae", "l1", "lpips"):
+        value = _leaf_number(model.get(key))
+        if value is not None:
+            return value, key.upper()
+    hit = _first_number(metrics, ("error", "rmse", "mae", "lpips", "l1"))
+    return (hit[1], hit[0]) if hit else (None, "error")
+
+
 def read_card(onnx_path: pathlib.Path) -> ModelCard:
     """The panel's view of the card beside ``onnx_path``; ModelError if the card is unusable."""
     from ..addon import engine  # light: onnxruntime itself is imported only to run a model
 
     card = engine.load_card(onnx_path)
-    cost = _first_number(card.data.get("cost", {}), ("ms", "time", "latency"))
-    metric = _first_number(card.data.get("metrics", {}), ("error", "rmse", "mae", "lpips", "l1"))
+    ms, timed_at = card_time(card.data, card.working_size)
+    error, error_name = card_error(card.data)
     return ModelCard(name=card.name, preset=card.preset, onnx_path=card.onnx_path,
-                     ms_per_frame=cost[1] if cost else None,
-                     error=metric[1] if metric else None,
-                     error_name=metric[0] if metric else "error")
+                     ms_per_frame=ms, timed_at=timed_at, error=error, error_name=error_name)
 
 
 def scan_models(folder: pathlib.Path) -> tuple[list[ModelCard], list[str]]:

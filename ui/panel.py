@@ -22,72 +22,76 @@ class RELIGHT_PT_sequencer(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         settings = context.scene.relight
-        self._draw_footage(layout, context)
-        self._draw_lighting(layout.box(), settings)
-        self._draw_quality(layout.box(), context, settings)
-        self._draw_output(layout.box(), settings)
+        draw_footage(layout, context)
+        draw_lighting(layout.box(), settings)
+        draw_quality(layout.box(), context, settings)
+        draw_output(layout.box(), settings)
         layout.operator("relight.relight_strip", icon='LIGHT_SUN')
         _draw_preview(layout, preview_light.SOURCE_IMAGE,
                       "After a run: the source light the network estimated")
 
-    def _draw_footage(self, layout, context):
-        layout.operator("relight.import_footage", icon='FILE_MOVIE')
-        editor = context.scene.sequence_editor
-        strip = editor.active_strip if editor else None
-        if strip is None:
-            layout.label(text="No active strip", icon='ERROR')
-        elif strip.type not in bridge.FOOTAGE_TYPES:
-            layout.label(text=f"'{strip.name}' is not footage", icon='ERROR')
-        else:
-            layout.label(text=f"{strip.name}: frames {strip.frame_final_start}-"
-                              f"{strip.frame_final_end - 1}", icon='SEQUENCE')
 
-    def _draw_lighting(self, box, settings):
-        box.label(text="Lighting", icon='WORLD')
-        box.prop(settings, "light_source", text="")
-        if settings.light_source == 'HDRI_FILE':
-            box.prop(settings, "hdri_path")
-        elif settings.light_source == 'BUILTIN':
-            box.prop(settings, "builtin_hdri")
+def draw_footage(layout, context):
+    layout.operator("relight.import_footage", icon='FILE_MOVIE')
+    editor = context.scene.sequence_editor
+    strip = editor.active_strip if editor else None
+    if strip is None:
+        layout.label(text="No active strip", icon='ERROR')
+    elif strip.type not in bridge.FOOTAGE_TYPES:
+        layout.label(text=f"'{strip.name}' is not footage", icon='ERROR')
+    else:
+        layout.label(text=f"{strip.name}: frames {strip.frame_final_start}-"
+                          f"{strip.frame_final_end - 1}", icon='SEQUENCE')
+
+
+def draw_lighting(box, settings):
+    box.label(text="Lighting", icon='WORLD')
+    box.prop(settings, "light_source", text="")
+    if settings.light_source == 'HDRI_FILE':
+        box.prop(settings, "hdri_path")
+    elif settings.light_source == 'BUILTIN':
+        box.prop(settings, "builtin_hdri")
+    col = box.column(align=True)
+    col.prop(settings, "rotation")
+    col.prop(settings, "exposure")
+    box.prop(settings, "camera")
+    box.prop(settings, "subject")
+    if settings.light_source in {'LAMPS', 'WORLD_AND_LAMPS'}:
+        box.prop(settings, "subject_radius")
+    row = box.row()
+    row.operator("relight.preview_light", icon='HIDE_OFF')
+    _draw_preview(box, preview_light.TARGET_IMAGE, "Preview the target light map")
+
+
+def draw_quality(box, context, settings):
+    box.label(text="Quality", icon='SETTINGS')
+    cards, problems = bridge.scan_models(bridge.models_dir(context))
+    if not cards:
+        box.label(text="No model is installed", icon='ERROR')
+        box.label(text="Add one in Preferences > Add-ons > Portrait Relight")
+    else:
+        box.prop(settings, "preset", text="")
         col = box.column(align=True)
-        col.prop(settings, "rotation")
-        col.prop(settings, "exposure")
-        box.prop(settings, "camera")
-        box.prop(settings, "subject")
-        if settings.light_source in {'LAMPS', 'WORLD_AND_LAMPS'}:
-            box.prop(settings, "subject_radius")
-        row = box.row()
-        row.operator("relight.preview_light", icon='HIDE_OFF')
-        _draw_preview(box, preview_light.TARGET_IMAGE, "Preview the target light map")
+        chosen = settings.preset or cards[0].preset
+        for card in cards:
+            col.label(text=f"{card.preset}: {card.summary}",
+                      icon="CHECKMARK" if card.preset == chosen else "BLANK1")
+    for problem in problems[:3]:
+        box.label(text=problem[:90], icon='ERROR')
+    box.prop(settings, "detail_transfer")
 
-    def _draw_quality(self, box, context, settings):
-        box.label(text="Quality", icon='SETTINGS')
-        cards, problems = bridge.scan_models(bridge.models_dir(context))
-        if not cards:
-            box.label(text="No model is installed", icon='ERROR')
-            box.label(text="Add one in Preferences > Add-ons > Portrait Relight")
-        else:
-            box.prop(settings, "preset", text="")
-            col = box.column(align=True)
-            chosen = settings.preset or cards[0].preset
-            for card in cards:
-                col.label(text=f"{card.preset}: {card.summary}",
-                          icon="CHECKMARK" if card.preset == chosen else "BLANK1")
-        for problem in problems[:3]:
-            box.label(text=problem[:90], icon='ERROR')
-        box.prop(settings, "detail_transfer")
 
-    def _draw_output(self, box, settings):
-        box.label(text="Output", icon='OUTPUT')
-        box.prop(settings, "output_dir", text="")
-        row = box.row()
-        row.prop(settings, "write_matte")
-        row.prop(settings, "overwrite")
-        box.prop(settings, "use_frame_range")
-        if settings.use_frame_range:
-            row = box.row(align=True)
-            row.prop(settings, "frame_start")
-            row.prop(settings, "frame_end")
+def draw_output(box, settings):
+    box.label(text="Output", icon='OUTPUT')
+    box.prop(settings, "output_dir", text="")
+    row = box.row()
+    row.prop(settings, "write_matte")
+    row.prop(settings, "overwrite")
+    box.prop(settings, "use_frame_range")
+    if settings.use_frame_range:
+        row = box.row(align=True)
+        row.prop(settings, "frame_start")
+        row.prop(settings, "frame_end")
 
 
 classes = (RELIGHT_PT_sequencer,)

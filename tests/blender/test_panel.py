@@ -1,0 +1,125 @@
+"""The sidebar panel and the preferences: what an artist reads about models and light."""
+
+import json
+
+import bpy
+import pytest
+
+from conftest import footage_scene
+
+
+class FakeLayout:
+    """Records what a panel draws (the real UILayout exists only inside a drawing region)."""
+
+    def __init__(self, log=None):
+        self.log = [] if log is None else log
+
+    def _child(self, *args, **kwargs):
+        return FakeLayout(self.log)
+
+    box = row = column = split = _child
+
+    def label(self, text="", icon='NONE'):
+        self.log.append(("label", text, icon))
+
+    def prop(self, data, name, **kwargs):
+        assert hasattr(data, name), name                  # a typo would fail in Blender too
+        self.log.append(("prop", name))
+
+    def operator(self, idname, **kwargs):
+        self.log.append(("operator", idname))
+
+    def template_icon(self, icon_value=0, scale=1.0):
+        self.log.append(("icon", icon_value))
+
+    def icon(self, data):
+        return 1
+
+    def texts(self):
+        return [e[1] for e in self.log if e[0] == "label"]
+
+
+def draw_panel():
+    from portrait_relight.ui import panel
+
+    layout = FakeLayout()
+    panel.RELIGHT_PT_sequencer.draw(type("P", (), {"layout": layout})(), bpy.context)
+    return layout
+
+
+@pytest.fixture
+def prefs(extension):
+    addon = bpy.context.preferences.addons.new()
+    addon.module = "portrait_relight"
+    yield addon.preferences
+    bpy.context.preferences.addons.remove(addon)
+
+
+def card_with_figures(folder):
+    """The toy card with metrics and cost laid out as training/export.py writes them."""
+    card_path = next(folder.glob("*.json"))
+    card = json.loads(card_path.read_text())
+    card["metrics"] = {"model": {"rmse": 0.0412, "psnr": 27.7, "ssim": 0.91},
+                       "identity": {"rmse": 0.2}, "split": "test"}
+    card["cost"] = {"cpu": {"provider": "CPUExecutionProvider",
+                            "per_size": {"256": {"ms": 9.5}, "512": {"ms": 38.25}}}}
+    card["working_size"] = 512
+    card_path.write_text(json.dumps(card))
+
+
+def test_panel_says_plainly_when_no_model_is_installed(prefs, tmp_path):
+    prefs.models_dir = str(tmp_path / "empty")
+    footage_scene(tmp_path, count=2)
+    layout = draw_panel()
+    assert "No model is installed" in layout.texts()
+    assert ("operator", "relight.relight_strip") in layout.log
+
+
+def test_panel_shows_each_presets_time_and_error(prefs, toy_models, tmp_path):
+    import shutil
+
+    models = tmp_path / "models"
+    shutil.copytree(toy_models, models)
+    card_with_figures(models)
+    prefs.models_dir = str(models)
+    footage_scene(tmp_path, count=2)
+    texts = draw_panel().texts()
+    assert "toy: 38 ms/frame (512 px, CPU), held-out RMSE 0.0412" in texts
+
+
+def test_panel_lists_an_unusable_model_with_its_reason(prefs, toy_models, tmp_path):
+    import shutil
+
+    models = tmp_path / "models"
+    shutil.copytree(toy_models, models)
+    card_path = next(models.glob("*.json"))
+    card = json.loads(card_path.read_text())
+    card["contract"] = "relight-onnx/99"
+    card_path.write_text(json.dumps(card))
+    prefs.models_dir = str(models)
+    texts = draw_panel().texts()
+    assert "No model is installed" in texts
+    assert any("relight-onnx/99" in t for t in texts)
+
+
+def test_panel_names_a_strip_that_is_not_footage(extension, tmp_path):
+    footage_scene(tmp_path, count=2)
+    strips = bpy.context.scene.sequence_editor.strips
+    bpy.context.scene.sequence_editor.active_strip = strips.new_effect("Title", 'TEXT', 3, 1,
+                                                                       length=5)
+    assert "'Title' is not footage" in draw_panel().texts()
+
+
+def test_preferences_choose_the_models_folder(prefs, toy_models, tmp_path):
+    from portrait_relight.ops import bridge
+
+    assert bridge.models_dir(bpy.context) == bridge.BUNDLED_MODELS
+    prefs.models_dir = str(toy_models)
+    assert bridge.models_dir(bpy.context) == toy_models
+    assert [c.preset for c in bridge.model_cards(bridge.models_dir(bpy.context))] == ["toy"]
+    footage_scene(tmp_path, count=2)
+    prefs.provider = 'CPU'
+    prefs.threads = 1
+    job = bridge.gather_job(bpy.context, bpy.context.scene.sequence_editor.active_strip)
+    assert job.options.providers == ["CPUExecutionProvider"] and job.options.threads == 1
+    assert bpy.ops.relight.relight_strip() == {'FINISHED'}      # no override: the preferences
