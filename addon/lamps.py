@@ -271,12 +271,12 @@ def lamp_to_light(lamp: Lamp, subject_radius: float) -> np.ndarray:
     if lamp.kind == "SUN":
         return _finite_light(_sun(lamp), "sun lamp")
     pos = _vec3(lamp.position, "lamp position")
+    intensity = lamp.strength() / (4.0 * math.pi)
+    if math.hypot(*pos) <= radius:
+        return project_point_light(pos, intensity, radius)  # raises the inside-subject error
     if lamp.kind == "AREA":
         return _finite_light(_area(lamp, pos, radius), "area lamp")
-    intensity = lamp.strength() / (4.0 * math.pi)
     if lamp.kind == "SPOT":
-        if math.hypot(*pos) <= radius:
-            return project_point_light(pos, intensity, radius)  # raises the inside-subject error
         intensity = intensity * _spot_factor(lamp, pos, radius)
     return project_point_light(pos, intensity, radius)
 
