@@ -127,15 +127,23 @@ def _lut(curve: str, bits: int) -> np.ndarray:
     return lut
 
 
-def to_linear(pixels: np.ndarray, space: ColourSpace) -> np.ndarray:
-    """(H, W, 3) pixels in ``space`` to float32 linear Rec.709.
+def to_linear(pixels: np.ndarray, space: ColourSpace, gain: float = 1.0) -> np.ndarray:
+    """(H, W, 3) pixels in ``space`` to a new float32 array of linear Rec.709, times ``gain``.
 
-    uint8/uint16 pixels are normalised to [0, 1] code values; float pixels are taken as they are."""
+    uint8/uint16 pixels are normalised to [0, 1] code values; float pixels are taken as they are.
+    For integer pixels the gain is folded into the lookup table (no extra pass)."""
     px = np.asarray(pixels)
     if px.dtype == np.uint8 or px.dtype == np.uint16:
-        lin = integer_lut(space, 8 * px.dtype.itemsize)[px]
+        lut = integer_lut(space, 8 * px.dtype.itemsize)
+        lin = (lut * np.float32(gain) if gain != 1.0 else lut)[px]
+        gain = 1.0
     else:
         lin = _decode_curve(px, space.curve)
+        if np.shares_memory(lin, px):  # never scale or repair the caller's array
+            lin = lin.copy()
     if space.matrix is not None:
-        lin = (lin @ space.matrix.T.astype(np.float32)).astype(np.float32)
-    return np.ascontiguousarray(lin, dtype=np.float32)
+        lin = lin @ space.matrix.T.astype(np.float32)
+    lin = np.ascontiguousarray(lin, dtype=np.float32)
+    if gain != 1.0:
+        lin *= np.float32(gain)
+    return lin

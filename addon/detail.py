@@ -80,17 +80,21 @@ def resize(x: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 def box_mean(x: np.ndarray, r: int) -> np.ndarray:
-    """Mean over (2r+1)^2 windows clipped at the borders (cumulative sums: O(1) per pixel)."""
-    out = x.astype(np.float64)
+    """float32 mean over (2r+1)^2 windows clipped at the borders (separable shifted sums)."""
+    out = np.asarray(x, dtype=np.float32)
     for axis in (0, 1):
         n = out.shape[axis]
-        c = np.cumsum(out, axis=axis)
-        c = np.concatenate([np.zeros_like(np.take(c, [0], axis=axis)), c], axis=axis)
-        hi = np.minimum(np.arange(n) + r + 1, n)
-        lo = np.maximum(np.arange(n) - r, 0)
+        pad = [(0, 0)] * out.ndim
+        pad[axis] = (r, r)
+        p = np.pad(out, pad)
+        acc = np.take(p, np.arange(n), axis=axis)
+        for k in range(1, 2 * r + 1):
+            acc = acc + np.take(p, np.arange(k, k + n), axis=axis)
+        i = np.arange(n)
+        count = (np.minimum(i + r, n - 1) - np.maximum(i - r, 0) + 1).astype(np.float32)
         shape = [1] * out.ndim
         shape[axis] = n
-        out = (np.take(c, hi, axis=axis) - np.take(c, lo, axis=axis)) / (hi - lo).reshape(shape)
+        out = acc / count.reshape(shape)
     return out
 
 
@@ -102,15 +106,15 @@ def guided_coefficients(guide: np.ndarray, target: np.ndarray, radius: int = RAD
     The ridge pulls A toward the local shading ratio A0 = (mean target + floor) /
     (mean guide + floor) rather than toward 0, so texture too fine to survive at the working
     resolution (flat there, so nothing to fit) is still carried, scaled by the light's change."""
-    g = np.nan_to_num(np.asarray(guide, dtype=np.float64))
-    t = np.nan_to_num(np.asarray(target, dtype=np.float64))
+    g = np.nan_to_num(np.asarray(guide, dtype=np.float32))
+    t = np.nan_to_num(np.asarray(target, dtype=np.float32))
     mg, mt = box_mean(g, radius), box_mean(t, radius)
     var = np.maximum(box_mean(g * g, radius) - mg * mg, 0.0)
     cov = box_mean(g * t, radius) - mg * mt
     a0 = np.clip((np.maximum(mt, 0.0) + floor) / (np.maximum(mg, 0.0) + floor), 0.0, MAX_GAIN)
-    a = np.clip((cov + eps * a0) / (var + eps), 0.0, MAX_GAIN)
+    a = np.clip((cov + np.float32(eps) * a0) / (var + np.float32(eps)), 0.0, MAX_GAIN)
     b = mt - a * mg
-    return box_mean(a, radius).astype(np.float32), box_mean(b, radius).astype(np.float32)
+    return box_mean(a, radius), box_mean(b, radius)
 
 
 def transfer(input_full: np.ndarray, input_low: np.ndarray, relit_low: np.ndarray,
@@ -136,3 +140,153 @@ def ratio_transfer(input_full: np.ndarray, input_low: np.ndarray, relit_low: np.
     h, w = input_full.shape[:2]
     r = np.clip((relit_low + floor) / (np.maximum(input_low, 0.0) + floor), 0.0, max_ratio)
     return resize(r, h, w) * input_full
+
+
+# ---- the same stages as onnxruntime graphs (the pipeline's fast path) ------------------------
+
+def _shrink_graph() -> bytes:
+    """(1, H, W, C) -> (1, h, w, C): antialiased linear resize (a triangle filter as wide as the
+    scale), one vectorised pass instead of numpy's several."""
+    from . import onnx_graph as g
+    return g.model(
+        [g.node("Resize", ["x", "", "", "sizes"], ["y"], mode="linear", antialias=1,
+                coordinate_transformation_mode="half_pixel")],
+        [g.value_info("x", g.FLOAT, [1, "H", "W", "C"]), g.value_info("sizes", g.INT64, [4])],
+        [g.value_info("y", g.FLOAT, [1, "h", "w", "C"])], name="shrink")
+
+
+def _finish_graph(clamp: bool) -> bytes:
+    """out = up(a) * x + up(b), cast to half; with ``clamp``, clamped to the half range first
+    (the caller knows from a cheap bound whether that can be needed, and saves the pass)."""
+    from . import onnx_graph as g
+    tail = ([g.node("Clip", ["out", "lo", "hi"], ["clamped"]),
+             g.node("Cast", ["clamped"], ["y"], to=g.FLOAT16)] if clamp else
+            [g.node("Cast", ["out"], ["y"], to=g.FLOAT16)])
+    consts = [g.tensor("lo", np.float32(-HALF_MAX)), g.tensor("hi", np.float32(HALF_MAX))]
+    return g.model(
+        [g.node("Resize", ["a", "", "", "sizes"], ["a_up"], mode="linear",
+                coordinate_transformation_mode="half_pixel"),
+         g.node("Resize", ["b", "", "", "sizes"], ["b_up"], mode="linear",
+                coordinate_transformation_mode="half_pixel"),
+         g.node("Mul", ["a_up", "x"], ["ax"]),
+         g.node("Add", ["ax", "b_up"], ["out"])] + tail,
+        [g.value_info("a", g.FLOAT, [1, "h", "w", "C"]), g.value_info("b", g.FLOAT,
+                                                                      [1, "h", "w", "C"]),
+         g.value_info("x", g.FLOAT, [1, "H", "W", "C"]), g.value_info("sizes", g.INT64, [4])],
+        [g.value_info("y", g.FLOAT16, [1, "H", "W", "C"])],
+        consts if clamp else [], name="finish")
+
+
+def _guided_graph(radius: int = RADIUS, eps: float = EPS, floor: float = FLOOR) -> bytes:
+    """guided_coefficients as one graph (NHWC in and out), times ``gain``."""
+    from . import onnx_graph as g
+    k = 2 * radius + 1
+    nodes = [g.node("Transpose", ["g"], ["G"], perm=[0, 3, 1, 2]),
+             g.node("Transpose", ["t"], ["T"], perm=[0, 3, 1, 2]),
+             g.node("Mul", ["G", "G"], ["GG"]), g.node("Mul", ["G", "T"], ["GT"])]
+
+    def box(src, dst):
+        nodes.append(g.node("AveragePool", [src], [dst], kernel_shape=[k, k],
+                            pads=[radius] * 4, strides=[1, 1], count_include_pad=0))
+    for src in ("G", "T", "GG", "GT"):
+        box(src, "m" + src)
+    nodes += [
+        g.node("Mul", ["mG", "mG"], ["mG2"]), g.node("Sub", ["mGG", "mG2"], ["var0"]),
+        g.node("Relu", ["var0"], ["var"]),
+        g.node("Mul", ["mG", "mT"], ["mGmT"]), g.node("Sub", ["mGT", "mGmT"], ["cov"]),
+        g.node("Relu", ["mT"], ["pT"]), g.node("Add", ["pT", "floor"], ["numr"]),
+        g.node("Relu", ["mG"], ["pG"]), g.node("Add", ["pG", "floor"], ["denr"]),
+        g.node("Div", ["numr", "denr"], ["r0"]), g.node("Clip", ["r0", "zero", "maxg"], ["a0"]),
+        g.node("Mul", ["a0", "eps"], ["ea0"]), g.node("Add", ["cov", "ea0"], ["num"]),
+        g.node("Add", ["var", "eps"], ["den"]), g.node("Div", ["num", "den"], ["a_raw"]),
+        g.node("Clip", ["a_raw", "zero", "maxg"], ["a1"]),
+        g.node("Mul", ["a1", "mG"], ["amG"]), g.node("Sub", ["mT", "amG"], ["b1"])]
+    box("a1", "A")
+    box("b1", "B")
+    nodes += [g.node("Mul", ["A", "gain"], ["Ag"]), g.node("Mul", ["B", "gain"], ["Bg"]),
+              g.node("Transpose", ["Ag"], ["a"], perm=[0, 2, 3, 1]),
+              g.node("Transpose", ["Bg"], ["b"], perm=[0, 2, 3, 1])]
+    consts = [g.tensor("eps", np.float32(eps)), g.tensor("floor", np.float32(floor)),
+              g.tensor("zero", np.float32(0.0)), g.tensor("maxg", np.float32(MAX_GAIN))]
+    return g.model(nodes, [g.value_info("g", g.FLOAT, [1, "h", "w", 3]),
+                           g.value_info("t", g.FLOAT, [1, "h", "w", 3]),
+                           g.value_info("gain", g.FLOAT, [])],
+                   [g.value_info("a", g.FLOAT, [1, "h", "w", 3]),
+                    g.value_info("b", g.FLOAT, [1, "h", "w", 3])], consts, name="guided")
+
+
+def _upsample_graph() -> bytes:
+    """(1, h, w, C) -> (1, H, W, C) half, bilinear, clamped to [lo, hi]."""
+    from . import onnx_graph as g
+    return g.model(
+        [g.node("Resize", ["x", "", "", "sizes"], ["u"], mode="linear",
+                coordinate_transformation_mode="half_pixel"),
+         g.node("Clip", ["u", "lo", "hi"], ["c"]),
+         g.node("Cast", ["c"], ["y"], to=g.FLOAT16)],
+        [g.value_info("x", g.FLOAT, [1, "h", "w", "C"]), g.value_info("sizes", g.INT64, [4]),
+         g.value_info("lo", g.FLOAT, []), g.value_info("hi", g.FLOAT, [])],
+        [g.value_info("y", g.FLOAT16, [1, "H", "W", "C"])], name="upsample")
+
+
+HALF_MAX = 65504.0
+
+
+class FullRes:
+    """The full-resolution stages as small onnxruntime graphs, built once per run.
+
+    Holds only its sessions (no per-call state), so the decode and write threads can share it.
+    """
+
+    def __init__(self, threads: int | None = 1):
+        from . import engine
+        ort = engine._import_onnxruntime()
+        so = engine.session_options(ort, threads, spin=False)
+        cpu = ["CPUExecutionProvider"]
+        self._shrink = ort.InferenceSession(_shrink_graph(), so, providers=cpu)
+        self._finish = {c: ort.InferenceSession(_finish_graph(c), so, providers=cpu)
+                        for c in (False, True)}
+        self._guided = ort.InferenceSession(_guided_graph(), so, providers=cpu)
+        self._upsample = ort.InferenceSession(_upsample_graph(), so, providers=cpu)
+
+    def shrink(self, x: np.ndarray, height: int, width: int) -> np.ndarray:
+        """(H, W, C) float32 -> (height, width, C), antialiased."""
+        x = np.ascontiguousarray(x, dtype=np.float32)
+        if x.shape[:2] == (height, width):
+            return x
+        sizes = np.array([1, height, width, x.shape[2]], np.int64)
+        return self._shrink.run(None, {"x": x[None], "sizes": sizes})[0][0]
+
+    def coefficients(self, guide: np.ndarray, target: np.ndarray, gain: float):
+        """guided_coefficients(guide, target) times ``gain``, finite (non-finite inputs are 0,
+        overflow becomes a huge finite value that the half clamp then catches)."""
+        feeds = {"g": np.nan_to_num(np.asarray(guide, np.float32))[None],
+                 "t": np.nan_to_num(np.asarray(target, np.float32))[None],
+                 "gain": np.array(gain, np.float32)}
+        a, b = self._guided.run(None, feeds)
+        big = np.float32(1e30)
+        return (np.nan_to_num(a[0], nan=0.0, posinf=big, neginf=-big),
+                np.nan_to_num(b[0], nan=0.0, posinf=big, neginf=-big))
+
+    def finish(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
+               x_max: float) -> tuple[np.ndarray, bool]:
+        """(half (H, W, 3) of up(a) * x_full + up(b), whether it may have been clamped).
+        ``a``, ``b`` finite; ``x_max`` bounds x_full from above (x_full >= 0): with bilinear
+        weights |out| <= max|a| * x_max + max|b|, so the clamp pass runs only when needed."""
+        x = np.ascontiguousarray(x_full, dtype=np.float32)
+        bound = float(np.abs(a).max()) * float(x_max) + float(np.abs(b).max())
+        clamp = not bound <= HALF_MAX
+        sizes = np.array([1, x.shape[0], x.shape[1], x.shape[2]], np.int64)
+        y = self._finish[clamp].run(None, {"a": np.ascontiguousarray(a, np.float32)[None],
+                                           "b": np.ascontiguousarray(b, np.float32)[None],
+                                           "x": x[None], "sizes": sizes})[0]
+        return y[0], clamp
+
+    def upsample_half(self, low: np.ndarray, height: int, width: int, lo: float,
+                      hi: float) -> np.ndarray:
+        """(h, w, C) float32 -> half (height, width, C), bilinear, clamped to [lo, hi]."""
+        low = np.ascontiguousarray(np.nan_to_num(low, nan=0.0, posinf=hi, neginf=lo),
+                                   dtype=np.float32)
+        sizes = np.array([1, height, width, low.shape[2]], np.int64)
+        return self._upsample.run(None, {"x": low[None], "sizes": sizes,
+                                         "lo": np.array(lo, np.float32),
+                                         "hi": np.array(hi, np.float32)})[0][0]

@@ -252,24 +252,24 @@ class Plan:
     compression: str
 
 
-def linearise(pixels: np.ndarray, plan: Plan) -> tuple[np.ndarray, int]:
+def linearise(pixels: np.ndarray, plan: Plan) -> tuple[np.ndarray, int, float]:
     """Code values -> exposure-normalised linear (H, W, 3); NaN/Inf/negative become 0.
-    Returns (image, number of values replaced)."""
-    lin = colour.to_linear(pixels, plan.space)
-    bad = 0
-    # Integer code values through a curve are finite and non-negative; floats and gamut
-    # matrices can give NaN, Inf or negatives.
-    if not np.issubdtype(pixels.dtype, np.integer) or plan.space.matrix is not None:
-        mask = ~np.isfinite(lin) | (lin < 0)
-        bad = int(np.count_nonzero(mask))
-        if bad:
-            lin[mask] = 0.0
-    lin *= np.float32(1.0 / plan.scale)
-    return lin, bad
+    Returns (image, number of values replaced, an upper bound of the image's values)."""
+    gain = 1.0 / plan.scale
+    lin = colour.to_linear(pixels, plan.space, gain)
+    if np.issubdtype(pixels.dtype, np.integer) and plan.space.matrix is None:
+        # Code values through a curve: finite, non-negative, bounded by the table's top.
+        lut = colour.integer_lut(plan.space, 8 * pixels.dtype.itemsize)
+        return lin, 0, float(lut[-1]) * gain
+    mask = ~np.isfinite(lin) | (lin < 0)  # floats and gamut matrices can give these
+    bad = int(np.count_nonzero(mask))
+    if bad:
+        lin[mask] = 0.0
+    return lin, bad, float(lin.max()) if lin.size else 0.0
 
 
-def shrink(x_full: np.ndarray, plan: Plan) -> np.ndarray:
-    return detail.resize(x_full, *plan.working)
+def shrink(x_full: np.ndarray, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
+    return fullres.shrink(x_full, *plan.working)
 
 
 def infer(session: engine.RelightSession, x_low: np.ndarray, light: np.ndarray):
@@ -282,26 +282,38 @@ def infer(session: engine.RelightSession, x_low: np.ndarray, light: np.ndarray):
     return res.relit, res.source_light, fg, k
 
 
-def finish(x_full: np.ndarray, x_low: np.ndarray, relit_low, k: float, plan: Plan) -> np.ndarray:
-    """Full-resolution relit image in scene-linear units (may hold non-finite values; the writer
-    makes them finite)."""
-    h, w = x_full.shape[:2]
+def coefficients(x_low: np.ndarray, relit_low, k: float, plan: Plan,
+                 fullres: detail.FullRes):
+    """Working-resolution (a, b) with out = up(a) * x_full + up(b) in scene-linear units, finite;
+    None for a black frame."""
     if relit_low is None:
-        return np.zeros((h, w, 3), np.float32)
-    if plan.detail_transfer:
-        out = detail.transfer(x_full, x_low, relit_low)
-    else:
-        out = detail.upsample_only(relit_low, h, w)
-    out *= np.float32(plan.scale * k)
-    return out
+        return None
+    gain = plan.scale * k
+    if plan.detail_transfer and x_low.shape[:2] != (plan.size[1], plan.size[0]):
+        return fullres.coefficients(x_low, relit_low, gain)
+    b = np.nan_to_num(np.asarray(relit_low, np.float32) * np.float32(gain), nan=0.0,
+                      posinf=1e30, neginf=-1e30)  # plain upsampling: a = 0
+    return np.zeros_like(b), b
 
 
-def matte_full(fg, plan: Plan) -> np.ndarray:
+def finish(x_full: np.ndarray, ab, x_max: float,
+           fullres: detail.FullRes) -> tuple[np.ndarray, int]:
+    """The full-resolution half-float frame and how many values were clamped to the half range."""
+    h, w = x_full.shape[:2]
+    if ab is None:
+        return np.zeros((h, w, 3), np.float16), 0
+    y, may_clamp = fullres.finish(x_full, *ab, x_max)
+    clamped = 0
+    if may_clamp:  # count values at +-65504 (half bits 0x7BFF once the sign is masked)
+        clamped = int(np.count_nonzero((y.view(np.uint16) & 0x7FFF) == 0x7BFF))
+    return y, clamped
+
+
+def matte_full(fg, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
     w, h = plan.size
     if fg is None:
-        return np.zeros((h, w), np.float32)
-    m = detail.resize(np.nan_to_num(fg)[..., None], h, w)[..., 0]
-    return np.clip(m, 0.0, 1.0)
+        return np.zeros((h, w), np.float16)
+    return fullres.upsample_half(np.asarray(fg, np.float32)[..., None], h, w, 0.0, 1.0)[..., 0]
 
 
 def _save_npy(path: str, arr: np.ndarray) -> None:
@@ -322,11 +334,11 @@ def write_frame(out_dir: str, i: int, relit: np.ndarray, matte, source: np.ndarr
 
 # ---- exposure -----------------------------------------------------------------------------
 
-def clip_exposure(clip: ClipSpec, plan: Plan) -> float:
+def clip_exposure(clip: ClipSpec, plan: Plan, fullres: detail.FullRes) -> float:
     """s from normalise.sample_frame_indices over the whole clip (never the chunk)."""
     idx = normalise.sample_frame_indices(clip.count)
     probe = Plan(plan.space, 1.0, plan.size, plan.working, False, False, plan.compression)
-    lows = [shrink(linearise(d.pixels, probe)[0], probe)
+    lows = [shrink(linearise(d.pixels, probe)[0], probe, fullres)
             for d in frames.iter_frames(clip.kind, clip.path, clip.files,
                                         [clip.first + i for i in idx], plan.size)]
     return normalise.exposure_scale(lows)
@@ -389,10 +401,11 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
     plan = Plan(space, 1.0, (info.width, info.height),
                 detail.working_shape(info.height, info.width, working),
                 options.detail_transfer, options.write_matte, options.exr_compression)
+    fullres = detail.FullRes(threads=1)
     if stored is not None:
         scale = float(stored["exposure_scale"])
     else:
-        scale = clip_exposure(clip, plan)
+        scale = clip_exposure(clip, plan, fullres)
         _atomic_write_text(os.path.join(out_dir, RUN_FILE), json.dumps(
             {"identity": identity, "exposure_scale": scale, "model": session.card.name,
              "providers": session.providers}, indent=2))
@@ -405,15 +418,17 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
     resumed = len(selected) - len(todo)
     if resumed:
         out.info(f"Resuming: {resumed} of {len(selected)} frames are already done.")
-    written = _run_frames(clip, lights, out_dir, plan, session, todo, resumed, len(selected),
-                          on_progress, should_cancel, out)
+    written = _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed,
+                          len(selected), on_progress, should_cancel, out)
     return RunResult(out_dir, [relit_path(out_dir, i) for i in selected],
                      [matte_path(out_dir, i) for i in selected] if options.write_matte else [],
                      written, resumed, scale, out.warnings)
 
 
-def _run_frames(clip, lights, out_dir, plan, session, todo, resumed, total, on_progress,
-                should_cancel, out: Log) -> int:
+def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, total,
+                on_progress, should_cancel, out: Log) -> int:
+    """Decode (worker thread) -> network and low-resolution coefficients (this thread) ->
+    full-resolution finish and write (worker thread)."""
     stop = threading.Event()
     decoded: queue.Queue = queue.Queue(maxsize=2)
     results: queue.Queue = queue.Queue(maxsize=2)
@@ -425,9 +440,10 @@ def _run_frames(clip, lights, out_dir, plan, session, todo, resumed, total, on_p
                                         [clip.first + i for i in todo], plan.size):
                 if stop.is_set():
                     return
-                x_full, bad = linearise(d.pixels, plan)
+                x_full, bad, x_max = linearise(d.pixels, plan)
                 counts["bad_in"] += bad
-                _put(decoded, (d.index - clip.first, x_full, shrink(x_full, plan)), stop)
+                _put(decoded, (d.index - clip.first, x_full, x_max,
+                               shrink(x_full, plan, fullres)), stop)
         finally:
             _put(decoded, _DONE, stop, force=True)
 
@@ -436,8 +452,11 @@ def _run_frames(clip, lights, out_dir, plan, session, todo, resumed, total, on_p
             item = results.get()
             if item is _DONE:
                 return
-            i, relit, matte, source = item
-            counts["clamped"] += write_frame(out_dir, i, relit, matte, source, plan)
+            i, x_full, x_max, ab, fg, source = item
+            relit, clamped = finish(x_full, ab, x_max, fullres)
+            matte = matte_full(fg, plan, fullres) if plan.write_matte else None
+            write_frame(out_dir, i, relit, matte, source, plan)
+            counts["clamped"] += clamped
             counts["written"] += 1
 
     reported = [-1]
@@ -461,11 +480,10 @@ def _run_frames(clip, lights, out_dir, plan, session, todo, resumed, total, on_p
             item = _get(decoded, reader)
             if item is _DONE:
                 break
-            i, x_full, x_low = item
+            i, x_full, x_max, x_low = item
             relit_low, source, fg, k = infer(session, x_low, lights[min(i, len(lights) - 1)])
-            relit = finish(x_full, x_low, relit_low, k, plan)
-            matte = matte_full(fg, plan) if plan.write_matte else None
-            _put(results, (i, relit, matte, source * np.float32(plan.scale)), stop,
+            ab = coefficients(x_low, relit_low, k, plan, fullres)
+            _put(results, (i, x_full, x_max, ab, fg, source * np.float32(plan.scale)), stop,
                  alive=writer)
             _raise_if_failed(writer)
     finally:

@@ -1,0 +1,95 @@
+"""The hand-written ONNX encoder and the full-resolution graphs built with it."""
+
+import numpy as np
+import onnx
+import pytest
+
+from addon import detail, onnx_graph as g
+
+
+@pytest.mark.parametrize("build", [detail._shrink_graph, lambda: detail._finish_graph(True),
+                                   lambda: detail._finish_graph(False), detail._guided_graph,
+                                   detail._upsample_graph])
+def test_graphs_pass_the_onnx_checker(build):
+    m = onnx.load_from_string(build())
+    onnx.checker.check_model(m, full_check=True)
+    assert m.opset_import[0].version == g.OPSET and m.ir_version == g.IR_VERSION
+
+
+def test_encoder_matches_onnx_helper():
+    from onnx import helper, numpy_helper
+    ours = onnx.load_from_string(g.model(
+        [g.node("Clip", ["x", "lo", ""], ["y"]),
+         g.node("ReduceMax", ["y"], ["m"], keepdims=0),
+         g.node("LeakyRelu", ["x"], ["z"], alpha=0.25),
+         g.node("Transpose", ["x"], ["t"], perm=[0, 2, 1])],
+        [g.value_info("x", g.FLOAT, [1, "n", 3])],
+        [g.value_info("y", g.FLOAT, [1, "n", 3]), g.value_info("m", g.FLOAT, []),
+         g.value_info("z", g.FLOAT, [1, "n", 3]), g.value_info("t", g.FLOAT, [1, 3, "n"])],
+        [g.tensor("lo", np.array([-1.5], np.float32))]))
+    node = ours.graph.node
+    assert helper.get_attribute_value(node[1].attribute[0]) == 0
+    assert helper.get_attribute_value(node[2].attribute[0]) == pytest.approx(0.25)
+    assert list(helper.get_attribute_value(node[3].attribute[0])) == [0, 2, 1]
+    assert node[0].input[2] == ""
+    np.testing.assert_array_equal(numpy_helper.to_array(ours.graph.initializer[0]), [-1.5])
+    dims = ours.graph.input[0].type.tensor_type.shape.dim
+    assert [d.dim_value or d.dim_param for d in dims] == [1, "n", 3]
+    assert g._varint(-1) == b"\xff" * 9 + b"\x01"  # int64 -1 as protobuf writes it
+
+
+@pytest.fixture(scope="module")
+def fullres():
+    return detail.FullRes(threads=1)
+
+
+def test_finish_equals_the_numpy_reference(fullres):
+    rng = np.random.default_rng(0)
+    x = rng.random((45, 70, 3)).astype(np.float32)
+    a = rng.random((9, 14, 3)).astype(np.float32) * 2
+    b = rng.random((9, 14, 3)).astype(np.float32)
+    y, may_clamp = fullres.finish(x, a, b, x_max=1.0)
+    up = detail.resize(np.concatenate([a, b], axis=2), 45, 70)
+    ref = up[..., :3] * x + up[..., 3:]
+    assert y.dtype == np.float16 and y.shape == (45, 70, 3) and not may_clamp
+    np.testing.assert_allclose(y.astype(np.float32), ref, rtol=1e-3, atol=1e-4)
+
+
+def test_finish_clamps_to_half_when_the_bound_says_so(fullres):
+    x = np.full((4, 4, 3), 10.0, np.float32)
+    y, may_clamp = fullres.finish(x, np.full((2, 2, 3), 1e5, np.float32),
+                                  np.zeros((2, 2, 3), np.float32), x_max=10.0)
+    assert may_clamp and np.all(y == np.float16(65504))
+
+
+def test_guided_graph_equals_the_numpy_reference(fullres):
+    rng = np.random.default_rng(2)
+    guide = rng.random((23, 31, 3)).astype(np.float32)
+    target = guide * rng.random((1, 31, 3)).astype(np.float32) + 0.1 * rng.random((23, 31, 3))
+    a, b = fullres.coefficients(guide, target.astype(np.float32), 3.0)
+    ra, rb = detail.guided_coefficients(guide, target)
+    np.testing.assert_allclose(a, 3 * ra, rtol=2e-3, atol=1e-4)
+    np.testing.assert_allclose(b, 3 * rb, rtol=2e-3, atol=1e-4)
+    bad = target.copy()
+    bad[0, 0] = np.nan
+    a, b = fullres.coefficients(guide, bad, 1e38)
+    assert np.all(np.isfinite(a)) and np.all(np.isfinite(b))
+
+
+def test_shrink_is_a_mean_preserving_low_pass(fullres):
+    rng = np.random.default_rng(1)
+    x = rng.random((108, 192, 3)).astype(np.float32)
+    y = fullres.shrink(x, 29, 51)
+    assert y.shape == (29, 51, 3)
+    np.testing.assert_allclose(y.mean(axis=(0, 1)), x.mean(axis=(0, 1)), rtol=1e-2)
+    assert y.std() < 0.5 * x.std()  # averaged, not point-sampled
+    smooth = np.tile(np.linspace(0, 1, 192, dtype=np.float32)[None, :, None], (108, 1, 3))
+    np.testing.assert_allclose(fullres.shrink(smooth, 54, 96), detail.resize(smooth, 54, 96),
+                               atol=2e-3)
+
+
+def test_upsample_half_clamps(fullres):
+    low = np.array([[[-1.0], [0.5]], [[np.nan], [2.0]]], np.float32)
+    y = fullres.upsample_half(low, 4, 4, 0.0, 1.0)
+    assert y.dtype == np.float16 and y.shape == (4, 4, 1)
+    assert y.min() >= 0 and y.max() <= 1
