@@ -92,7 +92,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     n = args.frames
     print(f"machine: {platform.machine()} {platform.processor() or ''}, {os.cpu_count()} cores, "
-          f"python {platform.python_version()}")
+          f"python {platform.python_version()}, load average {os.getloadavg()[0]:.1f} "
+          "(other processes share these cores: compare runs at similar load)")
     with tempfile.TemporaryDirectory(prefix="relight_bench_") as tmp:
         model = write_conv_model(tmp, gflops_at_512=args.gflops, name="bench")
         card = engine.load_card(model)
