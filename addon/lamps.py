@@ -191,7 +191,8 @@ def _sun(lamp: Lamp) -> np.ndarray:
     half = min(max(float(lamp.sun_angle), 0.0), math.pi) / 2.0
     if half < math.radians(0.5):  # far below a cell (11.25 degrees): one direction is exact enough
         return lightvec.splat_direction(toward, e)
-    # Uniform radiance over the cone; cosine-weighted so the normal irradiance stays exactly e.
+    # Cycles' sun has radiance e / (pi sin^2 half) over the cone; each of n equal solid-angle
+    # samples carries that radiance times 2 pi (1 - cos half) / n, which integrates back to e.
     n = 64
     i = np.arange(n) + 0.5
     cos_t = 1.0 - (1.0 - math.cos(half)) * i / n  # equal solid angle rings
@@ -199,7 +200,7 @@ def _sun(lamp: Lamp) -> np.ndarray:
     a = math.pi * (1.0 + math.sqrt(5.0)) * i
     u, v = _basis(toward)
     dirs = cos_t[:, None] * toward + sin_t[:, None] * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * v)
-    w = cos_t / cos_t.sum()
+    w = np.full(n, 2.0 * (1.0 - math.cos(half)) / (n * math.sin(half) ** 2))
     out = np.zeros(lightvec.SHAPE, dtype=np.float64)
     for d, wi in zip(dirs, w):
         out += lightvec.splat_direction(d, e * wi)

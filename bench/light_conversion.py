@@ -179,7 +179,8 @@ def lamp_case(kind: str, distance: float | None, folder, res=64, samples=32, **p
     scene, camera, sphere = referee_scene(res, samples)
     add_lamp(scene, kind, distance, **props)
     truth = render_linear(scene, folder)
-    light, seconds = convert(scene, camera, sphere)
+    light, _ = convert(scene, camera, sphere)
+    seconds = float(np.median([convert(scene, camera, sphere)[1] for _ in range(5)]))
     normals, inside = sphere_normals(res)
     facing = inside & (normals @ LAMP_DIR > 0)
     pred = shade(light, normals)
@@ -259,7 +260,7 @@ def main(argv=None) -> None:
     distances = (1.2, 4.0) if args.quick else DISTANCES
     print(f"machine: {platform.machine()} {platform.processor() or ''}, Blender {bpy.app.version_string}"
           f", Cycles CPU; sphere radius {RADIUS} m, 64x64 pixels")
-    print("\n| lamp | distance (radii) | relative RMSE | conversion (ms) |\n| --- | --- | --- | --- |")
+    print("\n| lamp | distance (radii) | relative RMSE | conversion (ms, median of 5) |\n| --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as folder:
         for kind, props in LAMP_CASES:
             for k in ([None] if kind == 'SUN' else distances):
@@ -278,6 +279,7 @@ LAMP_CASES = (
     ('AREA', dict(size=1.0 * RADIUS)),
     ('SUN', dict(angle=math.radians(0.5))),
     ('SUN', dict(angle=math.radians(30.0))),
+    ('SUN', dict(angle=math.radians(90.0))),
 )
 
 
@@ -312,15 +314,25 @@ def _world_table(folder, quick: bool) -> None:
     shared = ROOT.parent / "shared" / "data" / "hdri" / "blender" / "studio.exr"
     if shared.is_file():
         maps.append(("Blender studio.exr 1024x512", str(shared)))
-    print("\n| world HDRI | working width | relative RMSE | conversion (ms, median of 5) |\n"
-          "| --- | --- | --- | --- |")
+    print("\n| world HDRI | working width | relative RMSE | power error | conversion (ms, median of 5) |"
+          "\n| --- | --- | --- | --- | --- |")
+    lightvec = addon_module("lightvec")
+    # Power is checked in a camera frame pitched 20 degrees down and turned 33 degrees, where pixel
+    # rows no longer line up with the light vector's rows.
+    a = math.radians(20.0)
+    pitch = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    tilted = pitch @ hdri.FRONT_VIEW_WORLD_TO_FRAME
     for label, path in maps:
         results = world_case(path, folder, widths=widths)
-        image = hdri_io.read_hdri(path)
+        image = np.clip(hdri_io.read_hdri(path), 0, None)
+        h, w = image.shape[:2]
+        truth = (image.astype(np.float64) * hdri.pixel_row_solid_angles(h, w)[:, None, None]).sum((0, 1))
         for width, r in results.items():
             med, spread = _time_conversion(lambda: hdri.downsample(image, max_width=width))
-            print(f"| {label} | {width} | {r['error']:.3f} | {1e3 * med:.1f} (spread "
-                  f"{1e3 * spread:.1f}) |")
+            power = lightvec.total_power(hdri.downsample(image, tilted, yaw_degrees=33.0,
+                                                         max_width=width))
+            print(f"| {label} | {width} | {r['error']:.3f} | {np.abs(power / truth - 1).max():.2%} | "
+                  f"{1e3 * med:.1f} (spread {1e3 * spread:.1f}) |")
 
 
 if __name__ == "__main__":

@@ -98,3 +98,111 @@ def test_point_light_at_huge_distance_is_finite():
     light = lamps.project_point_light([0, 0, 1e6], [1e12] * 3)
     assert np.all(np.isfinite(light)) and light.sum() > 0
     assert not np.any(lamps.project_point_light([0, 0, 2], [0, 0, 0]))
+
+
+def _lamp(kind, pos=(0.0, 0.0, 4.0), **kw):
+    p = np.asarray(pos, float)
+    return lamps.Lamp(kind, tuple(p), tuple(-p / np.linalg.norm(p)), (1.0, 1.0, 1.0), 100.0, **kw)
+
+
+def test_strength_is_colour_energy_and_exposure():
+    lamp = lamps.Lamp('POINT', (0, 0, 4), (0, 0, -1), (1.0, 0.5, 0.25), 10.0, exposure=2.0)
+    np.testing.assert_allclose(lamp.strength(), [40.0, 20.0, 10.0])
+
+
+def test_point_lamp_units():
+    # P / (4 pi) W/sr, projected: the same as project_point_light with that intensity.
+    light = lamps.lamp_to_light(_lamp('POINT'), 1.0)
+    np.testing.assert_allclose(light, lamps.project_point_light([0, 0, 4], [100 / (4 * math.pi)] * 3))
+
+
+def test_spot_masks_but_does_not_concentrate():
+    wide = lamps.lamp_to_light(_lamp('SPOT', spot_size=math.radians(120)), 1.0)
+    np.testing.assert_allclose(wide, lamps.lamp_to_light(_lamp('POINT'), 1.0), rtol=1e-6)
+    # A spot aimed away from the subject gives nothing; a half-covering cone about a fraction.
+    away = lamps.Lamp('SPOT', (0, 0, 4), (0, 0, 1), (1, 1, 1), 100.0, spot_size=math.radians(30))
+    assert not lamps.lamp_to_light(away, 1.0).any()
+    edge = lamps.lamp_to_light(_lamp('SPOT', pos=(0, 0, 1.5), spot_size=math.radians(40)), 1.0)
+    ratio = edge.sum() / lamps.lamp_to_light(_lamp('POINT', pos=(0, 0, 1.5)), 1.0).sum()
+    assert 0.05 < ratio < 0.95
+
+
+def test_spot_mask_follows_cycles_smoothstep():
+    size, blend = math.radians(60), 0.5
+    cos_half = math.cos(size / 2)
+    assert lamps.spot_mask(1.0, size, blend) == 1.0
+    assert lamps.spot_mask(cos_half - 1e-9, size, blend) == 0.0
+    mid = cos_half + 0.5 * (1 - cos_half) * blend
+    assert lamps.spot_mask(mid, size, blend) == pytest.approx(0.5)
+    assert lamps.spot_mask(cos_half + 1e-6, size, 0.0) == 1.0
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 0.4, 10.0, 60.0])
+def test_sun_delivers_its_irradiance_at_normal_incidence(angle_deg):
+    sun = lamps.Lamp('SUN', (0, 0, 0), (0, 0, -1), (1, 1, 1), 3.0, sun_angle=math.radians(angle_deg))
+    light = lamps.lamp_to_light(sun, 1.0)
+    e = lightvec.irradiance(light, np.array([0.0, 0.0, 1.0]))
+    # The representation's cells cost up to 2% on a normal facing the lamp.
+    assert e[0] == pytest.approx(3.0, rel=0.02)
+    spread = (light[..., 0] > 0).sum()
+    assert spread > 4 if angle_deg >= 10 else spread <= 4
+
+
+@pytest.mark.parametrize("shape", lamps.AREA_SHAPES)
+def test_far_area_lamp_is_a_point_of_its_power(shape):
+    # Far away, a one-sided Lambertian panel of power P facing the subject has intensity P / pi.
+    area = lamps.lamp_to_light(_lamp('AREA', pos=(0, 0, 100), area_shape=shape, size=1.0,
+                                     size_y=0.5), 1.0)
+    point = lamps.project_point_light([0, 0, 100], [100 / math.pi] * 3)
+    np.testing.assert_allclose(area.sum(), point.sum(), rtol=0.01)
+
+
+def test_area_lamp_normalize_and_facing():
+    on = lamps.lamp_to_light(_lamp('AREA', size=2.0), 1.0)
+    off = lamps.lamp_to_light(_lamp('AREA', size=2.0, normalize=False), 1.0)
+    np.testing.assert_allclose(off, 4.0 * on, rtol=1e-5)  # power per m2 times 4 m2
+    back = lamps.Lamp('AREA', (0, 0, 4), (0, 0, 1), (1, 1, 1), 100.0, size=1.0)
+    assert not lamps.lamp_to_light(back, 1.0).any()  # panels emit from their front only
+
+
+def test_near_area_lamp_spreads_over_its_solid_angle():
+    near = lamps.lamp_to_light(_lamp('AREA', pos=(0, 0, 1.5), size=3.0), 1.0)
+    assert (near[..., 0] > 0).sum() > 20  # a big close panel is a broad light
+
+
+@pytest.mark.parametrize("bad,match", [
+    (dict(kind='LASER'), "Unknown lamp type"), (dict(energy=-1.0), "negative energy"),
+    (dict(energy=math.nan), "finite"), (dict(kind='AREA', size=0.0), "positive size"),
+    (dict(kind='AREA', size=1.0, area_shape='STAR'), "shape"),
+])
+def test_lamp_bad_input_is_a_clear_error(bad, match):
+    kw = dict(kind='POINT', position=(0, 0, 4), direction=(0, 0, -1), color=(1, 1, 1),
+              energy=10.0) | bad
+    with pytest.raises(LightingError, match=match):
+        lamps.lamp_to_light(lamps.Lamp(**kw), 1.0)
+
+
+def test_negligible_lamps_are_skipped_and_the_cost_is_measured():
+    key = _lamp('POINT', pos=(1.0, 1.0, 4.0))
+    dim = lamps.Lamp('POINT', (-3, 0, 1), (1, 0, 0), (1, 1, 1), 0.05)
+    off = lamps.Lamp('SUN', (0, 0, 0), (0, -1, 0), (1, 1, 1), 0.0)
+    light, skipped = lamps.lamps_to_light([key, dim, off], 1.0)
+    assert skipped == [1, 2]
+    full = lamps.lamp_to_light(key, 1.0) + lamps.lamp_to_light(dim, 1.0)
+    n = _sphere_normals(4000)
+    err = np.linalg.norm(lightvec.irradiance(light, n) - lightvec.irradiance(full, n)) \
+        / np.linalg.norm(lightvec.irradiance(full, n))
+    assert 0 < err < 1e-3  # measured 2.5e-4: the dim lamp's share of the light
+    assert lamps.lamps_to_light([key, dim], 1.0, rel_threshold=0.0)[1] == []
+
+
+def test_blackbody_is_normalised_and_ordered():
+    for t in (1000, 2700, 6500, 12000, 40000):
+        r, g, b = lamps.blackbody_rgb(t)
+        assert 0.2126 * r + 0.7152 * g + 0.0722 * b == pytest.approx(1.0)
+        assert min(r, g, b) >= 0
+    assert lamps.blackbody_rgb(2700)[0] > 1 > lamps.blackbody_rgb(2700)[2]  # warm
+    assert lamps.blackbody_rgb(12000)[2] > 1 > lamps.blackbody_rgb(12000)[0]  # cool
+    assert lamps.blackbody_rgb(40000) == lamps.blackbody_rgb(12000)  # Blender's range
+    with pytest.raises(LightingError):
+        lamps.blackbody_rgb(-5)
