@@ -113,13 +113,14 @@ def downsample(image: np.ndarray, world_to_frame: np.ndarray | None = None,
     Every (pre-reduced) pixel is binned into the light-vector cell that holds its direction in the
     light frame, weighted by its solid angle; each cell is the weighted mean of its pixels, so a
     uniform map gives exactly ``strength`` everywhere and total power is conserved to the binning
-    error (well under 1% for max_width >= 128).
+    error (Blender's studio.exr seen from a tilted camera: 3.5% at max_width 128, 0.4% at 256,
+    0.16% at 512; bench/light_conversion.py).
 
     ``world_to_frame``: 3x3 matrix taking world directions into the light frame (see
     ``world_to_frame_from_camera``); defaults to the front view. ``yaw_degrees`` turns the HDRI
     about world Z first (counter-clockwise seen from above); a world Mapping node (Point) with Z
-    rotation +a turns it by -a (tests/blender/test_cycles_referee.py). ``max_width`` trades accuracy for
-    time: the map is first box-reduced to at most that width.
+    rotation +a turns it by -a (tests/blender/test_cycles_referee.py). ``max_width`` trades
+    accuracy for time: the map is first box-reduced to at most that width.
     """
     rgb = upsample_small(check_equirect(image, repair=repair))
     src, omega = _block_reduce(rgb, max(int(max_width), MIN_WIDTH))

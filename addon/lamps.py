@@ -2,8 +2,8 @@
 
 A light vector holds *distant* lighting, so a lamp near the subject cannot be reproduced exactly:
 its light falls off with the inverse square across the subject and lights less than a hemisphere.
-Every lamp here is fitted so that a Lambertian sphere of the subject's radius is shaded as closely as
-possible (least squares over the sphere) by non-negative distant light. For a point source that
+Every lamp here is fitted so that a Lambertian sphere of the subject's radius is shaded as closely
+as possible (least squares over the sphere) by non-negative distant light. For a point source that
 optimum is a single direction (the NNLS fit puts no weight elsewhere: a distant light cannot make
 shading fall off faster than the cosine), scaled by ``near_field_gain``. The error left over is
 unavoidable and grows as the lamp comes closer (README, "Lighting conversion against Cycles").
@@ -102,7 +102,8 @@ def _colour(value, what: str = "lamp colour") -> np.ndarray:
 def _subject_radius(value) -> float:
     r = float(value)
     if not (math.isfinite(r) and r > 0):
-        raise LightingError(f"The subject radius must be a positive number of metres, got {value!r}.")
+        raise LightingError(
+            f"The subject radius must be a positive number of metres, got {value!r}.")
     return r
 
 
@@ -114,7 +115,7 @@ def _finite_light(light: np.ndarray, what: str) -> np.ndarray:
 
 
 def project_point_light(position, color, subject_radius: float = 1.0) -> np.ndarray:
-    """The paper's lighting of a point light outside the subject sphere (sec. 4.3) as a light vector.
+    """The paper's point light outside the subject sphere (sec. 4.3) as a light vector.
 
     ``position``: the lamp relative to the subject's centre (light frame, same unit as
     ``subject_radius``); it must lie outside the sphere. ``color``: radiant intensity per channel
@@ -199,7 +200,8 @@ def _sun(lamp: Lamp) -> np.ndarray:
     sin_t = np.sqrt(1.0 - cos_t ** 2)
     a = math.pi * (1.0 + math.sqrt(5.0)) * i
     u, v = _basis(toward)
-    dirs = cos_t[:, None] * toward + sin_t[:, None] * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * v)
+    ring = np.cos(a)[:, None] * u + np.sin(a)[:, None] * v
+    dirs = cos_t[:, None] * toward + sin_t[:, None] * ring
     w = np.full(n, 2.0 * (1.0 - math.cos(half)) / (n * math.sin(half) ** 2))
     out = np.zeros(lightvec.SHAPE, dtype=np.float64)
     for d, wi in zip(dirs, w):
@@ -219,7 +221,7 @@ def _basis(axis: np.ndarray, x_hint=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _area_patches(lamp: Lamp, n: int = 8) -> tuple[np.ndarray, float]:
-    """Centres (k, 2) in the lamp's local X/Y of equal patches covering its shape, and their area."""
+    """Centres (k, 2) in the lamp's local X/Y of equal patches covering its shape; its area."""
     sx = float(lamp.size)
     sy = float(lamp.size_y) if lamp.area_shape in ("RECTANGLE", "ELLIPSE") else sx
     if not (math.isfinite(sx) and math.isfinite(sy) and sx > 0 and sy > 0):
@@ -322,7 +324,8 @@ _XYZ_TO_REC709 = np.array([[3.2404542, -1.5371385, -0.4985314],
                            [0.0556434, -0.2040259, 1.0572252]])
 _NM = np.arange(360.0, 831.0, 1.0)
 _CMF_TABLE = np.stack([
-    sum(w * np.exp(-0.5 * ((_NM - mu) / np.where(_NM < mu, s1, s2)) ** 2) for w, mu, s1, s2 in lobes)
+    sum(w * np.exp(-0.5 * ((_NM - mu) / np.where(_NM < mu, s1, s2)) ** 2)
+        for w, mu, s1, s2 in lobes)
     for lobes in _CMF])
 
 

@@ -134,7 +134,7 @@ def add_lamp(scene, kind: str, distance: float | None = None, direction=LAMP_DIR
 
 
 def render_linear(scene, folder) -> np.ndarray:
-    """Render with Cycles and read the scene-linear result back from a 32-bit EXR (top row first)."""
+    """Render with Cycles; read the scene-linear result back from a 32-bit EXR (top row first)."""
     import OpenEXR
 
     path = str(pathlib.Path(folder) / "referee.exr")
@@ -224,7 +224,7 @@ def set_world_hdri(scene, path: str, strength: float = 1.0, mapping_z_deg: float
         tree.links.new(mapping.outputs["Vector"], env.inputs["Vector"])
 
 
-def world_case(path: str, folder, res=48, samples=256, mapping_z_deg=0.0, widths=(256,)) -> dict:
+def world_case(path: str, folder, res=48, samples=256, mapping_z_deg=0.0, widths=None) -> dict:
     """Render the sphere under a world HDRI; the error of the conversion at each working width."""
     scene_light = scene_light_module()
     scene, camera, sphere = referee_scene(res, samples)
@@ -233,6 +233,7 @@ def world_case(path: str, folder, res=48, samples=256, mapping_z_deg=0.0, widths
     normals, inside = sphere_normals(res)
     out = {}
     saved = scene_light.HDRI_WIDTH
+    widths = widths or (saved,)
     try:
         for width in widths:
             scene_light.HDRI_WIDTH = width
@@ -258,9 +259,10 @@ def main(argv=None) -> None:
     parser.add_argument("--quick", action="store_true", help="fewer distances and widths")
     args = parser.parse_args(argv)
     distances = (1.2, 4.0) if args.quick else DISTANCES
-    print(f"machine: {platform.machine()} {platform.processor() or ''}, Blender {bpy.app.version_string}"
-          f", Cycles CPU; sphere radius {RADIUS} m, 64x64 pixels")
-    print("\n| lamp | distance (radii) | relative RMSE | conversion (ms, median of 5) |\n| --- | --- | --- | --- |")
+    print(f"machine: {platform.machine()} {platform.processor() or ''}, "
+          f"Blender {bpy.app.version_string}, Cycles CPU; sphere radius {RADIUS} m, 64x64 pixels")
+    print("\n| lamp | distance (radii) | relative RMSE | conversion (ms, median of 5) |\n"
+          "| --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as folder:
         for kind, props in LAMP_CASES:
             for k in ([None] if kind == 'SUN' else distances):
@@ -310,12 +312,13 @@ def _world_table(folder, quick: bool) -> None:
     hdri, hdri_io = addon_module("hdri"), addon_module("hdri_io")
 
     widths = (128, 256) if quick else (128, 256, 512, 1024)
-    maps = [("synthetic 128x64", write_exr(pathlib.Path(folder) / "synthetic.exr", synthetic_hdri()))]
+    synthetic = write_exr(pathlib.Path(folder) / "synthetic.exr", synthetic_hdri())
+    maps = [("synthetic 128x64", synthetic)]
     shared = ROOT.parent / "shared" / "data" / "hdri" / "blender" / "studio.exr"
     if shared.is_file():
         maps.append(("Blender studio.exr 1024x512", str(shared)))
-    print("\n| world HDRI | working width | relative RMSE | power error | conversion (ms, median of 5) |"
-          "\n| --- | --- | --- | --- | --- |")
+    print("\n| world HDRI | working width | relative RMSE | power error "
+          "| conversion (ms, median of 5) |\n| --- | --- | --- | --- | --- |")
     lightvec = addon_module("lightvec")
     # Power is checked in a camera frame pitched 20 degrees down and turned 33 degrees, where pixel
     # rows no longer line up with the light vector's rows.
@@ -326,12 +329,14 @@ def _world_table(folder, quick: bool) -> None:
         results = world_case(path, folder, widths=widths)
         image = np.clip(hdri_io.read_hdri(path), 0, None)
         h, w = image.shape[:2]
-        truth = (image.astype(np.float64) * hdri.pixel_row_solid_angles(h, w)[:, None, None]).sum((0, 1))
+        omega = hdri.pixel_row_solid_angles(h, w)[:, None, None]
+        truth = (image.astype(np.float64) * omega).sum((0, 1))
         for width, r in results.items():
             med, spread = _time_conversion(lambda: hdri.downsample(image, max_width=width))
             power = lightvec.total_power(hdri.downsample(image, tilted, yaw_degrees=33.0,
                                                          max_width=width))
-            print(f"| {label} | {width} | {r['error']:.3f} | {np.abs(power / truth - 1).max():.2%} | "
+            power_err = np.abs(power / truth - 1).max()
+            print(f"| {label} | {width} | {r['error']:.3f} | {power_err:.2%} | "
                   f"{1e3 * med:.1f} (spread {1e3 * spread:.1f}) |")
 
 

@@ -1,8 +1,8 @@
 """The bridge from a Blender scene (world, lamps, camera, subject) to light vectors.
 
 Blender data is gathered here into plain values (addon.lamps.Lamp, HDRI pixels, matrices); all the
-conversion itself happens in addon/ (lamps.py, hdri.py) without Blender. Static lighting is converted
-once; if anything that shapes the light is animated, one light vector per frame is converted.
+conversion itself happens in addon/ (lamps.py, hdri.py) without Blender. Static lighting is
+converted once; if anything that shapes the light is animated, one light vector per frame.
 """
 
 from __future__ import annotations
@@ -63,7 +63,8 @@ def light_schedule(scene, frames, *, source: str, hdri_path: str | None = None,
         raise InputError("The scene has no camera, so the lighting has no frame of reference. "
                          "Add a camera (or pick one), or set a lighting rotation.")
     if camera is not None and camera.type != 'CAMERA':
-        raise InputError(f"'{camera.name}' is not a camera; pick a camera object for the light frame.")
+        raise InputError(
+            f"'{camera.name}' is not a camera; pick a camera object for the light frame.")
     for layer in scene.view_layers[:1]:  # object matrices are stale until the depsgraph updates
         layer.update()
     ctx = _Context(scene, source, subject, camera, float(subject_radius), rotation_deg, exposure)
@@ -88,7 +89,8 @@ class _Context:
 
     def __init__(self, scene, source, subject, camera, subject_radius, rotation, exposure):
         if not (math.isfinite(subject_radius) and subject_radius > 0):
-            raise InputError("The subject radius must be a positive length (about 0.15 m for a head).")
+            raise InputError(
+                "The subject radius must be a positive length (about 0.15 m for a head).")
         self.scene, self.source, self.subject, self.camera = scene, source, subject, camera
         self.radius, self.rotation, self.exposure = subject_radius, rotation, exposure
         self.skipped: set[str] = set()
@@ -158,7 +160,8 @@ class _Context:
         if dof.use_dof:
             return origin + forward * float(dof.focus_distance)
         self.warn("No subject is set and the camera has no depth of field: lamps are measured from "
-                  f"{MISSING_SUBJECT_DISTANCE:g} m in front of the camera. Pick the subject object.")
+                  f"{MISSING_SUBJECT_DISTANCE:g} m in front of the camera. Pick the subject "
+                  "object.")
         return origin + forward * MISSING_SUBJECT_DISTANCE
 
     def lamps_light(self, to_frame: np.ndarray) -> np.ndarray:
@@ -211,14 +214,17 @@ class _Context:
             self.warn(f"Lamp '{obj.name}': square or scaled spot cones are treated as round.")
         if getattr(data, "use_nodes", False) and data.node_tree is not None \
                 and len(data.node_tree.nodes) > 2:
-            self.warn(f"Lamp '{obj.name}': its shader nodes are ignored; colour and power are used.")
+            self.warn(f"Lamp '{obj.name}': its shader nodes are ignored; colour and power are "
+                      "used.")
 
     def world_light(self, to_frame: np.ndarray) -> np.ndarray:
         world = self.scene.world
         if world is None:
             self.warn("The scene has no world: the world contributes no light.")
             return lightvec.zeros()
-        tree = world.node_tree if getattr(world, "use_nodes", True) else None
+        # Before Blender 5.0 a world could switch its nodes off (5.0 deprecates use_nodes).
+        uses_nodes = bpy.app.version >= (5, 0, 0) or world.use_nodes
+        tree = world.node_tree if uses_nodes else None
         if tree is None:
             return lightvec.uniform(np.array(world.color[:3], dtype=np.float32))
         background = _world_background(tree)
@@ -245,15 +251,16 @@ class _Context:
         Blender's bundled studio.exr has three negative pixels)."""
         bad = int(np.count_nonzero(~(pixels >= 0) | ~np.isfinite(pixels)))
         if bad:
-            self.warn(f"{what} has {bad} NaN, infinite or negative values; they are treated as black.")
+            self.warn(f"{what} has {bad} NaN, infinite or negative values; they are treated as "
+                      "black.")
         return hdri.downsample(pixels, to_frame, strength=strength, max_width=HDRI_WIDTH,
                                repair=bad > 0)
 
     def environment_mapping(self, env) -> np.ndarray:
         """Rotation taking the texture's directions to world directions (Mapping node, if any)."""
         if env.projection != 'EQUIRECTANGULAR':
-            raise LightingError(f"The world's Environment Texture uses {env.projection} projection; "
-                                "only equirectangular HDRIs are supported.")
+            raise LightingError(f"The world's Environment Texture uses {env.projection} "
+                                "projection; only equirectangular HDRIs are supported.")
         vec = env.inputs["Vector"]
         if not vec.is_linked:
             return np.eye(3)

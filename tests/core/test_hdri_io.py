@@ -40,7 +40,8 @@ def _rle_channel(values):
             i += run
         else:
             j = i
-            while j < n and j - i < 128 and not (j + 2 < n and values[j] == values[j + 1] == values[j + 2]):
+            while j < n and j - i < 128 and not (
+                    j + 2 < n and values[j] == values[j + 1] == values[j + 2]):
                 j += 1
             out += bytes([j - i]) + bytes(values[i:j])
             i = j
@@ -107,7 +108,8 @@ def test_radiance_flips_and_exposure(tmp_path):
 def test_radiance_file_feeds_the_downsampler(tmp_path):
     img = np.ones((64, 128, 3), np.float32)
     light = hdri.downsample(hdri_io.read_hdri(_write_hdr(tmp_path / "u.hdr", img, rle=True)))
-    np.testing.assert_allclose(light, 1.0 + 0.5 / 128, rtol=1e-6)  # RGBE stores 1 as 1 + half a step
+    # RGBE stores 1 as 1 + half a step.
+    np.testing.assert_allclose(light, 1.0 + 0.5 / 128, rtol=1e-6)
 
 
 @pytest.mark.parametrize("name,content,match", [

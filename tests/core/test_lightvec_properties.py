@@ -81,8 +81,8 @@ def test_rotating_by_whole_turns_is_the_identity(light, turns):
 def test_rotation_keeps_each_rows_power(light, degrees):
     r = lightvec.rotate_azimuth(light, degrees)
     assert np.all(np.isfinite(r)) and r.min() >= 0
-    np.testing.assert_allclose(r.astype(np.float64).sum(axis=1), light.astype(np.float64).sum(axis=1),
-                               rtol=1e-5)
+    np.testing.assert_allclose(r.astype(np.float64).sum(axis=1),
+                               light.astype(np.float64).sum(axis=1), rtol=1e-5)
 
 
 @FAST
@@ -104,7 +104,8 @@ def lamps_outside(draw):
     dist = draw(st.floats(1.01, 1e4))
     return lamps.Lamp(kind, tuple(d * dist), tuple(-d), draw(st.tuples(*[st.floats(0, 1)] * 3)),
                       draw(st.floats(0.0, 1e6)), exposure=draw(st.floats(-10, 10)),
-                      sun_angle=draw(st.floats(0, math.pi)), spot_size=draw(st.floats(0.01, math.pi)),
+                      sun_angle=draw(st.floats(0, math.pi)),
+                      spot_size=draw(st.floats(0.01, math.pi)),
                       spot_blend=draw(st.floats(0, 1)), size=draw(st.floats(0.01, 5)),
                       size_y=draw(st.floats(0.01, 5)),
                       area_shape=draw(st.sampled_from(lamps.AREA_SHAPES)))
