@@ -14,6 +14,11 @@ LIGHT_SOURCES = (
     ("BUILTIN", "Studio HDRI", "One of Blender's bundled studio HDRIs"),
 )
 
+# Paths may be relative to the .blend ("//"); Blender 4.5+ wants that declared.
+BLEND_RELATIVE = ({'PATH_SUPPORTS_BLEND_RELATIVE'}
+                  if "is_path_supports_blend_relative" in bpy.types.Property.bl_rna.properties
+                  else set())
+
 # Enum items built by callbacks must stay referenced from Python, or Blender shows garbage.
 _enum_cache = {}
 
@@ -37,7 +42,7 @@ def _is_camera(self, obj):
 class RELIGHT_PG_settings(bpy.types.PropertyGroup):
     light_source: EnumProperty(name="Light", items=LIGHT_SOURCES, default='WORLD',
                                description="Where the target lighting comes from")
-    hdri_path: StringProperty(name="HDRI", subtype='FILE_PATH',
+    hdri_path: StringProperty(name="HDRI", subtype='FILE_PATH', options=BLEND_RELATIVE,
                               description="Equirectangular HDRI (EXR or HDR)")
     builtin_hdri: EnumProperty(name="Studio HDRI", items=_builtin_items)
     rotation: FloatProperty(name="Rotation", subtype='ANGLE', default=0.0,
@@ -56,6 +61,7 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
                            description="Model preset, each trading accuracy for time; "
                                        "empty uses the fastest installed model")
     output_dir: StringProperty(name="Output", subtype='DIR_PATH', default="//relit/",
+                               options=BLEND_RELATIVE,
                                description="Folder for the relit EXR frames (one sub-folder per strip)")
     write_matte: BoolProperty(name="Matte Strip", default=False,
                               description="Also write the portrait matte and add it as a strip")

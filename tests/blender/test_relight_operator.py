@@ -173,3 +173,41 @@ def test_missing_footage_frame_is_refused(extension, toy_models, tmp_path):
     (tmp_path / "footage" / "frame_0003.png").unlink()
     with pytest.raises(RuntimeError, match="missing"):
         relight(toy_models)
+
+
+def test_unwritable_output_folder_is_refused(extension, toy_models, tmp_path):
+    footage_scene(tmp_path, count=2)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    bpy.context.scene.relight.output_dir = str(blocker / "sub") + "/"
+    with pytest.raises(RuntimeError, match="Cannot create the output folder"):
+        relight(toy_models)
+
+
+def test_relative_output_folder_needs_a_saved_file(extension, toy_models, tmp_path):
+    footage_scene(tmp_path, count=2)
+    bpy.context.scene.relight.output_dir = "//relit/"
+    with pytest.raises(RuntimeError, match="not saved yet"):
+        relight(toy_models)
+
+
+def test_ui_worker_cancels_half_way_and_resumes(extension, toy_models, tmp_path):
+    """The modal operator's worker (timers never fire in background mode, so drive it here)."""
+    from portrait_relight.addon.errors import Cancelled
+    from portrait_relight.ops import bridge, relight_strip
+
+    source = footage_scene(tmp_path, count=6)
+    job = bridge.gather_job(bpy.context, source, models_override=str(toy_models))
+    lights, _ = relight_strip.schedule_lights(bpy.context, job)
+    state = relight_strip._WorkerState(job=job, warnings=[], started=0.0)
+    answers = iter([False, False, False])              # "Esc" after three progress checks
+    state.cancel.is_set = lambda: next(answers, True)
+    state.run(lights)
+    assert isinstance(state.error, Cancelled)
+    out = tmp_path / "out" / source.name / "relit"
+    done = sorted(out.glob("relit_*.exr"))
+    assert 0 < len(done) < 6
+    state = relight_strip._WorkerState(job=job, warnings=[], started=0.0)
+    state.run(lights)
+    assert state.error is None and state.result.resumed == len(done)
+    assert state.done == 6
