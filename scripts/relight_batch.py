@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
+import math
 import importlib.util
 import pathlib
 import re
@@ -125,7 +127,7 @@ def demo_frames() -> pathlib.Path:
                     and re.search(r"\d+$", p.stem)) if folder.is_dir() else []
     if not frames:
         raise BatchError(f"The demo clip is missing: {folder} holds no numbered PNG or EXR frames. "
-                         "It is made by the project's demo script (see README.md).")
+                         "Make it with `.venv/bin/python -m training.make_demo_clip`.")
     return frames[0]
 
 
@@ -153,16 +155,26 @@ def set_up_demo(ext, args) -> str:
     first = demo_preflight(ext, args)
     bpy.ops.wm.read_homefile(use_empty=True)
     call(bpy.ops.relight.import_footage, filepath=str(first), frame_start=1)
+    scene = bpy.context.scene
+    info = HERE.parent / "demo" / "clip.json"
+    fps = json.loads(info.read_text()).get("fps") if info.is_file() else None
+    if fps:
+        scene.render.fps, scene.render.fps_base = int(round(fps)), round(fps) / fps
     if not (args.hdri or args.scene_lights or args.world or args.studio):
         args.studio = DEMO_STUDIO
+    if args.rotation is None:  # show animated light: the studio turns once around the head
+        bpy.context.preferences.edit.keyframe_new_interpolation_type = 'LINEAR'
+        strip = scene.sequence_editor.active_strip
+        for frame, turn in ((strip.frame_final_start, 0.0), (strip.frame_final_end - 1, 1.0)):
+            scene.relight.rotation = turn * 2.0 * math.pi
+            scene.relight.keyframe_insert("rotation", frame=frame)
+
     if args.out is None:
         args.out = str(HERE.parent / "out" / "demo")
     return bpy.context.scene.sequence_editor.active_strip.name
 
 
 def apply_settings(scene, args) -> None:
-    import math
-
     s = scene.relight
     if args.hdri:
         s.light_source, s.hdri_path = 'HDRI_FILE', str(pathlib.Path(args.hdri).resolve())
