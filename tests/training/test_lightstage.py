@@ -182,3 +182,22 @@ def test_hard_cases_give_finite_images_and_flows(shared_data, case):
     assert f0.gb.mask.sum() > 50
     assert 0.0 <= float(img.min()) and float(img.max()) < 50.0
     assert math.isfinite(float(valid.sum()))
+
+
+def test_selective_effects_are_exact_with_every_light_and_close_with_the_strongest(scene):
+    """The 'simulate only what the scene calls for' shortcut: all lights -> the full sum exactly;
+    the strongest lights carrying 90% of the power -> a small error with fewer shadow maps."""
+    f = scene.frame(0.2)
+    rng = np.random.default_rng(4)
+    light = rng.uniform(0, 0.5, lightvec.SHAPE).astype(np.float32)
+    light[4, 10] = 600.0  # a sun carrying most of the power, as in a sunny HDRI
+    full = scene.shade(f, [light])
+    exact, n_all = scene.shade_selective(f, [light], energy=1.0 + 1e-9)
+    np.testing.assert_allclose(exact.numpy(), full.numpy(), rtol=1e-4, atol=1e-6)
+    fast, n = scene.shade_selective(f, [light], energy=0.9)
+    assert n < 40 and n_all == 114
+    m = f.gb.mask
+    rel = float(((fast - full)[0][:, m] ** 2).mean().sqrt() / full[0][:, m].mean())
+    assert rel < 0.15, rel
+    black, n0 = scene.shade_selective(f, [lightvec.zeros()])
+    assert n0 == 0 and float(black.abs().max()) == 0.0

@@ -41,6 +41,8 @@ class Frame:
     sss: torch.Tensor            # (H, W) subsurface weight
     transfer: shading.Transfer | None
     px_per_cm: float
+    f0: torch.Tensor | None = None      # (N,) specular reflectance
+    rough: torch.Tensor | None = None   # (N,) GGX roughness
 
 
 class Scene:
@@ -84,7 +86,7 @@ class Scene:
         sss_img[idx] = sss
         depth = float(gb.raster.depth.reshape(-1)[idx].median()) if idx.numel() else self.cam.distance
         f = Frame(t, posed, gb, idx, albedo, sss_img.view(self.cam.height, self.cam.width), None,
-                  self.cam.focal / max(depth, 1e-3))
+                  self.cam.focal / max(depth, 1e-3), f0, rough)
         if with_transfer:
             f.transfer = self.transfer(f, f0, rough)
         return f
@@ -105,17 +107,27 @@ class Scene:
         vis = shading.visibility(pos, maps, dirs, centre, radius)
         return shading.transfer(pos, nrm, tan, mat, f0, rough, dirs, vis)
 
-    def shade_weights(self, f: Frame, w: torch.Tensor) -> torch.Tensor:
-        """Images (C, 3, H, W) under stage weights ``w`` (C, 114, 3)."""
+    def shade_weights(self, f: Frame, w: torch.Tensor, tr: shading.Transfer | None = None,
+                      lights: torch.Tensor | None = None, low: torch.Tensor | None = None):
+        """Images (C, 3, H, W) under stage weights ``w`` (C, 114, 3).
+
+        ``tr``/``lights``: a transfer computed for a subset of the lights only (indices); ``low``
+        (C, 114, 3): weights of the other lights, shaded through the cheap low-frequency path
+        (unshadowed diffuse irradiance from an order-2 spherical-harmonic fit, no specular, no
+        subsurface)."""
         c = w.shape[0]
         h, wd = self.cam.height, self.cam.width
-        wm = w.permute(1, 0, 2).reshape(w.shape[1], c * 3).float()
-        tr = f.transfer
+        tr = f.transfer if tr is None else tr
+        wsel = w if lights is None else w[:, lights]
+        wm = wsel.permute(1, 0, 2).reshape(wsel.shape[1], c * 3).float()
         irr = torch.zeros(c * 3, h * wd)
         spec = torch.zeros(c * 3, h * wd)
         irr[:, f.idx] = (tr.diffuse @ wm).T
         spec[:, f.idx] = (tr.specular @ wm).T
         irr = shading.subsurface(irr.view(c * 3, h, wd), f.sss, f.px_per_cm).view(c * 3, -1)
+        if low is not None:
+            nrm = f.gb.normal.reshape(-1, 3)[f.idx]
+            irr[:, f.idx] += shading.sh_irradiance(nrm, self.dirs, low.float()).T
         alb = torch.zeros(3, h * wd)
         alb[:, f.idx] = f.albedo.T
         fg = alb.repeat(c, 1) / math.pi * irr + spec
@@ -130,6 +142,26 @@ class Scene:
         """Images (C, 3, H, W) under light vectors (C, 16, 16, 3)."""
         w = np.stack([layout.weights(lv) for lv in lights])
         return self.shade_weights(f, torch.from_numpy(w).float())
+
+    def shade_selective(self, f: Frame, lights, energy: float = 0.95):
+        """Images under light vectors, simulating shadows, specular and subsurface only for the
+        strongest lights that together carry ``energy`` of the power; the rest go through the
+        low-frequency path. Returns (images (C, 3, H, W), number of fully simulated lights)."""
+        w = torch.from_numpy(np.stack([layout.weights(lv) for lv in lights])).float()
+        e = w.sum(dim=2).max(dim=0).values  # per light: its largest power over the C lights
+        order = torch.argsort(e, descending=True)
+        total = float(e.sum())
+        if total <= 0:
+            return self.shade_weights(f, w, shading.Transfer(torch.zeros(len(f.idx), 0),
+                                                             torch.zeros(len(f.idx), 0)),
+                                      torch.zeros(0, dtype=torch.long)), 0
+        n = int(torch.searchsorted(torch.cumsum(e[order], 0), energy * total).item()) + 1
+        sel = torch.sort(order[:min(n, len(order))]).values
+        rest = torch.ones(len(e), dtype=torch.bool)
+        rest[sel] = False
+        tr = self.transfer(f, f.f0, f.rough, lights=sel)
+        low = w * rest[None, :, None]
+        return self.shade_weights(f, w, tr, sel, low), int(len(sel))
 
     def flow(self, a: Frame, b: Frame):
         return geometry.flow(a.gb, self.rig, b.posed.verts, b.gb, self.cam)

@@ -143,3 +143,20 @@ def subsurface(irr: torch.Tensor, sss: torch.Tensor, px_per_cm: float) -> torch.
         a = SSS_ALPHA[ch] * w
         out[ch::3] = sl * (1 - a) + a * num / den
     return out
+
+
+def _sh9(d: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics up to order 2 at unit directions (N, 3) -> (N, 9)."""
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    return torch.stack([0.282095 * torch.ones_like(x), 0.488603 * y, 0.488603 * z, 0.488603 * x,
+                        1.092548 * x * y, 1.092548 * y * z, 0.315392 * (3 * z * z - 1),
+                        1.092548 * x * z, 0.546274 * (x * x - y * y)], 1)
+
+
+def sh_irradiance(normals: torch.Tensor, dirs: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """(N, C*3) unshadowed irradiance from distant lights ``dirs`` (M, 3) with weights (C, M, 3),
+    through the order-2 SH fit of the clamped cosine (Ramamoorthi and Hanrahan 2001)."""
+    c = w.shape[0]
+    coeff = _sh9(dirs).T @ w.permute(1, 0, 2).reshape(dirs.shape[0], c * 3)  # (9, C*3)
+    band = torch.tensor([math.pi] + [2 * math.pi / 3] * 3 + [math.pi / 4] * 5)
+    return _sh9(normals) @ (coeff * band[:, None])

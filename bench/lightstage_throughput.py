@@ -1,0 +1,111 @@
+"""Light-stage throughput per stage, and the 'simulate only what the scene calls for' shortcut.
+
+    .venv/bin/python bench/lightstage_throughput.py [--res 128 256] [--samples 6] [--threads 1]
+
+Prints milliseconds per stage (pose, G-buffer, materials, shadow maps + visibility + BRDF transfer,
+shading of one light vector, flow), whole samples per second through LightStageDataset, and for
+the selective shading: the error against the full 114-light sum and the time saved, at several
+energy thresholds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import time
+
+import numpy as np
+import torch
+
+if __package__ in (None, ""):  # run as a script: make the repository importable
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from training.dataset import LightStageDataset  # noqa: E402
+from training.lightstage import geometry, materials  # noqa: E402
+
+
+def _ms(fn, reps=1):
+    t = time.perf_counter()
+    for _ in range(reps):
+        out = fn()
+    return (time.perf_counter() - t) * 1000.0 / reps, out
+
+
+def stages(ds: LightStageDataset, n: int) -> dict:
+    rows = {k: [] for k in ("pose", "gbuffer", "materials", "shadows+transfer", "shade 1 light",
+                            "flow")}
+    for i in range(n):
+        scene, t, (li, lj, lk) = ds.scene_for(i)
+        ms, posed = _ms(lambda: scene.pose(t))
+        rows["pose"].append(ms)
+        ms, gb = _ms(lambda: geometry.gbuffer(posed, scene.rig, scene.cam, scene.attrs))
+        rows["gbuffer"].append(ms)
+        f = scene.frame(t, with_transfer=False)
+        mat = f.gb.material.reshape(-1)[f.idx]
+        uv = f.gb.uv.reshape(-1, 2)[f.idx]
+        at = f.gb.attrs.reshape(-1, f.gb.attrs.shape[-1])[f.idx]
+        ms, _ = _ms(lambda: materials.surface(mat, uv, at, scene.ident))
+        rows["materials"].append(ms)
+        ms, f.transfer = _ms(lambda: scene.transfer(f, f.f0, f.rough))
+        rows["shadows+transfer"].append(ms)
+        ms, _ = _ms(lambda: scene.shade(f, [lk]), reps=3)
+        rows["shade 1 light"].append(ms)
+        f1 = scene.frame(t + 0.04, with_transfer=False)
+        ms, _ = _ms(lambda: scene.flow(f, f1))
+        rows["flow"].append(ms)
+    return {k: float(np.median(v)) for k, v in rows.items()}
+
+
+def selective(ds: LightStageDataset, n: int, energies=(0.99, 0.95, 0.9, 0.8)) -> list:
+    out = []
+    for e in energies:
+        errs, lights, t_full, t_sel = [], [], [], []
+        for i in range(n):
+            scene, t, (li, lj, lk) = ds.scene_for(i)
+            f = scene.frame(t, with_transfer=False)
+            ms_full, full = _ms(lambda: (setattr(f, "transfer", scene.transfer(f, f.f0, f.rough)),
+                                         scene.shade(f, [lk]))[1])
+            ms_sel, (fast, used) = _ms(lambda: scene.shade_selective(f, [lk], e))
+            m = f.gb.mask
+            d = (fast - full)[0][:, m]
+            ref = full[0][:, m]
+            errs.append(float(torch.sqrt((d ** 2).mean()) / ref.mean().clamp(min=1e-12)))
+            lights.append(used)
+            t_full.append(ms_full)
+            t_sel.append(ms_sel)
+        out.append((e, float(np.mean(lights)), float(np.mean(errs)), float(np.max(errs)),
+                    float(np.median(t_full)), float(np.median(t_sel))))
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--res", type=int, nargs="+", default=[128, 256])
+    ap.add_argument("--samples", type=int, default=6)
+    ap.add_argument("--threads", type=int, default=1)
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    print(f"torch threads: {a.threads}")
+    for res in a.res:
+        ds = LightStageDataset("train", res, seed=123, length=10_000)
+        ds[0]  # warm the caches (head model, rigs, HDRI bank)
+        st = stages(ds, a.samples)
+        print(f"\n== {res}x{res}: median ms per frame and stage")
+        for k, v in st.items():
+            print(f"  {k:18s} {v:8.1f}")
+        t = time.perf_counter()
+        for i in range(a.samples):
+            ds[100 + i]
+        dt = (time.perf_counter() - t) / a.samples
+        print(f"  whole sample (2 frames, 4 images, flows): {dt * 1000:.0f} ms = "
+              f"{1 / dt:.2f} samples/s")
+        print(f"\n  selective shading vs the full 114-light sum (L^k of {a.samples} samples):")
+        print("  energy  lights  rel.RMSE(mean)  rel.RMSE(max)  full ms  selective ms  saved")
+        for e, n, em, ex, tf, ts in selective(ds, a.samples):
+            print(f"  {e:5.2f}  {n:6.1f}  {em:14.4f}  {ex:13.4f}  {tf:7.1f}  {ts:12.1f}  "
+                  f"{100 * (1 - ts / tf):4.0f}%")
+
+
+if __name__ == "__main__":
+    main()
