@@ -142,11 +142,12 @@ def downsample(image: np.ndarray, world_to_frame: np.ndarray | None = None,
             acc[:, ch] += np.bincount(idx, weights=vals[:, ch], minlength=acc.shape[0])
     # MIN_WIDTH guarantees several pixel centres per cell even at the poles after any rotation.
     assert np.all(wsum > 0), "every light cell must catch at least one HDRI pixel"
-    out = (acc / wsum[:, None]).reshape(lightvec.SHAPE) * float(strength)
+    # Checked after the cast: a float64 mean above 3.4e38 only overflows in float32.
+    out = ((acc / wsum[:, None]).reshape(lightvec.SHAPE) * float(strength)).astype(np.float32)
     if not np.all(np.isfinite(out)):
         raise LightingError("The HDRI is too bright to represent (radiance overflows); "
                             "lower its strength.")
-    return out.astype(np.float32)
+    return out
 
 
 def upsample_small(image: np.ndarray, min_width: int = 2 * MIN_WIDTH) -> np.ndarray:
