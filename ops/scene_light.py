@@ -19,7 +19,7 @@ from ..addon import hdri, hdri_io, lamps, lightvec
 from ..addon.errors import InputError, LightingError
 
 SOURCES = ("WORLD", "LAMPS", "WORLD_AND_LAMPS", "HDRI_FILE", "BUILTIN")
-HDRI_WIDTH = 512  # HDRI working width: bench/light_conversion.py and README give the trade-off
+HDRI_WIDTH = 1024  # HDRI working width: bench/light_conversion.py and README give the trade-off
 REL_THRESHOLD = 1e-3  # lamps below this share of the total power are skipped
 MISSING_SUBJECT_DISTANCE = 1.0  # metres in front of the camera when nothing marks the subject
 

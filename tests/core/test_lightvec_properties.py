@@ -63,10 +63,10 @@ def test_hdri_downsampling_is_finite_and_conserves_power(img, yaw, pitch):
     h, w = img.shape[:2]
     truth = (img.astype(np.float64) * hdri.pixel_row_solid_angles(h, w)[:, None, None]).sum((0, 1))
     # Each pixel lands whole in the cell holding its centre, so a cell's pixels cover a little more
-    # or less than its exact solid angle. When one pixel dominates a small map (enlarged to about
-    # 256 pixels wide) that mismatch shows whole: hypothesis found 5% (random draws: 2.3%); 0.3%
-    # at 512 pixels wide. tests/core/test_lightvec.py covers realistic maps at 1%.
-    np.testing.assert_allclose(lightvec.total_power(light), truth, rtol=0.08)
+    # or less than its exact solid angle. When one pixel dominates a small map (enlarged to the
+    # default 1024-pixel working width) that mismatch shows whole: the worst cell's coverage is off
+    # by 1.9% at 1024 (4.6% at 512). tests/core/test_lightvec.py covers realistic maps at 1%.
+    np.testing.assert_allclose(lightvec.total_power(light), truth, rtol=0.03)
 
 
 @FAST
