@@ -119,7 +119,8 @@ class RELIGHT_OT_import_footage(bpy.types.Operator):
             fps = info.fps or strip.fps
         else:
             channel = bridge.free_channel(strips, self.channel, start, start + len(files))
-            strip = strips.new_image(files[0].stem, str(files[0]), channel, start)
+            name = re.sub(r"[\W_]*\d+$", "", files[0].stem) or files[0].parent.name
+            strip = strips.new_image(name, str(files[0]), channel, start)
             for f in files[1:]:
                 strip.elements.append(f.name)
             fps = None

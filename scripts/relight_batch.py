@@ -223,8 +223,11 @@ def run(args) -> None:
     apply_settings(bpy.context.scene, args)
     started = time.perf_counter()
     call(bpy.ops.relight.relight_strip, strip=strip, models_dir=args.models or "")
-    print(f"relight_batch: done in {time.perf_counter() - started:.1f} s; frames are in "
-          f"{bpy.path.abspath(bpy.context.scene.relight.output_dir)}", flush=True)
+    scene = bpy.context.scene
+    out = ext.ops.bridge.output_dir(scene, scene.sequence_editor.strips[strip],
+                                    scene.relight.output_dir)
+    print(f"relight_batch: done in {time.perf_counter() - started:.1f} s; relit frames are in "
+          f"{out / 'relit'}", flush=True)
     if args.save:
         if not bpy.data.filepath:
             raise BatchError("--save needs a .blend file to save into; open one first.")

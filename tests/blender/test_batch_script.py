@@ -115,3 +115,15 @@ def test_blender_style_arguments_after_double_dash():
     args = batch.parse_args(batch.script_args(argv))
     assert (args.strip, args.frames, args.blend) == ("A", (10, 20), None)
     assert batch.script_args(["relight_batch.py", "s.blend", "--demo"]) == ["s.blend", "--demo"]
+
+
+def test_demo_relights_the_built_in_clip(toy_models, tmp_path):
+    frames = sorted((ROOT / "demo" / "frames").glob("*.png"))
+    if not frames:
+        pytest.skip("the demo clip (demo/frames) has not been made in this checkout")
+    done = run([sys.executable, str(SCRIPT), "--demo", "--models", str(toy_models), "--out",
+                str(tmp_path / "demo")])
+    assert done.returncode == 0, done.stderr
+    relit = list((tmp_path / "demo").glob("*/relit/relit_*.exr"))
+    assert len(relit) == len(frames)
+    assert "relit frames are in" in done.stdout
