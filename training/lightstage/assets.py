@@ -9,8 +9,8 @@ bust already holds neck and upper chest. Around it this module builds, once per 
   68 landmarks, brows around the brow landmarks, neck under the jaw line, clothes below the
   neckline), so they follow the mesh through every identity and expression.
 The eye occlusion, eye blend and lacrimal fluid meshes are transparent overlays in ICT-FaceKit and
-are left out; the eyelash cards are drawn as opaque dark geometry (at 128-256 px they read as a lash
-line).
+are left out, and so are the eyelash cards (opaque, they look like goggles; alpha-tested lashes are
+future work).
 """
 
 from __future__ import annotations
@@ -31,8 +31,9 @@ LABEL = {name: i for i, name in enumerate(PARSING_CLASSES)}  # channel ids, 0 = 
 SKIN, SCLERA, IRIS, TEETH, MOUTH, LASHES, HAIR, CLOTHES = range(8)
 _ICT_MATERIAL = {"M_Face": SKIN, "M_BackHead": SKIN, "M_GumsTongue": MOUTH, "M_Teeth": TEETH,
                  "M_ScleraLeft": SCLERA, "M_IrisLeft": IRIS, "M_ScleraRight": SCLERA,
-                 "M_IrisRight": IRIS, "M_EyeLashes": LASHES}
-_DROPPED = ("M_LacrimalFluid", "M_EyeBlend", "M_EyeOcclusion")
+                 "M_IrisRight": IRIS}
+# The eyelash cards are left out too: drawn opaque they read as thick black goggles at 128-256 px.
+_DROPPED = ("M_LacrimalFluid", "M_EyeBlend", "M_EyeOcclusion", "M_EyeLashes")
 
 # Torso extrusion rings: (drop below the bust's bottom loop in cm, lateral scale, depth scale).
 _TORSO_RINGS = ((2.0, 1.25, 1.05), (5.0, 1.55, 1.10), (9.0, 1.68, 1.12), (15.0, 1.70, 1.10),
