@@ -1,0 +1,110 @@
+"""Hard cases (tests/HARD_CASES.md) that need Blender: the relight operator and the batch script
+on the bpy module with the toy model. Each test states what must happen: finite frames, or a
+non-zero exit with a message and nothing written or replaced."""
+
+import hashlib
+import pathlib
+import subprocess
+import sys
+
+import bpy
+import numpy as np
+import OpenEXR
+
+from conftest import ROOT, footage_scene
+
+SCRIPT = ROOT / "scripts" / "relight_batch.py"
+
+
+def read_exr(path):
+    with OpenEXR.File(str(path)) as f:
+        return np.asarray(f.channels()["RGB"].pixels, dtype=np.float32)
+
+
+def write_exr(path, rgb):
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
+                      {"RGB": np.ascontiguousarray(rgb, dtype=np.float32)}) as f:
+        f.write(str(path))
+    return path
+
+
+def stamps(folder):
+    return {p.name: (p.stat().st_mtime_ns, hashlib.sha256(p.read_bytes()).hexdigest())
+            for p in sorted(pathlib.Path(folder).rglob("*")) if p.is_file()}
+
+
+def test_operator_relights_exr_footage_with_nan_inf_and_negative_pixels(extension, toy_models,
+                                                                          tmp_path):
+    folder = tmp_path / "plates"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        px = rng.random((24, 32, 3)).astype(np.float32)
+        px[0, :4] = np.array([np.nan, np.inf, -np.inf, -3.0])[:, None]
+        px[5:9, 5:9] = np.nan
+        write_exr(folder / f"plate.{i + 1:04d}.exr", px)
+    before = stamps(folder)
+    bpy.ops.relight.import_footage(filepath=str(folder / "plate.0001.exr"), frame_start=1)
+    settings = bpy.context.scene.relight
+    settings.light_source = 'HDRI_FILE'
+    settings.hdri_path = str(write_exr(tmp_path / "sky.exr", np.full((32, 64, 3), 0.5)))
+    settings.output_dir = str(tmp_path / "out") + "/"
+    assert bpy.ops.relight.relight_strip(models_dir=str(toy_models)) == {'FINISHED'}
+    relit = sorted((tmp_path / "out").rglob("relit_*.exr"))
+    assert len(relit) == 2
+    for f in relit:
+        px = read_exr(f)
+        assert px.shape == (24, 32, 3) and np.all(np.isfinite(px)) and px.min() >= 0
+    assert stamps(folder) == before  # the footage is never touched
+
+
+def save_scene(tmp_path, count=3):
+    strip = footage_scene(tmp_path, count=count, frame_start=1)
+    blend = tmp_path / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    return blend, strip.name
+
+
+def batch(blend, strip, toy_models, out, *extra):
+    return subprocess.run([sys.executable, str(SCRIPT), str(blend), "--strip", strip, "--models",
+                           str(toy_models), "--out", str(out), *extra],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+
+
+def test_batch_hdri_with_a_1e5_sun_and_bad_texels_gives_finite_frames(extension, toy_models,
+                                                                      tmp_path):
+    """A sun of 1e5 plus NaN, infinite and negative texels: the bad texels count as black with a
+    warning; every frame is finite (values past the half range clamp to 65504)."""
+    blend, strip = save_scene(tmp_path)
+    sky = np.full((32, 64, 3), 0.2, np.float32)
+    sky[15, 48] = 1e5  # u = 0.75, the horizon: toward the camera of an unrotated scene
+    sky[2, 3], sky[4, 5], sky[6, 7] = np.nan, np.inf, -1.0
+    done = batch(blend, strip, toy_models, tmp_path / "out", "--hdri",
+                 str(write_exr(tmp_path / "sun.exr", sky)))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "treated as black" in done.stdout + done.stderr
+    relit = sorted((tmp_path / "out").rglob("relit_*.exr"))
+    assert len(relit) == 3
+    for f in relit:
+        px = read_exr(f)
+        assert np.all(np.isfinite(px)) and 0 <= px.min() and px.max() <= 65504
+
+
+def test_batch_rerun_never_replaces_another_run_unless_asked(extension, toy_models, tmp_path):
+    """Another lighting into the same output folder exits 1 with a message and touches nothing;
+    with --overwrite it replaces the frames. All-zero lighting (2^-200 underflows to 0) gives
+    black frames."""
+    blend, strip = save_scene(tmp_path)
+    out = tmp_path / "out"
+    first = batch(blend, strip, toy_models, out)
+    assert first.returncode == 0, first.stderr
+    before = stamps(out)
+    refused = batch(blend, strip, toy_models, out, "--exposure", "-200")
+    assert refused.returncode == 1
+    assert "already holds another relight run" in refused.stderr
+    assert "Traceback" not in refused.stderr
+    assert stamps(out) == before
+    replaced = batch(blend, strip, toy_models, out, "--exposure", "-200", "--overwrite")
+    assert replaced.returncode == 0, replaced.stderr
+    relit = sorted(out.rglob("relit_*.exr"))
+    assert len(relit) == 3 and all(not read_exr(f).any() for f in relit)
