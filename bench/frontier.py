@@ -1,0 +1,667 @@
+"""Accuracy against time: every knob that trades one for the other, measured on the same held-out
+test set (the light stage's 'test' split: identities never seen in training), with its Pareto
+frontier.
+
+    .venv/bin/python -m bench.frontier                 # full run (models/, ~10-20 min here)
+    .venv/bin/python -m bench.frontier --quick         # tiny test set, few repeats (CI)
+    .venv/bin/python -m bench.frontier --write-cards --readme README.md   # publish the figures
+
+Knob groups, each with its own error measure (so each has its own frontier):
+* network: the per-frame path of addon/pipeline.py (shrink -> network -> guided coefficients ->
+  full-resolution finish; decoding and writing excluded) against the light stage's ground truth,
+  RMSE on the portrait region as training/evaluate.py defines it. Knobs: the shipped presets
+  (models/*.onnx), extra widths and depths exported untrained from training/network.py (time only:
+  their accuracy is not measured and is labelled so), working resolution (256, 384, 512, full),
+  the full-resolution detail transfer on/off, precision (fp32, int8 made with
+  onnxruntime.quantization; fp16 only where a provider runs it) and execution provider.
+* light stage: the selective-effects shortcut against the full 114-light sum
+  (bench/lightstage_throughput.py), relative RMSE of the radiance.
+* lighting conversion: an HDRI down-sampled at several working widths against the Cycles referee
+  (bench/light_conversion.py), relative RMSE on a diffuse sphere; time per conversion.
+
+Timings are medians over repeated runs with the 10th-90th percentile spread, on the machine that
+each output names (platform, CPU model, cores, load average, date). Writes frontier.md, .json
+and .png into --out; with --readme it replaces the README section between the frontier markers,
+with --write-cards it adds a "frontier" entry to each measured model card in --models.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import hashlib
+import json
+import os
+import pathlib
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+if __package__ in (None, ""):  # run as a script: make the repository importable
+    sys.path.insert(0, str(ROOT))
+
+from addon import colour, contract, detail, engine, normalise, pipeline  # noqa: E402
+
+BEGIN, END = "<!-- frontier:begin -->", "<!-- frontier:end -->"
+SECTION = "## Accuracy against time"
+FULL_SIZES = (256, 384, 512)  # plus "full": the test set's own resolution
+LINEAR = colour.lookup("Linear Rec.709")
+CPU = "CPUExecutionProvider"
+
+
+# ---- machine and timing -------------------------------------------------------------------
+
+def machine() -> dict:
+    cpu = platform.processor() or ""
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import onnxruntime as ort
+
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    return {"platform": platform.platform(), "cpu": cpu, "cores": os.cpu_count(),
+            "load_avg_1_5_15": [round(x, 2) for x in load],
+            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+            "python": platform.python_version(), "onnxruntime": ort.__version__,
+            "providers": ort.get_available_providers()}
+
+
+def machine_line(m: dict) -> str:
+    return (f"{m['cpu']}, {m['cores']} cores, {m['platform']}; onnxruntime {m['onnxruntime']} "
+            f"({', '.join(m['providers'])}); load average {m['load_avg_1_5_15'][0]} at the start; "
+            f"{m['date']}")
+
+
+def spread(times_s) -> dict:
+    """Median and 10th-90th percentiles in milliseconds."""
+    t = np.asarray(times_s, np.float64) * 1e3
+    return {"ms": float(np.median(t)), "p10": float(np.percentile(t, 10)),
+            "p90": float(np.percentile(t, 90)), "runs": int(t.size)}
+
+
+def timed(fn, repeats: int, warmup: int = 1):
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return spread(times)
+
+
+@dataclass
+class Row:
+    group: str            # 'network' | 'light stage' | 'lighting conversion' | 'reference'
+    kind: str             # which knob this row varies (colour in the plot)
+    label: str
+    error: float | None   # the group's error measure; None: not measured (untrained)
+    ms: float | None
+    p10: float | None = None
+    p90: float | None = None
+    runs: int = 0
+    settings: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
+    note: str = ""
+    frontier: bool = False
+
+
+# ---- the held-out test set ----------------------------------------------------------------
+
+KEYS = ("img_t_i", "img_t1_j", "gt_t_k", "mask_t", "light_i", "light_k")
+
+
+def _lightstage_version() -> str:
+    """A hash of the light stage's sources: a cached test set is stale when they change."""
+    h = hashlib.sha256()
+    for p in sorted((ROOT / "training").rglob("*.py")):
+        if "lightstage" in p.parts or p.name in ("dataset.py", "lighting_sampling.py"):
+            h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def default_cache() -> pathlib.Path:
+    base = os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache"
+    return pathlib.Path(base) / "portrait-relight" / "frontier"
+
+
+def heldout_samples(resolution: int, n: int, seed: int, cache: pathlib.Path | None) -> list[dict]:
+    """The first ``n`` samples of the held-out 'test' split at ``resolution`` (cached on disk:
+    each costs seconds to render)."""
+    from training import evaluate
+
+    folder = None
+    if cache is not None:
+        folder = cache / f"test-{resolution}-{seed}-{_lightstage_version()}"
+        folder.mkdir(parents=True, exist_ok=True)
+    ds, out = None, []
+    for idx in range(n):
+        path = folder / f"{idx:04d}.npz" if folder else None
+        if path is not None and path.is_file():
+            with np.load(path) as z:
+                out.append({k: z[k] for k in KEYS})
+            continue
+        ds = ds or evaluate.heldout_dataset(resolution, seed)
+        s = ds[idx]
+        out.append({k: np.asarray(s[k], np.float32) for k in KEYS})
+        if path is not None:
+            tmp = path.with_suffix(".tmp.npz")
+            np.savez(tmp, **out[-1])
+            tmp.replace(path)
+    return out
+
+
+# ---- the network group --------------------------------------------------------------------
+
+@dataclass
+class Frame:
+    x_full: np.ndarray    # (H, W, 3) exposure-normalised linear input
+    x_max: float
+    scale: float          # s
+    light: np.ndarray     # the target light L^k (absolute)
+    gt: np.ndarray        # (3, H, W) absolute ground truth
+    mask: np.ndarray      # (H, W) bool portrait region
+
+
+def frames_of(samples) -> list[Frame]:
+    out = []
+    for s in samples:
+        hwc = [np.moveaxis(s[k], 0, -1) for k in ("img_t_i", "img_t1_j")]
+        scale = normalise.exposure_scale(hwc)  # one scale for the two frames, as in training
+        x = np.ascontiguousarray(hwc[0] / np.float32(scale), dtype=np.float32)
+        out.append(Frame(x, float(x.max()), scale, s["light_k"], s["gt_t_k"],
+                         s["mask_t"][0] > 0.5))
+    return out
+
+
+def card_for(onnx_path, stride: int, working: int, name: str, preset: str,
+             classes) -> engine.ModelCard:
+    """A card in memory for a variant made here (untrained export, int8), never written."""
+    p = pathlib.Path(onnx_path)
+    return engine.ModelCard(p.with_suffix(".json"), p, name, preset, contract.CONTRACT_VERSION,
+                            "", stride, working, tuple(classes), {})
+
+
+def open_session(card: engine.ModelCard, threads: int, provider: str):
+    import onnxruntime as ort
+
+    so = engine.session_options(ort, threads)
+    sess = ort.InferenceSession(str(card.onnx_path), so, providers=[provider])
+    return engine.RelightSession(sess, card, sess.get_providers())
+
+
+def relight_frame(session, f: Frame, working: int, detail_on: bool,
+                  fullres: detail.FullRes) -> np.ndarray:
+    """The pipeline's per-frame stages (addon/pipeline.py) -> half (H, W, 3) absolute radiance."""
+    h, w = f.x_full.shape[:2]
+    plan = pipeline.Plan(LINEAR, f.scale, (w, h), detail.working_shape(h, w, working),
+                         detail_on, False, "none")
+    x_low = pipeline.shrink(f.x_full, plan, fullres)
+    relit_low, _, _, k = pipeline.infer(session, x_low, f.light)
+    ab = pipeline.coefficients(x_low, relit_low, k, plan, fullres)
+    return pipeline.finish(f.x_full, ab, f.x_max, fullres)[0]
+
+
+def measure_network(session, frames, working: int, detail_on: bool, repeats: int,
+                    fullres, accuracy: bool = True) -> dict:
+    from training import evaluate
+
+    metrics = []
+    if accuracy:
+        for f in frames:
+            y = relight_frame(session, f, working, detail_on, fullres).astype(np.float32)
+            metrics.append(evaluate.image_metrics(np.moveaxis(y, -1, 0), f.gt, f.mask))
+    it = iter(range(10 ** 9))
+    t = timed(lambda: relight_frame(session, frames[next(it) % len(frames)], working, detail_on,
+                                    fullres), repeats)
+    if metrics:
+        t.update({k: float(np.mean([m[k] for m in metrics])) for k in metrics[0]})
+    return t
+
+
+def network_row(kind, label, result, settings, note="", trained=True) -> Row:
+    return Row("network", kind, label, result.get("rmse") if trained else None, result["ms"],
+               result["p10"], result["p90"], result["runs"], settings,
+               {k: result[k] for k in ("psnr", "ssim") if k in result}, note)
+
+
+def shipped_models(models_dir: pathlib.Path) -> list[engine.ModelCard]:
+    cards = []
+    for p in sorted(pathlib.Path(models_dir).glob("*.onnx")):
+        try:
+            card = engine.load_card(p)
+            engine.verify_checksum(card)
+            cards.append(card)
+        except Exception as err:  # noqa: BLE001  a broken card is reported, not measured
+            print(f"skipping {p.name}: {err}", file=sys.stderr)
+    return cards
+
+
+def untrained_variants(quick: bool) -> list[tuple[str, dict]]:
+    """(label, network.build kwargs): the presets plus extra width and depth points."""
+    if quick:
+        return [("draft", {"preset": "draft"})]
+    return [("draft", {"preset": "draft"}), ("standard", {"preset": "standard"}),
+            ("final", {"preset": "final"}),
+            ("standard narrow (widths/2)", {"preset": "standard", "widths": (16, 24, 48, 64)}),
+            ("standard shallow (1 block/level)", {"preset": "standard", "blocks": (1, 1, 1, 1)}),
+            ("standard wide (widths x1.5)", {"preset": "standard", "widths": (48, 72, 144, 192)})]
+
+
+def quantised(session, frames, working: int, fullres, folder: pathlib.Path):
+    """(int8 card or None, why not): static QDQ int8 of the model's convolutions, calibrated on
+    what the network sees of the test frames (held out from training, not from this)."""
+    import onnx
+
+    from training import export
+
+    card = session.card
+    model = onnx.load(str(card.onnx_path))
+    if not any(n.op_type == "Conv" for n in model.graph.node):
+        return None, "no convolution to quantise in this model"
+    feeds = []
+    for f in frames[:8]:
+        h, w = f.x_full.shape[:2]
+        x_low = fullres.shrink(f.x_full, *detail.working_shape(h, w, working))
+        feeds.append(session.preprocess(x_low, normalise.normalise_light(f.light)[0]).feeds)
+    out = folder / f"{card.name}-int8.onnx"
+    export.quantize_int8(card.onnx_path, out, feeds)
+    return card_for(out, card.stride, card.working_size, f"{card.name}-int8", card.preset,
+                    card.classes), ""
+
+
+def network_group(args, frames, folder: pathlib.Path, log) -> tuple[list[Row], dict]:
+    """Every shipped model at every working size (detail on), then for the first fp32 model:
+    detail off, int8 and other providers; then the untrained width/depth points."""
+    res = frames[0].x_full.shape[0]
+    fullres = detail.FullRes(threads=args.threads)
+    cards = shipped_models(args.models)
+    if not cards:
+        log(f"no model in {args.models}: nothing trained to measure")
+    if args.toy_fallback is not None:
+        cards.append(args.toy_fallback)
+    sizes = sorted({s for s in args.sizes if s < res} | {res})
+    rows, per_card = [], {}
+
+    def settings(card, ws, det, precision="fp32", prov=CPU):
+        return {"model": card.name, "preset": card.preset, "working": ws, "full": res,
+                "detail": det, "precision": precision, "provider": prov,
+                "threads": args.threads}
+
+    def name(card, ws, precision="fp32"):
+        return f"{card.preset} {precision} {ws if ws < res else 'full'}"
+
+    for card in cards:
+        s = open_session(card, args.threads, CPU)
+        precision = "int8" if "int8" in card.name else "fp32"
+        note = "toy model of the tests (physics stand-in)" if card is args.toy_fallback else ""
+        own = min(card.working_size, res)
+        for ws in sorted(set(sizes) | {own}):
+            log(f"network {card.name} at {ws}")
+            r = measure_network(s, frames, ws, True, args.repeats, fullres)
+            rows.append(network_row("preset x resolution", name(card, ws, precision), r,
+                                    settings(card, ws, True, precision), note))
+            if ws == own and card is not args.toy_fallback:
+                per_card[card.name] = (card, r, settings(card, ws, True, precision))
+    primary = next((c for c in cards if "int8" not in c.name), None)
+    if primary is not None:
+        rows += primary_knobs(args, primary, frames, sizes, folder, fullres, settings, name, log)
+    rows += untrained_rows(args, frames, folder, fullres, log)
+    return rows, per_card
+
+
+def primary_knobs(args, card, frames, sizes, folder, fullres, settings, name, log) -> list[Row]:
+    """Detail transfer off, int8 and every non-CPU provider, for one model."""
+    import onnxruntime as ort
+
+    res = frames[0].x_full.shape[0]
+    s = open_session(card, args.threads, CPU)
+    rows = []
+    for ws in [x for x in sizes if x < res]:
+        log(f"detail off {card.name} at {ws}")
+        r = measure_network(s, frames, ws, False, args.repeats, fullres)
+        rows.append(network_row("detail transfer off", name(card, ws) + " no detail", r,
+                                settings(card, ws, False)))
+    ws = min(card.working_size, res)
+    q, why = quantised(s, frames, ws, fullres, folder)
+    if q is None:
+        log(f"int8 not measured: {why}")
+        rows.append(Row("network", "precision", name(card, ws, "int8"), None, None,
+                        settings=settings(card, ws, True, "int8"), note=why))
+    elif "int8" not in " ".join(c.name for c in shipped_models(args.models)):
+        r = measure_network(open_session(q, args.threads, CPU), frames, ws, True, args.repeats,
+                            fullres)
+        rows.append(network_row("precision", name(card, ws, "int8"), r,
+                                settings(card, ws, True, "int8"),
+                                "int8 QDQ (convolutions) made here, calibrated on the test frames"))
+    for prov in ort.get_available_providers():
+        if prov in (CPU, "AzureExecutionProvider"):
+            continue
+        log(f"provider {prov}")
+        r = measure_network(open_session(card, args.threads, prov), frames, ws, True,
+                            args.repeats, fullres)
+        rows.append(network_row("provider", f"{name(card, ws)} {prov}", r,
+                                settings(card, ws, True, "fp32", prov)))
+    return rows
+
+
+def untrained_rows(args, frames, folder, fullres, log) -> list[Row]:
+    """Speed of the presets and extra width/depth points exported untrained (and int8 of the
+    first): time is what these measure; their error is not an accuracy and is not reported."""
+    from training import export, network
+
+    rows = []
+    ws = min(256, frames[0].x_full.shape[0])
+    for i, (label, kw) in enumerate([] if "untrained" in args.skip
+                                    else untrained_variants(args.quick)):
+        kw = dict(kw)
+        net = network.build(kw.pop("preset"), **kw).eval()
+        path = export.export_onnx(net, folder / f"untrained-{i}.onnx")
+        card = card_for(path, net.cfg.stride, ws, label, label, contract.PARSING_CLASSES)
+        variants = [("fp32", card)]
+        if i == 0:
+            q, why = quantised(open_session(card, 1, CPU), frames, ws, fullres, folder)
+            variants += [("int8", q)] if q is not None else []
+        for precision, c in variants:
+            log(f"untrained {label} {precision} at {ws}")
+            r = measure_network(open_session(c, args.threads, CPU), frames, ws, True,
+                                args.repeats, fullres, accuracy=False)
+            rows.append(Row("network", "untrained width/depth (time only)",
+                            f"{label} {precision} {ws}", None, r["ms"], r["p10"], r["p90"],
+                            r["runs"], {"model": label, "working": ws, "detail": True,
+                                        "precision": precision, "provider": CPU,
+                                        "threads": args.threads, "config": net.cfg.to_dict()},
+                            {"gflop_at_working": round(network.count_flops(net, ws, ws) / 1e9, 3),
+                             "parameters": network.parameter_count(net)},
+                            "untrained export: time only, accuracy not measured"))
+    return rows
+
+
+def reference_rows(samples) -> list[Row]:
+    from training import evaluate
+
+    rows = []
+    for name, fn, note in (("identity (input unchanged)", evaluate.baseline_identity, ""),
+                           ("irradiance ratio (oracle source light)",
+                            evaluate.baseline_irradiance_ratio, "uses the true source light")):
+        m = [evaluate.image_metrics(fn(s), s["gt_t_k"], s["mask_t"][0] > 0.5) for s in samples]
+        rows.append(Row("reference", "baseline", name, float(np.mean([x["rmse"] for x in m])),
+                        None, note=note,
+                        extra={"psnr": float(np.mean([x["psnr"] for x in m])),
+                               "ssim": float(np.mean([x["ssim"] for x in m]))}))
+    return rows
+
+
+# ---- the light stage's effect shortcuts ---------------------------------------------------
+
+def lightstage_group(args, log) -> list[Row]:
+    import torch
+
+    from bench import lightstage_throughput as lt
+    from training import evaluate
+
+    torch.set_num_threads(1)
+    ds = evaluate.heldout_dataset(args.lightstage_res, args.seed)
+    energies = (0.95, 0.8) if args.quick else (0.99, 0.95, 0.9, 0.8)
+    runs = []
+    for i in range(max(1, args.lightstage_repeats)):
+        log(f"light stage shortcuts, pass {i + 1}")
+        runs.append(lt.selective(ds, args.lightstage_samples, energies))
+    rows = []
+    full = spread([r[0][4] / 1e3 for r in runs])
+    rows.append(Row("light stage", "effects", "all 114 lights", 0.0, full["ms"], full["p10"],
+                    full["p90"], full["runs"], {"resolution": args.lightstage_res,
+                                                "samples": args.lightstage_samples}))
+    for j, e in enumerate(energies):
+        t = spread([r[j][5] / 1e3 for r in runs])
+        rows.append(Row("light stage", "effects", f"effects for {e:.0%} energy",
+                        float(np.mean([r[j][2] for r in runs])), t["ms"], t["p10"], t["p90"],
+                        t["runs"], {"energy": e, "resolution": args.lightstage_res,
+                                    "samples": args.lightstage_samples},
+                        {"lights_with_effects": float(np.mean([r[j][1] for r in runs])),
+                         "max_error": float(np.max([r[j][3] for r in runs]))},
+                        "timings are medians over the samples of each pass"))
+    return rows
+
+
+# ---- lighting conversion against the Cycles referee ---------------------------------------
+
+def conversion_group(args, folder: pathlib.Path, log) -> list[Row]:
+    from bench import light_conversion as lc  # imports bpy: only here
+
+    hdri, hdri_io = lc.addon_module("hdri"), lc.addon_module("hdri_io")
+    widths = (128, 256) if args.quick else (128, 256, 512, 1024)
+    maps = [("synthetic 128x64", lc.write_exr(folder / "synthetic.exr", lc.synthetic_hdri()))]
+    studio = ROOT.parent / "shared" / "data" / "hdri" / "blender" / "studio.exr"
+    if studio.is_file() and not args.quick:
+        maps.append(("Blender studio.exr", str(studio)))
+    res, samples = (24, 64) if args.quick else (48, 256)
+    rows = []
+    for label, path in maps:
+        log(f"Cycles referee: {label}")
+        results = lc.world_case(path, str(folder), res=res, samples=samples, widths=widths)
+        image = hdri_io.read_hdri(path)
+        for width, r in results.items():
+            t = timed(lambda: hdri.downsample(image, max_width=width, repair=True),
+                      args.repeats)
+            rows.append(Row("lighting conversion", label, f"width {width}",
+                            r["error"], t["ms"], t["p10"], t["p90"], t["runs"],
+                            {"hdri_width": width, "render": f"{res}x{res}, {samples} samples"}))
+    return rows
+
+
+# ---- frontier, outputs --------------------------------------------------------------------
+
+def mark_frontier(rows: list[Row]) -> None:
+    """Within each group, a row is on the frontier when no other row is at least as fast and at
+    least as accurate, and strictly better in one."""
+    for row in rows:
+        row.frontier = False
+    for group in {r.group for r in rows}:
+        pts = [r for r in rows if r.group == group and r.error is not None and r.ms is not None]
+        for r in pts:
+            r.frontier = not any(o.ms <= r.ms and o.error <= r.error
+                                 and (o.ms < r.ms or o.error < r.error) for o in pts)
+
+
+ERROR_NAMES = {"network": "RMSE (portrait region, display [0,1])",
+               "light stage": "rel. RMSE vs full 114-light sum",
+               "lighting conversion": "rel. RMSE vs Cycles",
+               "reference": "RMSE (portrait region, display [0,1])"}
+TIME_NAMES = {"network": "ms per frame", "light stage": "ms per frame (shading)",
+              "lighting conversion": "ms per conversion", "reference": "-"}
+
+
+def _num(v, fmt="{:.4f}"):
+    return "-" if v is None else fmt.format(v)
+
+
+def markdown(rows: list[Row], info: dict) -> str:
+    lines = [f"Machine: {machine_line(info['machine'])}.",
+             f"Test set: {info['test_set']}.",
+             f"Command: `{info['command']}`. Timings: median of the runs (p10-p90 in brackets); "
+             "the network rows time the per-frame stages of addon/pipeline.py (shrink, network, "
+             "detail transfer, finish) at the test set's resolution, without decoding or writing.",
+             f"Precision: {info['fp16']}", f"Providers: {info['providers_note']}", ""]
+    for group in ("network", "reference", "light stage", "lighting conversion"):
+        g = [r for r in rows if r.group == group]
+        if not g:
+            continue
+        lines += [f"**{group}** (error: {ERROR_NAMES[group]}; time: {TIME_NAMES[group]})", "",
+                  "| knob | setting | error | PSNR | time (p10-p90) | frontier | note |",
+                  "| --- | --- | --- | --- | --- | --- | --- |"]
+        for r in sorted(g, key=lambda r: (r.kind, r.ms or 0)):
+            t = "-" if r.ms is None else f"{r.ms:.1f} ({r.p10:.1f}-{r.p90:.1f})" \
+                if r.p10 is not None else f"{r.ms:.1f}"
+            psnr = _num(r.extra.get("psnr"), "{:.2f}")
+            lines.append(f"| {r.kind} | {r.label} | {_num(r.error)} | {psnr} | {t} | "
+                         f"{'**yes**' if r.frontier else ''} | {r.note} |")
+        lines.append("")
+    for note in info.get("skipped", []):
+        lines.append(f"- not measured: {note}")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def make_plot(path, rows: list[Row], info: dict) -> None:
+    from bench import png_plot
+
+    panels = []
+    for group in ("network", "light stage", "lighting conversion"):
+        pts = [{"ms": r.ms, "error": r.error, "kind": r.kind, "frontier": r.frontier,
+                "label": r.label} for r in rows if r.group == group and r.error is not None
+               and r.ms]
+        if pts:
+            panels.append((group, TIME_NAMES[group] + " (log)", ERROR_NAMES[group], pts))
+    m = info["machine"]
+    png_plot.plot(path, panels, f"{m['cpu']}, {m['cores']} cores, load {m['load_avg_1_5_15'][0]},"
+                                f" {m['date']}. Ringed + red line: Pareto frontier.")
+
+
+def splice_readme(text: str, body: str) -> str:
+    """Replace what lies between the frontier markers (adding the section if it is absent)."""
+    block = f"{BEGIN}\n{body.rstrip()}\n{END}"
+    if BEGIN in text and END in text:
+        head, rest = text.split(BEGIN, 1)
+        return head + block + rest.split(END, 1)[1]
+    sep = "" if text.endswith("\n") or not text else "\n"
+    return f"{text}{sep}\n{SECTION}\n\n{block}\n"
+
+
+def card_entry(card, result, settings, info) -> dict:
+    return {"ms_per_frame": round(result["ms"], 2), "p10_ms": round(result["p10"], 2),
+            "p90_ms": round(result["p90"], 2), "runs": result["runs"],
+            "rmse": round(result["rmse"], 5), "psnr": round(result["psnr"], 3),
+            "ssim": round(result["ssim"], 4), "working_size": settings["working"],
+            "full_size": settings["full"], "detail_transfer": settings["detail"],
+            "provider": settings["provider"], "threads": settings["threads"],
+            "test_set": info["test_set"], "machine": machine_line(info["machine"]),
+            "date": info["machine"]["date"], "command": info["command"],
+            "what": "per-frame pipeline time (shrink, network, detail transfer, finish) and "
+                    "held-out RMSE on the portrait region (training/evaluate.py)"}
+
+
+def write_cards(per_card: dict, info: dict) -> list[str]:
+    written = []
+    for card, result, settings in per_card.values():
+        data = json.loads(card.card_path.read_text(encoding="utf-8"))
+        data["frontier"] = card_entry(card, result, settings, info)
+        card.card_path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+        written.append(str(card.card_path))
+    return written
+
+
+# ---- main ---------------------------------------------------------------------------------
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="tiny test set, few repeats")
+    p.add_argument("--models", type=pathlib.Path, default=ROOT / "models")
+    p.add_argument("--out", type=pathlib.Path, default=ROOT / "bench" / "results")
+    p.add_argument("--readme", type=pathlib.Path, help="update this README's frontier section")
+    p.add_argument("--write-cards", action="store_true",
+                   help="add the per-preset figures to the measured model cards")
+    p.add_argument("--resolution", type=int, help="test set size (default 640; quick 64)")
+    p.add_argument("--samples", type=int, help="test samples (default 8; quick 2)")
+    p.add_argument("--repeats", type=int, help="timed runs per setting (default 12; quick 3)")
+    p.add_argument("--sizes", type=int, nargs="+",
+                   help="working sizes below full (default 256 384 512; quick 16 32)")
+    p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--cache", type=pathlib.Path, default=default_cache(),
+                   help="where rendered test samples are kept between runs")
+    p.add_argument("--no-cache", action="store_true")
+    p.add_argument("--toy", action="store_true",
+                   help="also measure the toy model of tests/onnx_fixtures.py (tests only)")
+    p.add_argument("--skip", nargs="*", default=[],
+                   choices=["untrained", "lightstage", "conversion"])
+    a = p.parse_args(argv)
+    a.resolution = a.resolution or (64 if a.quick else 640)
+    a.samples = a.samples or (2 if a.quick else 8)
+    a.repeats = a.repeats or (3 if a.quick else 12)
+    a.sizes = a.sizes or ((16, 32) if a.quick else FULL_SIZES)
+    a.lightstage_res = 48 if a.quick else 128
+    a.lightstage_samples = 1 if a.quick else 4
+    a.lightstage_repeats = 3
+    return a
+
+
+def _toy_card(folder: pathlib.Path):
+    from tests.onnx_fixtures import write_toy_model  # the toy lives with the tests
+
+    return engine.load_card(write_toy_model(folder))
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    t_start = time.perf_counter()
+
+    def log(msg):
+        print(f"[{time.perf_counter() - t_start:6.1f}s] {msg}", flush=True)
+
+    import torch
+
+    torch.set_num_threads(1)
+    info = {"machine": machine(), "command": "python -m bench.frontier " + " ".join(
+        sys.argv[1:] if argv is None else argv)}
+    log(f"machine: {machine_line(info['machine'])}")
+    skipped = []
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = pathlib.Path(tmp)
+        args.toy_fallback = _toy_card(folder / "toy") if args.toy else None
+        if args.skip:
+            skipped += [f"{s} (skipped by --skip)" for s in args.skip]
+        log(f"test set: {args.samples} held-out samples at {args.resolution} px")
+        samples = heldout_samples(args.resolution, args.samples, args.seed,
+                           None if args.no_cache else args.cache)
+        info["test_set"] = (f"light stage 'test' split (held-out identities), seed {args.seed}, "
+                            f"{args.samples} samples at {args.resolution}x{args.resolution}")
+        frames = frames_of(samples)
+        rows, per_card = network_group(args, frames, folder, log)
+        rows += reference_rows(samples)
+        if "lightstage" not in args.skip:
+            rows += lightstage_group(args, log)
+        if "conversion" not in args.skip:
+            rows += conversion_group(args, folder, log)
+    mark_frontier(rows)
+    import onnxruntime as ort
+
+    gpu = [p for p in ort.get_available_providers()
+           if p not in ("CPUExecutionProvider", "AzureExecutionProvider")]
+    info["providers_note"] = (f"measured on {', '.join(['CPU'] + gpu)}" + (
+        "" if gpu else "; no GPU provider is present on this machine (CPU build of onnxruntime, "
+                       "no GPU), so none is measured"))
+    info["fp16"] = ("fp32 and int8 measured; fp16 not measured: the CPU provider has no fp16 "
+                    "convolution kernels on x86 (a half model would run through casts), and no "
+                    "GPU provider is present" if not gpu else
+                    "fp32 and int8 measured; fp16 needs a half-precision export (not made here)")
+    info["skipped"] = skipped
+    args.out.mkdir(parents=True, exist_ok=True)
+    md = markdown(rows, info)
+    (args.out / "frontier.md").write_text(md, encoding="utf-8")
+    (args.out / "frontier.json").write_text(json.dumps(
+        {"info": info, "rows": [asdict(r) for r in rows]}, indent=2, default=str) + "\n",
+        encoding="utf-8")
+    make_plot(args.out / "frontier.png", rows, info)
+    if args.readme:
+        rel = os.path.relpath(args.out / "frontier.png", args.readme.parent)
+        body = f"![accuracy against time]({rel})\n\n{md}"
+        args.readme.write_text(splice_readme(args.readme.read_text(encoding="utf-8"), body),
+                               encoding="utf-8")
+    cards = write_cards(per_card, info) if args.write_cards else []
+    log(f"wrote {args.out / 'frontier.md'}, .json, .png" + (f"; cards: {cards}" if cards else ""))
+    print(md)
+    return {"rows": rows, "info": info, "cards": cards}
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,130 @@
+"""bench/frontier.py's pieces: the Pareto frontier, the PNG writer, the README splice, and the
+network group end to end on the toy model (the whole harness, Cycles included, runs in
+tests/blender/test_frontier_harness.py)."""
+
+import json
+import pathlib
+import struct
+import zlib
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bench import frontier, png_plot
+from tests.onnx_fixtures import write_toy_model
+
+
+def read_png(path) -> np.ndarray:
+    """Decode the 8-bit RGB, filter-0 PNGs png_plot writes (an independent check of the bytes)."""
+    data = pathlib.Path(path).read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, chunks = 8, {}
+    while pos < len(data):
+        (n,) = struct.unpack(">I", data[pos:pos + 4])
+        kind, body = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + n]
+        (crc,) = struct.unpack(">I", data[pos + 8 + n:pos + 12 + n])
+        assert crc == zlib.crc32(kind + body) & 0xFFFFFFFF
+        chunks[kind] = chunks.get(kind, b"") + body
+        pos += 12 + n
+    w, h, depth, ctype = struct.unpack(">IIBB", chunks[b"IHDR"][:10])
+    assert (depth, ctype) == (8, 2)
+    raw = np.frombuffer(zlib.decompress(chunks[b"IDAT"]), np.uint8).reshape(h, 1 + 3 * w)
+    assert not raw[:, 0].any()
+    return raw[:, 1:].reshape(h, w, 3)
+
+
+def test_png_round_trip(tmp_path):
+    img = np.random.default_rng(0).integers(0, 256, (7, 11, 3), dtype=np.uint8)
+    png_plot.write_png(tmp_path / "x.png", img)
+    np.testing.assert_array_equal(read_png(tmp_path / "x.png"), img)
+
+
+def _rows(points):
+    return [frontier.Row("network", "k", f"p{i}", e, t) for i, (t, e) in enumerate(points)]
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.tuples(st.floats(0.1, 1e4), st.floats(0.0, 1.0)), min_size=1, max_size=12))
+def test_frontier_is_exactly_the_undominated_points(points):
+    rows = _rows(points)
+    frontier.mark_frontier(rows)
+    front = [r for r in rows if r.frontier]
+    assert front, "the fastest of the most accurate points is always on the frontier"
+    for r in rows:
+        dominated = any(o.ms <= r.ms and o.error <= r.error and (o.ms < r.ms or o.error < r.error)
+                        for o in rows)
+        assert r.frontier == (not dominated)
+    # along the frontier, more time buys less error
+    front.sort(key=lambda r: (r.ms, r.error))
+    assert all(b.error <= a.error for a, b in zip(front, front[1:]))
+
+
+def test_frontier_ignores_rows_without_an_error_and_keeps_groups_apart():
+    rows = _rows([(1.0, 0.5), (10.0, 0.1)]) + [
+        frontier.Row("network", "untrained", "u", None, 0.01),
+        frontier.Row("light stage", "effects", "e", 0.9, 100.0)]
+    frontier.mark_frontier(rows)
+    assert [r.frontier for r in rows] == [True, True, False, True]
+
+
+def test_readme_splice_replaces_only_the_marked_section():
+    text = f"# T\n\nintro\n\n## Accuracy against time\n\n{frontier.BEGIN}\nold\n{frontier.END}\n\n## Next\nkeep\n"
+    out = frontier.splice_readme(text, "new table")
+    assert "old" not in out and "new table" in out
+    assert out.startswith("# T\n\nintro\n") and out.endswith("## Next\nkeep\n")
+    assert frontier.splice_readme(out, "new table") == out
+    added = frontier.splice_readme("# T\n", "body")
+    assert added.count(frontier.SECTION) == 1 and added.index(frontier.BEGIN) < added.index("body")
+
+
+@pytest.fixture(scope="module")
+def quick_run(shared_data, tmp_path_factory):
+    """The harness on the toy model (as an installed model) without the Cycles part."""
+    tmp = tmp_path_factory.mktemp("frontier")
+    write_toy_model(tmp / "models")
+    readme = tmp / "README.md"
+    readme.write_text("# Project\n\n## Other\ntext\n")
+    result = frontier.main(["--quick", "--models", str(tmp / "models"), "--out",
+                            str(tmp / "results"), "--readme", str(readme), "--write-cards",
+                            "--no-cache", "--skip", "conversion"])
+    return tmp, result
+
+
+def test_quick_run_measures_every_network_knob(quick_run):
+    tmp, result = quick_run
+    rows = result["rows"]
+    kinds = {r.kind for r in rows}
+    assert {"preset x resolution", "detail transfer off", "precision",
+            "untrained width/depth (time only)", "baseline", "effects"} <= kinds
+    sizes = {r.settings["working"] for r in rows if r.kind == "preset x resolution"}
+    assert sizes == {16, 32, 64}  # the quick sizes and full (the 64 px test set)
+    for r in rows:
+        if r.ms is not None:
+            assert 0 < r.p10 <= r.ms <= r.p90 and r.runs >= 3
+        if r.kind.startswith("untrained"):
+            assert r.error is None and "time only" in r.note  # never presented as accuracy
+    toy = [r for r in rows if r.kind == "preset x resolution"]
+    assert all(0 < r.error < 1 for r in toy)
+    assert any(r.frontier for r in rows if r.group == "network")
+
+
+def test_quick_run_writes_table_plot_readme_and_card(quick_run):
+    tmp, result = quick_run
+    md = (tmp / "results" / "frontier.md").read_text()
+    m = result["info"]["machine"]
+    assert m["cpu"] in md and f"{m['cores']} cores" in md and m["date"] in md
+    assert "| preset x resolution | toy fp32 16 |" in md
+    png = read_png(tmp / "results" / "frontier.png")
+    assert png.shape[0] > 300 and (png == png_plot.FRONTIER).all(-1).any()
+    data = json.loads((tmp / "results" / "frontier.json").read_text())
+    assert len(data["rows"]) == len(result["rows"])
+    readme = (tmp / "README.md").read_text()
+    assert readme.startswith("# Project\n\n## Other\ntext\n")
+    assert frontier.SECTION in readme and "frontier.png" in readme and "toy fp32 full" in readme
+    card = json.loads((tmp / "models" / "toy.json").read_text())
+    front = card["frontier"]
+    assert front["working_size"] == 64 and front["ms_per_frame"] > 0 and 0 < front["rmse"] < 1
+    assert card["metrics"] == {} and "per_size" not in card["cost"]  # other keys untouched
+    assert result["cards"] == [str(tmp / "models" / "toy.json")]
