@@ -135,9 +135,29 @@ def default_cache() -> pathlib.Path:
     return pathlib.Path(base) / "portrait-relight" / "frontier"
 
 
-def heldout_samples(resolution: int, n: int, seed: int, cache: pathlib.Path | None) -> list[dict]:
-    """The first ``n`` samples of the held-out 'test' split at ``resolution`` (cached on disk:
-    each costs seconds to render)."""
+def heldout_samples(resolution: int, n: int, seed: int, cache: pathlib.Path | None):
+    """(samples, description): the first ``n`` samples of the held-out 'test' split at
+    ``resolution``. With the default seed this is training/make_testset.py's fixed test set
+    (built once, cached, identified by its sha256); otherwise rendered here (cached too)."""
+    try:
+        from training import make_testset
+    except ImportError:
+        make_testset = None
+    if make_testset is not None and seed == make_testset.TEST_SEED:
+        folder = cache / "testset" if cache is not None else None
+        arrays = make_testset.load_testset(resolution, n, folder)
+        meta = make_testset.testset_path(resolution, n, folder).with_suffix(".json")
+        sha = json.loads(meta.read_text())["sha256"][:16] if meta.is_file() else "?"
+        samples = [{k: arrays[k][i] for k in KEYS} for i in range(n)]
+        return samples, (f"training/make_testset.py: light stage 'test' split (held-out "
+                         f"identities), seed {seed}, {n} samples at {resolution}x{resolution}, "
+                         f"sha256 {sha}...")
+    return _rendered(resolution, n, seed, cache), (
+        f"light stage 'test' split (held-out identities), seed {seed}, {n} samples at "
+        f"{resolution}x{resolution}")
+
+
+def _rendered(resolution: int, n: int, seed: int, cache: pathlib.Path | None) -> list[dict]:
     from training import evaluate
 
     folder = None
@@ -621,10 +641,8 @@ def main(argv=None) -> dict:
         if args.skip:
             skipped += [f"{s} (skipped by --skip)" for s in args.skip]
         log(f"test set: {args.samples} held-out samples at {args.resolution} px")
-        samples = heldout_samples(args.resolution, args.samples, args.seed,
-                           None if args.no_cache else args.cache)
-        info["test_set"] = (f"light stage 'test' split (held-out identities), seed {args.seed}, "
-                            f"{args.samples} samples at {args.resolution}x{args.resolution}")
+        samples, info["test_set"] = heldout_samples(
+            args.resolution, args.samples, args.seed, folder if args.no_cache else args.cache)
         frames = frames_of(samples)
         rows, per_card = network_group(args, frames, folder, log)
         rows += reference_rows(samples)
