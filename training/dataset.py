@@ -13,14 +13,26 @@ first, in absolute linear radiance (training applies addon/normalise itself):
 
 Every sample is a pure function of (seed, split, idx). Identities are integers; an identity id
 belongs to exactly one split (id % 16: 14 is val, 15 is test, the rest train), so held-out
-performers are never seen in training (the paper holds out 4 of 36). Within a split a sample picks
-one of ``identities`` ids of that split, a performance (seeded per identity and clip), a time, a
-camera, a backdrop and a lighting triplet (training/lighting_sampling.py).
+performers are never seen in training (the paper holds out 4 of 36). Four HDRIs are held out of
+training too (training/lighting_sampling.py). Within a split a sample picks one of ``identities``
+ids of that split, a performance (seeded per identity and clip), a time, a camera, a backdrop and a
+lighting triplet (training/lighting_sampling.py).
+
+Pools and the cache: with ``pool=P`` the frames come from a fixed pool of P frame pairs of the
+split (pair p is a pure function of (split, resolution, p), whatever the seed), and a sample is a
+pair drawn by its seed plus a fresh lighting triplet. Shading is linear in the lighting, so a pair's
+transfer can be computed once: ``cache_dir`` points at a folder built by
+``python -m training.build_cache`` and the pairs are read from there instead of rendered (about 50x
+faster); the pool size is then the cache's. Cached samples equal the on-the-fly samples of the same
+pool up to the cache's float16 transfer (tested).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import pathlib
+import warnings
 
 import numpy as np
 import torch
@@ -30,7 +42,8 @@ from addon.errors import InputError
 
 from . import lighting_sampling
 from .lightstage import assets
-from .lightstage.scene import Scene, next_time
+from .lightstage import pairs
+from .lightstage.scene import Scene
 from .lightstage.subject import Performance, sample_camera, sample_identity
 
 SPLITS = {"train": 0, "val": 1, "test": 2}
@@ -38,6 +51,25 @@ ID_MODULUS = 16
 HELD_OUT = {"val": (14,), "test": (15,)}
 CLIP_SECONDS = 60.0  # performance times are drawn from [0, CLIP_SECONDS)
 CLIPS_PER_IDENTITY = 4
+POOL_SALT = 0x9001
+# The sources whose behaviour a rendered sample depends on: caches and the test set record their
+# hash, so a stale one is noticed.
+_SOURCES = ("training/lightstage/*.py", "training/dataset.py", "training/lighting_sampling.py",
+            "addon/lightvec.py", "addon/hdri.py", "addon/lamps.py")
+_ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def renderer_version() -> str:
+    """sha256 (16 hex digits) of the light stage's source files."""
+    h = hashlib.sha256()
+    for pattern in _SOURCES:
+        for p in sorted(_ROOT.glob(pattern)):
+            h.update(p.relative_to(_ROOT).as_posix().encode() + b"\0" + p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def cache_folder(cache_dir, split: str, resolution: int) -> pathlib.Path:
+    return pathlib.Path(cache_dir) / f"{split}_{int(resolution)}"
 
 
 def split_of_identity(identity_id: int) -> str:
@@ -63,7 +95,7 @@ class LightStageDataset:
 
     def __init__(self, split: str = "train", resolution: int = 128, seed: int = 0,
                  length: int = 100_000, data_root=None, cache_dir=None, effects="auto",
-                 sampling: bool = True, identities: int | None = None):
+                 sampling: bool = True, identities: int | None = None, pool: int | None = None):
         if split not in SPLITS:
             raise InputError(f"Unknown split {split!r}; use one of {sorted(SPLITS)}.")
         if int(resolution) < 16:
@@ -71,13 +103,42 @@ class LightStageDataset:
         self.split, self.resolution, self.seed = split, int(resolution), int(seed)
         self.length = int(length)
         self.data_root = pathlib.Path(data_root) if data_root else assets.default_data_root()
-        self.cache_dir = cache_dir
-        self.effects = effects
+        self.effects = effects  # accepted for the API; samples always hold every effect
         self.sampling = bool(sampling)
         n_ids = identities or {"train": 448, "val": 32, "test": 32}[split]
         self.ids = identity_ids(split, n_ids)
         self.model = assets.load_head(self.data_root)
-        self.bank = lighting_sampling.environment_bank(self.data_root)[1]
+        names, self.bank = lighting_sampling.environment_bank(self.data_root)
+        self.hdri_pool = lighting_sampling.hdri_pool(names, split)
+        self.cache = None
+        if cache_dir is not None:
+            self.cache = cache_folder(cache_dir, split, self.resolution)
+            pool = self._open_cache(pool)
+        if pool is not None and int(pool) < 1:
+            raise InputError(f"A pool of {pool} frame pairs is empty; use 1 or more.")
+        self.pool = None if pool is None else int(pool)
+
+    def _open_cache(self, pool):
+        man = self.cache / "manifest.json"
+        build = (f"python -m training.build_cache --split {self.split} --res {self.resolution} "
+                 f"--out {self.cache.parent}")
+        if not man.is_file():
+            raise InputError(f"No light-stage cache at {self.cache}; build it with `{build}`.")
+        info = json.loads(man.read_text())
+        if info.get("format") != pairs.FORMAT or info.get("identities") != len(self.ids):
+            raise InputError(f"The cache at {self.cache} was built with another format or "
+                             f"identity count; rebuild it with `{build}`.")
+        n = int(info["pairs"])
+        if pool is not None and int(pool) != n:
+            raise InputError(f"The cache at {self.cache} holds {n} pairs, not pool={pool}.")
+        missing = [p for p in range(n) if not pairs.pair_path(self.cache, p).is_file()]
+        if missing:
+            raise InputError(f"The cache at {self.cache} is incomplete ({len(missing)} of {n} "
+                             f"pairs missing); finish it with `{build} --pairs {n}`.")
+        if info.get("renderer") != renderer_version():
+            warnings.warn(f"The cache at {self.cache} was rendered by another version of the light "
+                          "stage; its samples differ from on-the-fly ones until it is rebuilt.")
+        return n
 
     def __len__(self) -> int:
         return self.length
@@ -85,39 +146,44 @@ class LightStageDataset:
     def rng(self, idx: int) -> np.random.Generator:
         return np.random.default_rng([self.seed, SPLITS[self.split], int(idx)])
 
-    def scene_for(self, idx: int):
-        """(scene, t, lights) of sample ``idx``: everything random about it, drawn in one order."""
-        if not 0 <= int(idx) < self.length:
-            raise IndexError(idx)
-        rng = self.rng(idx)
+    def _draw_scene(self, rng: np.random.Generator):
         ident_id = self.ids[int(rng.integers(len(self.ids)))]
         clip = int(rng.integers(CLIPS_PER_IDENTITY))
         t = float(rng.integers(int(CLIP_SECONDS * 25))) / 25.0
         cam = sample_camera(rng, self.resolution)
         backdrop = int(rng.integers(2 ** 31))
-        lights = lighting_sampling.sample_triplet(rng, self.bank, self.sampling)
         perf = Performance(ident_id * CLIPS_PER_IDENTITY + clip, self.model.expression_names)
-        scene = Scene(sample_identity(ident_id), perf, cam, self.data_root, backdrop)
+        return Scene(sample_identity(ident_id), perf, cam, self.data_root, backdrop), t
+
+    def pair_scene(self, p: int):
+        """(scene, t) of pool pair ``p``: independent of the seed, so one cache serves all seeds."""
+        return self._draw_scene(np.random.default_rng([POOL_SALT, SPLITS[self.split], int(p)]))
+
+    def _draw(self, idx: int):
+        """(pair index or None, rng positioned after the scene draws)."""
+        if not 0 <= int(idx) < self.length:
+            raise IndexError(idx)
+        rng = self.rng(idx)
+        if self.pool is not None:
+            return int(rng.integers(self.pool)), rng
+        return None, rng
+
+    def scene_for(self, idx: int):
+        """(scene, t, lights) of sample ``idx``: everything random about it, drawn in one order."""
+        p, rng = self._draw(idx)
+        scene, t = self._draw_scene(rng) if p is None else self.pair_scene(p)
+        lights = lighting_sampling.sample_triplet(rng, self.bank, self.sampling, self.hdri_pool)
         return scene, t, lights
 
     def __getitem__(self, idx: int) -> dict:
         torch_threads = torch.get_num_threads()
-        scene, t, (li, lj, lk) = self.scene_for(idx)
-        f0 = scene.frame(t)
-        f1 = scene.frame(next_time(t))
-        a = scene.shade(f0, [li, lk])
-        b = scene.shade(f1, [lj, lk])
-        flow_fw, valid_fw = scene.flow(f0, f1)
-        flow_bw, valid_bw = scene.flow(f1, f0)
-        k = len(PARSING_CLASSES)
-        out = {
-            "img_t_i": a[0], "gt_t_k": a[1], "img_t1_j": b[0], "gt_t1_k": b[1],
-            "mask_t": f0.gb.mask[None].float(), "mask_t1": f1.gb.mask[None].float(),
-            "parsing_t": scene.parsing(f0, k), "parsing_t1": scene.parsing(f1, k),
-            "flow_fw": flow_fw, "flow_bw": flow_bw, "valid_fw": valid_fw, "valid_bw": valid_bw,
-        }
-        out = {key: np.ascontiguousarray(v.numpy(), dtype=np.float32) for key, v in out.items()}
-        out.update(light_i=li.astype(np.float32), light_j=lj.astype(np.float32),
-                   light_k=lk.astype(np.float32))
+        p, rng = self._draw(idx)
+        if self.cache is not None:
+            rec = pairs.load(pairs.pair_path(self.cache, p))
+        else:
+            scene, t = self._draw_scene(rng) if p is None else self.pair_scene(p)
+            rec = pairs.record_pair(scene, t)
+        lights = lighting_sampling.sample_triplet(rng, self.bank, self.sampling, self.hdri_pool)
+        out = pairs.assemble(rec, lights, len(PARSING_CLASSES))
         assert torch.get_num_threads() == torch_threads
         return out

@@ -12,6 +12,10 @@
 * The triplet: L^i = X^i, L^j = b1 L^i + (1 - b1) X^j, L^k = b2 L^j + (1 - b2) X^k + Y with
   X ~ G, Y ~ H, b1, b2 ~ Beta(0.5, 0.5). With ``sampling=False`` (the paper's "w/o sampling"
   ablation: only the discrete environment maps) L^i = L^j = X^i and L^k = X^k.
+* Held-out lighting: four of the 26 HDRIs (``HELD_OUT_HDRIS``) never light a training sample; in
+  the val and test splits half of the environment draws come from them, so held-out metrics also
+  measure unseen lighting. Blender's own studio maps stay in training: the add-on offers them as
+  presets.
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ from addon.hdri_io import read_hdri
 from addon.lamps import project_point_light
 
 SUB_STEPS = 8  # yaw offsets per 22.5-degree column that are down-sampled exactly
+# One indoor, two outdoor and one workshop map that training never sees (see the docstring).
+HELD_OUT_HDRIS = ("pmndrs/lobby", "pmndrs/park", "pmndrs/venice", "pmndrs/workshop")
 
 
 def hdri_paths(data_root) -> list[pathlib.Path]:
@@ -62,8 +68,19 @@ def environment(bank: np.ndarray, index: int, yaw_degrees: float) -> np.ndarray:
     return np.roll(bank[index, sub], whole, axis=1)
 
 
-def sample_g(rng: np.random.Generator, bank: np.ndarray) -> np.ndarray:
-    lv = environment(bank, int(rng.integers(len(bank))), float(rng.uniform(0, 360)))
+def hdri_pool(names, split: str) -> np.ndarray:
+    """Bank indices a split draws environments from (uniformly): training only the seen maps;
+    val/test the seen and the held-out maps repeated so that each group gets half the draws."""
+    held = [i for i, n in enumerate(names) if n in HELD_OUT_HDRIS]
+    seen = [i for i, n in enumerate(names) if n not in HELD_OUT_HDRIS]
+    if split == "train" or not held:
+        return np.array(seen, np.int64)
+    return np.array(seen * len(held) + held * len(seen), np.int64)
+
+
+def sample_g(rng: np.random.Generator, bank: np.ndarray, pool=None) -> np.ndarray:
+    index = int(rng.integers(len(bank))) if pool is None else int(pool[rng.integers(len(pool))])
+    lv = environment(bank, index, float(rng.uniform(0, 360)))
     gain = np.exp(rng.uniform(np.log(0.25), np.log(4.0))) * np.exp(rng.normal(0, 0.15, 3))
     return (lv * gain).astype(np.float32)
 
@@ -81,12 +98,12 @@ def sample_h(rng: np.random.Generator) -> np.ndarray:
     return out
 
 
-def sample_triplet(rng: np.random.Generator, bank: np.ndarray, sampling: bool = True):
-    """(L^i, L^j, L^k) float32 (16, 16, 3) each."""
-    xi = sample_g(rng, bank)
+def sample_triplet(rng: np.random.Generator, bank: np.ndarray, sampling: bool = True, pool=None):
+    """(L^i, L^j, L^k) float32 (16, 16, 3) each; environments from bank indices ``pool``."""
+    xi = sample_g(rng, bank, pool)
     if not sampling:
-        return xi, xi.copy(), sample_g(rng, bank)
-    xj, xk = sample_g(rng, bank), sample_g(rng, bank)
+        return xi, xi.copy(), sample_g(rng, bank, pool)
+    xj, xk = sample_g(rng, bank, pool), sample_g(rng, bank, pool)
     y = sample_h(rng)
     b1, b2 = rng.beta(0.5, 0.5, 2)
     lj = b1 * xi + (1 - b1) * xj

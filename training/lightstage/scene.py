@@ -107,6 +107,12 @@ class Scene:
         vis = shading.visibility(pos, maps, dirs, centre, radius)
         return shading.transfer(pos, nrm, tan, mat, f0, rough, dirs, vis)
 
+    def shade_inputs(self, f: Frame, tr: shading.Transfer | None = None) -> shading.ShadeInputs:
+        """Everything shading needs from a frame (what the frame cache stores)."""
+        tr = f.transfer if tr is None else tr
+        return shading.ShadeInputs(f.idx, tr.diffuse, tr.specular, f.albedo, f.sss, f.px_per_cm,
+                                   f.gb.mask, self.backdrop)
+
     def shade_weights(self, f: Frame, w: torch.Tensor, tr: shading.Transfer | None = None,
                       lights: torch.Tensor | None = None, low: torch.Tensor | None = None):
         """Images (C, 3, H, W) under stage weights ``w`` (C, 114, 3).
@@ -115,28 +121,11 @@ class Scene:
         (C, 114, 3): weights of the other lights, shaded through the cheap low-frequency path
         (unshadowed diffuse irradiance from an order-2 spherical-harmonic fit, no specular, no
         subsurface)."""
-        c = w.shape[0]
-        h, wd = self.cam.height, self.cam.width
-        tr = f.transfer if tr is None else tr
-        wsel = w if lights is None else w[:, lights]
-        wm = wsel.permute(1, 0, 2).reshape(wsel.shape[1], c * 3).float()
-        irr = torch.zeros(c * 3, h * wd)
-        spec = torch.zeros(c * 3, h * wd)
-        irr[:, f.idx] = (tr.diffuse @ wm).T
-        spec[:, f.idx] = (tr.specular @ wm).T
-        irr = shading.subsurface(irr.view(c * 3, h, wd), f.sss, f.px_per_cm).view(c * 3, -1)
+        extra = None
         if low is not None:
             nrm = f.gb.normal.reshape(-1, 3)[f.idx]
-            irr[:, f.idx] += shading.sh_irradiance(nrm, self.dirs, low.float()).T
-        alb = torch.zeros(3, h * wd)
-        alb[:, f.idx] = f.albedo.T
-        fg = alb.repeat(c, 1) / math.pi * irr + spec
-        # Backdrop: a matte wall facing the camera, unshadowed (it is far behind the subject).
-        cos_bg = self.dirs[:, 2].clamp(min=0.0)
-        e_bg = (cos_bg[None] @ w.float()).reshape(c * 3, 1)  # (C*3, 1)
-        bg = (self.backdrop.reshape(1, 3, -1).expand(c, 3, -1).reshape(c * 3, -1) / math.pi) * e_bg
-        m = f.gb.mask.reshape(1, -1)
-        return torch.where(m, fg, bg).view(c, 3, h, wd)
+            extra = shading.sh_irradiance(nrm, self.dirs, low.float()).T
+        return shading.relight(self.shade_inputs(f, tr), w, self.dirs, lights, extra)
 
     def shade(self, f: Frame, lights) -> torch.Tensor:
         """Images (C, 3, H, W) under light vectors (C, 16, 16, 3)."""

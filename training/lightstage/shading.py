@@ -115,6 +115,46 @@ def transfer(pos, nrm, tangent, material, f0, rough, dirs, vis) -> Transfer:
     return Transfer(vis * cos, vis * spec)
 
 
+@dataclass
+class ShadeInputs:
+    """What shading one frame needs (a Frame's, or the same read back from the frame cache)."""
+    idx: torch.Tensor        # (N,) flat indices of the foreground pixels
+    diffuse: torch.Tensor    # (N, M) transfer (any float dtype; promoted to float32)
+    specular: torch.Tensor   # (N, M)
+    albedo: torch.Tensor     # (N, 3)
+    sss: torch.Tensor        # (H, W) subsurface weight
+    px_per_cm: float
+    mask: torch.Tensor       # (H, W) bool foreground
+    backdrop: torch.Tensor   # (3, H, W) albedo of the wall behind the subject
+
+
+def relight(s: ShadeInputs, w: torch.Tensor, dirs: torch.Tensor, lights=None,
+            extra_irradiance=None) -> torch.Tensor:
+    """Images (C, 3, H, W) under stage weights ``w`` (C, M_all, 3): linear in ``w``.
+
+    ``lights``: indices of the lights the transfer holds (all when None); ``extra_irradiance``
+    (N, C*3): irradiance added after subsurface diffusion (the low-frequency path)."""
+    c = w.shape[0]
+    h, wd = s.mask.shape
+    wsel = w if lights is None else w[:, lights]
+    wm = wsel.permute(1, 0, 2).reshape(wsel.shape[1], c * 3).float()
+    irr = torch.zeros(c * 3, h * wd)
+    spec = torch.zeros(c * 3, h * wd)
+    irr[:, s.idx] = (s.diffuse.float() @ wm).T
+    spec[:, s.idx] = (s.specular.float() @ wm).T
+    irr = subsurface(irr.view(c * 3, h, wd), s.sss, s.px_per_cm).view(c * 3, -1)
+    if extra_irradiance is not None:
+        irr[:, s.idx] += extra_irradiance
+    alb = torch.zeros(3, h * wd)
+    alb[:, s.idx] = s.albedo.T
+    fg = alb.repeat(c, 1) / math.pi * irr + spec
+    # Backdrop: a matte wall facing the camera, unshadowed (it is far behind the subject).
+    cos_bg = dirs[:, 2].clamp(min=0.0)
+    e_bg = (cos_bg[None] @ w.float()).reshape(c * 3, 1)  # (C*3, 1)
+    bg = (s.backdrop.reshape(1, 3, -1).expand(c, 3, -1).reshape(c * 3, -1) / math.pi) * e_bg
+    return torch.where(s.mask.reshape(1, -1), fg, bg).view(c, 3, h, wd)
+
+
 def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of (C, H, W) with zero padding."""
     if sigma < 0.3:
