@@ -572,6 +572,9 @@ def splice_readme(text: str, body: str) -> str:
     if BEGIN in text and END in text:
         head, rest = text.split(BEGIN, 1)
         return head + block + rest.split(END, 1)[1]
+    if f"\n{SECTION}\n" in f"\n{text}":  # the heading without markers: the block goes under it
+        head, rest = f"\n{text}".split(f"\n{SECTION}\n", 1)
+        return f"{head[1:]}\n{SECTION}\n\n{block}\n{rest}"
     sep = "" if text.endswith("\n") or not text else "\n"
     return f"{text}{sep}\n{SECTION}\n\n{block}\n"
 

@@ -77,6 +77,10 @@ def test_readme_splice_replaces_only_the_marked_section():
     assert frontier.splice_readme(out, "new table") == out
     added = frontier.splice_readme("# T\n", "body")
     assert added.count(frontier.SECTION) == 1 and added.index(frontier.BEGIN) < added.index("body")
+    under = frontier.splice_readme(f"# T\n\n{frontier.SECTION}\nprose\n", "body")
+    assert under.count(frontier.SECTION) == 1
+    assert under.index(frontier.SECTION) < under.index("body") < under.index("prose")
+    assert frontier.splice_readme(under, "body") == under
 
 
 @pytest.fixture(scope="module")
