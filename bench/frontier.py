@@ -30,11 +30,11 @@ from __future__ import annotations
 import argparse
 import datetime
 import hashlib
+import itertools
 import json
 import os
 import pathlib
 import platform
-import shutil
 import sys
 import tempfile
 import time
@@ -241,16 +241,15 @@ def measure_network(session, frames, working: int, detail_on: bool, repeats: int
         for f in frames:
             y = relight_frame(session, f, working, detail_on, fullres).astype(np.float32)
             metrics.append(evaluate.image_metrics(np.moveaxis(y, -1, 0), f.gt, f.mask))
-    it = iter(range(10 ** 9))
-    t = timed(lambda: relight_frame(session, frames[next(it) % len(frames)], working, detail_on,
-                                    fullres), repeats)
+    cycle = itertools.cycle(frames)  # timed runs go round the test frames
+    t = timed(lambda: relight_frame(session, next(cycle), working, detail_on, fullres), repeats)
     if metrics:
         t.update({k: float(np.mean([m[k] for m in metrics])) for k in metrics[0]})
     return t
 
 
-def network_row(kind, label, result, settings, note="", trained=True) -> Row:
-    return Row("network", kind, label, result.get("rmse") if trained else None, result["ms"],
+def network_row(kind, label, result, settings, note="") -> Row:
+    return Row("network", kind, label, result.get("rmse"), result["ms"],
                result["p10"], result["p90"], result["runs"], settings,
                {k: result[k] for k in ("psnr", "ssim") if k in result}, note)
 

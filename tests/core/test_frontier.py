@@ -70,7 +70,8 @@ def test_frontier_ignores_rows_without_an_error_and_keeps_groups_apart():
 
 
 def test_readme_splice_replaces_only_the_marked_section():
-    text = f"# T\n\nintro\n\n## Accuracy against time\n\n{frontier.BEGIN}\nold\n{frontier.END}\n\n## Next\nkeep\n"
+    text = (f"# T\n\nintro\n\n## Accuracy against time\n\n{frontier.BEGIN}\nold\n{frontier.END}\n\n"
+            "## Next\nkeep\n")
     out = frontier.splice_readme(text, "new table")
     assert "old" not in out and "new table" in out
     assert out.startswith("# T\n\nintro\n") and out.endswith("## Next\nkeep\n")

@@ -17,11 +17,11 @@ import re
 import numpy as np
 import onnx
 import pytest
-from onnx import TensorProto, helper, numpy_helper
+from onnx import helper, numpy_helper
 
 from addon import colour, frames, hdri, lamps, lightvec, pipeline
 from addon.errors import LightingError, OutputError
-from tests.clip_fixtures import ramp_frames, write_exr_float, write_exr_sequence, write_png
+from tests.clip_fixtures import ramp_frames, write_exr_sequence, write_png
 from tests.onnx_fixtures import IR_VERSION, OPSET, TOY_CLASSES, _io, _save, write_toy_model
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -247,8 +247,9 @@ def _network(name, request):
 @pytest.mark.parametrize("light", list(_extreme_lights()))
 def test_extreme_lights_are_finite_and_scale_with_the_light(net, light, request, tmp_path):
     """Twice the light gives exactly twice the output (bit for bit, where nothing clamps and
-    outside half-float subnormals), for any network, because the pipeline feeds it light / k and multiplies by k after; three times
-    the light gives three times the output within half-float rounding (rtol 2^-10)."""
+    outside half-float subnormals), for any network, because the pipeline feeds it light / k and
+    multiplies by k after; three times the light gives three times the output within half-float
+    rounding (rtol 2^-10)."""
     model = _network(net, request)
     px = np.concatenate([np.zeros((8, 24, 3)), np.ones((8, 24, 3)),
                          np.random.default_rng(1).random((16, 24, 3))]).astype(np.float32)
