@@ -13,7 +13,8 @@ Knob groups, each with its own error measure (so each has its own frontier):
   (models/*.onnx), extra widths and depths exported untrained from training/network.py (time only:
   their accuracy is not measured and is labelled so), working resolution (256, 384, 512, full),
   the full-resolution detail transfer on/off, precision (fp32, int8 made with
-  onnxruntime.quantization; fp16 only where a provider runs it) and execution provider.
+  onnxruntime.quantization; fp16 made with onnxruntime.transformers.float16, which the CPU
+  provider runs) and execution provider (CPU; GPU providers where present).
 * light stage: the selective-effects shortcut against the full 114-light sum
   (bench/lightstage_throughput.py), relative RMSE of the radiance.
 * lighting conversion: an HDRI down-sampled at several working widths against the Cycles referee
@@ -299,6 +300,19 @@ def quantised(session, frames, working: int, fullres, folder: pathlib.Path):
                     card.classes), ""
 
 
+def half_precision(card: engine.ModelCard, folder: pathlib.Path) -> engine.ModelCard:
+    """fp16 weights and activations (onnxruntime.transformers.float16), float32 inputs and
+    outputs kept so the engine's contract holds."""
+    import onnx
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    out = folder / f"{card.name}-fp16.onnx"
+    onnx.save(convert_float_to_float16(onnx.load(str(card.onnx_path)), keep_io_types=True),
+              str(out))
+    return card_for(out, card.stride, card.working_size, f"{card.name}-fp16", card.preset,
+                    card.classes)
+
+
 def network_group(args, frames, folder: pathlib.Path, log) -> tuple[list[Row], dict]:
     """Every shipped model at every working size (detail on), then for the first fp32 model:
     detail off, int8 and other providers; then the untrained width/depth points."""
@@ -363,6 +377,12 @@ def primary_knobs(args, card, frames, sizes, folder, fullres, settings, name, lo
         rows.append(network_row("precision", name(card, ws, "int8"), r,
                                 settings(card, ws, True, "int8"),
                                 "int8 QDQ (convolutions) made here, calibrated on the test frames"))
+    log(f"fp16 {card.name} at {ws}")
+    r = measure_network(open_session(half_precision(card, folder), args.threads, CPU), frames,
+                        ws, True, args.repeats, fullres)
+    rows.append(network_row("precision", name(card, ws, "fp16"), r,
+                            settings(card, ws, True, "fp16"),
+                            "fp16 made here (onnxruntime.transformers.float16, fp32 I/O)"))
     for prov in ort.get_available_providers():
         if prov in (CPU, "AzureExecutionProvider"):
             continue
@@ -391,6 +411,7 @@ def untrained_rows(args, frames, folder, fullres, log) -> list[Row]:
         if i == 0:
             q, why = quantised(open_session(card, 1, CPU), frames, ws, fullres, folder)
             variants += [("int8", q)] if q is not None else []
+            variants.append(("fp16", half_precision(card, folder)))
         for precision, c in variants:
             log(f"untrained {label} {precision} at {ws}")
             r = measure_network(open_session(c, args.threads, CPU), frames, ws, True,
@@ -679,10 +700,9 @@ def main(argv=None) -> dict:
     info["providers_note"] = (f"measured on {', '.join(['CPU'] + gpu)}" + (
         "" if gpu else "; no GPU provider is present on this machine (CPU build of onnxruntime, "
                        "no GPU), so none is measured"))
-    info["fp16"] = ("fp32 and int8 measured; fp16 not measured: the CPU provider has no fp16 "
-                    "convolution kernels on x86 (a half model would run through casts), and no "
-                    "GPU provider is present" if not gpu else
-                    "fp32 and int8 measured; fp16 needs a half-precision export (not made here)")
+    info["fp16"] = ("fp32, int8 (static QDQ, convolutions only) and fp16 (weights and "
+                    "activations; float32 inputs and outputs) measured, all on the same "
+                    "provider(s) listed below")
     info["skipped"] = skipped
     args.out.mkdir(parents=True, exist_ok=True)
     md = markdown(rows, info)

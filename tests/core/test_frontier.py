@@ -112,6 +112,11 @@ def test_quick_run_measures_every_network_knob(quick_run):
             assert r.error is None and "time only" in r.note  # never presented as accuracy
     toy = [r for r in rows if r.kind == "preset x resolution"]
     assert all(0 < r.error < 1 for r in toy)
+    precisions = {r.settings["precision"]: r for r in rows if r.kind == "precision"}
+    assert 0 < precisions["fp16"].error < 1 and precisions["fp16"].ms > 0
+    assert precisions["int8"].ms is None and "no convolution" in precisions["int8"].note
+    untrained = {r.settings["precision"] for r in rows if r.kind.startswith("untrained")}
+    assert untrained == {"fp32", "int8", "fp16"}
     assert any(r.frontier for r in rows if r.group == "network")
 
 
