@@ -519,13 +519,20 @@ def conversion_group(args, folder: pathlib.Path, log) -> list[Row]:
 
 # ---- frontier, outputs --------------------------------------------------------------------
 
+def front_of(row: Row) -> str:
+    """Rows compete within their group; conversion rows only within their own HDRI (two maps
+    have different errors at any width, so one frontier across them would mean nothing)."""
+    return f"{row.group}: {row.kind}" if row.group == "lighting conversion" else row.group
+
+
 def mark_frontier(rows: list[Row]) -> None:
-    """Within each group, a row is on the frontier when no other row is at least as fast and at
-    least as accurate, and strictly better in one."""
+    """Within each front (see front_of), a row is on the frontier when no other row is at least
+    as fast and at least as accurate, and strictly better in one."""
     for row in rows:
         row.frontier = False
-    for group in {r.group for r in rows}:
-        pts = [r for r in rows if r.group == group and r.error is not None and r.ms is not None]
+    for front in {front_of(r) for r in rows}:
+        pts = [r for r in rows if front_of(r) == front and r.error is not None
+               and r.ms is not None]
         for r in pts:
             r.frontier = not any(o.ms <= r.ms and o.error <= r.error
                                  and (o.ms < r.ms or o.error < r.error) for o in pts)
@@ -577,7 +584,7 @@ def make_plot(path, rows: list[Row], info: dict) -> None:
     panels = []
     for group in ("network", "light stage", "lighting conversion"):
         pts = [{"ms": r.ms, "error": r.error, "kind": r.kind, "frontier": r.frontier,
-                "label": r.label} for r in rows if r.group == group and r.error is not None
+                "front": front_of(r), "label": r.label} for r in rows if r.group == group and r.error is not None
                and r.ms]
         if pts:
             panels.append((group, TIME_NAMES[group] + " (log)", ERROR_NAMES[group], pts))

@@ -99,7 +99,7 @@ def _fmt(v: float) -> str:
 
 
 def draw_panel(c: Canvas, top, left, h, w, title, xlabel, ylabel, points, kinds):
-    """points: dicts with ms, error, kind, frontier (bool), label."""
+    """points: dicts with ms, error, kind, frontier (bool), front (which frontier), label."""
     c.text(top, left + w // 2, title, anchor="centre")
     y0, x0, y1, x1 = top + 40, left + 70, top + h - 50, left + w - 20
     c.rect(y0, x0, y1, x0, (0, 0, 0))
@@ -130,10 +130,12 @@ def draw_panel(c: Canvas, top, left, h, w, title, xlabel, ylabel, points, kinds)
         c.text(yy - 5, x0 - 8, _fmt(v), anchor="right")
     c.text(y1 + 28, (x0 + x1) // 2, xlabel, anchor="centre")
     c.text(y0 - 18, left + 10, ylabel)
-    front = sorted((p for p in pts if p.get("frontier")), key=lambda p: p["ms"])
-    for a, b in zip(front, front[1:]):
-        (ya, xa), (yb, xb) = xy(a), xy(b)
-        c.line(ya, xa, yb, xb, FRONTIER, width=2)
+    for key in {p.get("front") for p in pts}:  # one line per frontier
+        front = sorted((p for p in pts if p.get("frontier") and p.get("front") == key),
+                       key=lambda p: p["ms"])
+        for a, b in zip(front, front[1:]):
+            (ya, xa), (yb, xb) = xy(a), xy(b)
+            c.line(ya, xa, yb, xb, FRONTIER, width=2)
     for p in pts:
         y, x = xy(p)
         colour = PALETTE[kinds.index(p["kind"]) % len(PALETTE)]

@@ -69,6 +69,14 @@ def test_frontier_ignores_rows_without_an_error_and_keeps_groups_apart():
     assert [r.frontier for r in rows] == [True, True, False, True]
 
 
+def test_each_hdri_has_its_own_conversion_frontier():
+    rows = [frontier.Row("lighting conversion", m, f"{m} {w}", e, t)
+            for m, w, e, t in (("a", 128, 0.01, 1.0), ("a", 512, 0.008, 5.0),
+                               ("b", 128, 0.03, 10.0), ("b", 512, 0.02, 30.0))]
+    frontier.mark_frontier(rows)
+    assert all(r.frontier for r in rows)  # across maps, "a" would hide every point of "b"
+
+
 def test_readme_splice_replaces_only_the_marked_section():
     text = (f"# T\n\nintro\n\n## Accuracy against time\n\n{frontier.BEGIN}\nold\n{frontier.END}\n\n"
             "## Next\nkeep\n")
