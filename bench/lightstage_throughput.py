@@ -3,9 +3,12 @@
     .venv/bin/python bench/lightstage_throughput.py [--res 128 256] [--samples 6] [--threads 1]
 
 Prints milliseconds per stage (pose, G-buffer, materials, shadow maps + visibility + BRDF transfer,
-shading of one light vector, flow), whole samples per second through LightStageDataset, and for
-the selective shading: the error against the full 114-light sum and the time saved, at several
-energy thresholds.
+shading of one light vector, flow), whole samples per second through LightStageDataset rendered on
+the fly and read from the frame cache (training/build_cache.py: stages read pair, lighting
+triplet, relight + assemble), and for the selective shading: the error against the full 114-light
+sum and the time saved, at several energy thresholds. The cache of ``--cache`` is used where it
+holds the resolution; otherwise a small one (8 pairs) is built in a temporary folder (the cost per
+sample does not depend on the pool size once the files are in the page cache).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -21,8 +25,11 @@ import torch
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
+from addon.errors import InputError  # noqa: E402
+from training import lighting_sampling  # noqa: E402
+from training.build_cache import DEFAULT_OUT, build  # noqa: E402
 from training.dataset import LightStageDataset  # noqa: E402
-from training.lightstage import geometry, materials  # noqa: E402
+from training.lightstage import geometry, materials, pairs  # noqa: E402
 
 
 def _ms(fn, reps=1):
@@ -57,6 +64,40 @@ def stages(ds: LightStageDataset, n: int) -> dict:
     return {k: float(np.median(v)) for k, v in rows.items()}
 
 
+def cached(res: int, n: int, cache_dir) -> dict:
+    """Median ms per stage and samples/s of the cached dataset."""
+    tmp = None
+    try:
+        ds = LightStageDataset("train", res, seed=123, length=100_000, cache_dir=cache_dir)
+    except InputError:  # absent or still being built
+        tmp = tempfile.TemporaryDirectory()
+        build("train", res, 8, tmp.name, progress=None)
+        ds = LightStageDataset("train", res, seed=123, length=100_000, cache_dir=tmp.name)
+    try:
+        ds[0]
+        rows = {"read pair": [], "lighting triplet": [], "relight + assemble": []}
+        for i in range(n):
+            p, rng = ds._draw(i)
+            ms, rec = _ms(lambda: pairs.load(pairs.pair_path(ds.cache, p)))
+            rows["read pair"].append(ms)
+            ms, lights = _ms(lambda: lighting_sampling.sample_triplet(rng, ds.bank, True,
+                                                                     ds.hdri_pool))
+            rows["lighting triplet"].append(ms)
+            ms, _ = _ms(lambda: pairs.assemble(rec, lights, 9))
+            rows["relight + assemble"].append(ms)
+        out = {k: float(np.median(v)) for k, v in rows.items()}
+        t = time.perf_counter()
+        for i in range(n):
+            ds[1000 + i]
+        out["whole sample"] = (time.perf_counter() - t) * 1000.0 / n
+        out["pool"] = ds.pool
+        out["source"] = "temporary 8-pair cache" if tmp else str(ds.cache)
+        return out
+    finally:
+        if tmp:
+            tmp.cleanup()
+
+
 def selective(ds: LightStageDataset, n: int, energies=(0.99, 0.95, 0.9, 0.8)) -> list:
     out = []
     for e in energies:
@@ -84,6 +125,9 @@ def main(argv=None):
     ap.add_argument("--res", type=int, nargs="+", default=[128, 256])
     ap.add_argument("--samples", type=int, default=6)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--cache", default=str(DEFAULT_OUT), help="frame cache root")
+    ap.add_argument("--cached-samples", type=int, default=200)
+    ap.add_argument("--no-selective", action="store_true", help="skip the effect shortcut")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     print(f"torch threads: {a.threads}")
@@ -100,6 +144,14 @@ def main(argv=None):
         dt = (time.perf_counter() - t) / a.samples
         print(f"  whole sample (2 frames, 4 images, flows): {dt * 1000:.0f} ms = "
               f"{1 / dt:.2f} samples/s")
+        c = cached(res, a.cached_samples, a.cache)
+        print(f"\n  from the frame cache ({c['source']}, pool {c['pool']}): median ms per sample")
+        for k in ("read pair", "lighting triplet", "relight + assemble"):
+            print(f"  {k:18s} {c[k]:8.2f}")
+        print(f"  whole sample: {c['whole sample']:.1f} ms = {1000 / c['whole sample']:.1f} "
+              f"samples/s")
+        if a.no_selective:
+            continue
         print(f"\n  selective shading vs the full 114-light sum (L^k of {a.samples} samples):")
         print("  energy  lights  rel.RMSE(mean)  rel.RMSE(max)  full ms  selective ms  saved")
         for e, n, em, ex, tf, ts in selective(ds, a.samples):

@@ -1,7 +1,7 @@
 """Build the light-stage frame cache that LightStageDataset(cache_dir=...) reads.
 
-    .venv/bin/python -m training.build_cache --res 128 --pairs 768      # about 5 GB, ~10 min/core
-    .venv/bin/python -m training.build_cache --res 256 --pairs 160      # about 4 GB
+    .venv/bin/python -m training.build_cache --res 128 --pairs 640   # about 5.5 GB, ~9 min on one core
+    .venv/bin/python -m training.build_cache --res 256 --pairs 80    # about 3.6 GB
 
 Writes ``<out>/<split>_<res>/pair_NNNNNN.bin`` (default out: cache/lightstage, git-ignored) and a
 manifest. Each file is one pool pair of two adjacent frames: per foreground pixel and light the
@@ -17,6 +17,7 @@ pair index, identity count), so it can be deleted and rebuilt at any time. Use t
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing
 import pathlib
 import time
@@ -28,7 +29,7 @@ from .lightstage import pairs
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "cache" / "lightstage"
-DEFAULT_PAIRS = {128: 768, 256: 160}
+DEFAULT_PAIRS = {128: 640, 256: 80}
 
 _ds = None
 
@@ -40,9 +41,9 @@ def _init(split, res, identities, data_root):
 
 
 def _render(job):
-    p, folder = job
+    p, folder, redo = job
     path = pairs.pair_path(folder, p)
-    if path.is_file():
+    if path.is_file() and not redo:
         return path.stat().st_size
     scene, t = _ds.pair_scene(p)
     return pairs.save(pairs.record_pair(scene, t), path)
@@ -53,6 +54,13 @@ def build(split: str, res: int, n_pairs: int, out=None, jobs: int = 1, identitie
     folder = cache_folder(out or DEFAULT_OUT, split, res)
     folder.mkdir(parents=True, exist_ok=True)
     probe = LightStageDataset(split, res, data_root=data_root, identities=identities)
+    old = folder / "manifest.json"
+    old = json.loads(old.read_text()) if old.is_file() else {}
+    # Pairs of another renderer version or identity pool are re-rendered in place (each file is
+    # replaced atomically, so a training run reading the cache meanwhile still sees whole pairs).
+    redo = bool(old) and (old.get("renderer") != renderer_version()
+                          or old.get("identities") != len(probe.ids)
+                          or old.get("format") != pairs.FORMAT)
     info = {"split": split, "resolution": int(res), "pairs": int(n_pairs),
             "identities": len(probe.ids), "renderer": renderer_version(),
             "command": f"python -m training.build_cache --split {split} --res {res} "
@@ -60,7 +68,7 @@ def build(split: str, res: int, n_pairs: int, out=None, jobs: int = 1, identitie
     pairs.write_manifest(folder, info)
     t0 = time.perf_counter()
     total, done = 0, 0
-    work = [(p, folder) for p in range(n_pairs)]
+    work = [(p, folder, redo) for p in range(n_pairs)]
     args = (split, res, identities, data_root)
     if jobs > 1:
         ctx = multiprocessing.get_context("fork")
@@ -91,7 +99,7 @@ def _report(progress, done, n, total, t0):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--res", type=int, nargs="+", default=[128])
-    ap.add_argument("--pairs", type=int, help="pool size (default: 768 at 128, 160 at 256)")
+    ap.add_argument("--pairs", type=int, help="pool size (default: 640 at 128, 80 at 256)")
     ap.add_argument("--split", default="train")
     ap.add_argument("--out", help=f"cache root (default {DEFAULT_OUT})")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (one thread each)")
@@ -100,7 +108,7 @@ def main(argv=None):
     ap.add_argument("--data-root", help="the shared data folder (default ../shared/data)")
     a = ap.parse_args(argv)
     for res in a.res:
-        n = a.pairs or DEFAULT_PAIRS.get(res, max(16, int(768 * (128 / res) ** 2)))
+        n = a.pairs or DEFAULT_PAIRS.get(res, max(16, int(640 * (128 / res) ** 2)))
         r = build(a.split, res, n, a.out, a.jobs, a.identities, a.data_root)
         print(f"{r['folder']}: {n} pairs, {r['bytes'] / 1e9:.2f} GB in {r['seconds']:.0f} s")
 

@@ -67,3 +67,18 @@ def test_missing_or_incomplete_caches_say_how_to_build_them(cache, shared_data, 
                                            / "manifest.json").read_text())
     with pytest.raises(InputError, match="incomplete"):
         LightStageDataset("train", RES, data_root=shared_data, cache_dir=tmp_path)
+
+
+def test_a_cache_from_another_renderer_version_is_rerendered(cache, shared_data):
+    import json
+
+    from training.build_cache import build
+    from training.dataset import cache_folder
+    folder = cache_folder(cache, "train", RES)
+    man = json.loads((folder / "manifest.json").read_text())
+    (folder / "manifest.json").write_text(json.dumps({**man, "renderer": "older"}))
+    first = folder / "pair_000000.bin"
+    before = first.stat().st_mtime_ns
+    build("train", RES, PAIRS, cache, data_root=shared_data, progress=None)
+    assert first.stat().st_mtime_ns != before
+    assert json.loads((folder / "manifest.json").read_text())["renderer"] == man["renderer"]

@@ -206,6 +206,15 @@ def _hair_weight(v: np.ndarray, style: HairStyle) -> np.ndarray:
     return _smoothstep((v[:, 1] - line) / 1.2)
 
 
+def _clumps(p: np.ndarray) -> np.ndarray:
+    """A fixed smooth field in [0.6, 1.4] over neutral-mesh positions (cm)."""
+    rng = np.random.default_rng(0xC1A3)
+    k = rng.normal(size=(6, 3))
+    k *= rng.uniform(1.2, 2.6, (6, 1)) / np.linalg.norm(k, axis=1, keepdims=True)
+    phase = rng.uniform(0, 2 * np.pi, 6)
+    return np.clip(1.0 + 0.4 * np.sin(p @ k.T + phase).mean(axis=1) * np.sqrt(6) / 1.5, 0.6, 1.4)
+
+
 @functools.lru_cache(maxsize=32)
 def build_rig(style: HairStyle, neckline: float, data_root=None) -> Rig:
     m = load_head(data_root)
@@ -246,7 +255,9 @@ def build_rig(style: HairStyle, neckline: float, data_root=None) -> Rig:
         all_faces.append(remap[hf])
         all_mat.append(np.full(len(hf), HAIR, np.int64))
         all_label.append(np.full(len(hf), LABEL["hair"], np.int64))
-        sw = w[scalp].astype(np.float32)
+        # Clumps: the shell's thickness varies over the head (a few cm across), so the outline
+        # is uneven like hair, not a smooth cap.
+        sw = (w[scalp] * _clumps(v[scalp])).astype(np.float32)
         # Hair "uv": azimuth around the crown and height, so strand noise runs down the head.
         c = v[scalp] - np.array([0.0, 4.0, 0.0])
         uv.append(np.stack([np.arctan2(c[:, 0], c[:, 2]) / (2 * np.pi) + 0.5,

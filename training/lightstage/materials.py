@@ -17,10 +17,13 @@ from . import assets
 from .assets import CLOTHES, HAIR, IRIS, LASHES, MOUTH, SCLERA, SKIN, TEETH
 from .subject import Identity
 
-SKIN_BASE = np.array([0.78, 0.62, 0.50])
-K_MELANIN = np.array([0.55, 0.75, 0.95])
+SKIN_BASE = np.array([0.80, 0.64, 0.54])
+# A flatter melanin spectrum than pure eumelanin: with it very dark skin stays a deep brown
+# (linear albedo about (0.08, 0.03, 0.02) at melanin 4) instead of saturating to orange.
+K_MELANIN = np.array([0.58, 0.70, 0.82])
 K_HAEMOGLOBIN = np.array([0.03, 0.35, 0.25])
-ATTRS = ("lips", "brows", "beard", "oily", "cheeks", "pupil")
+ATTRS = ("lips", "brows", "beard", "oily", "cheeks", "pupil", "hair_cover")
+_REGIONS = ("lips", "brows", "beard", "oily", "cheeks")
 
 # Specular reflectance at normal incidence and GGX roughness per material (hair uses its own lobe).
 F0 = {SKIN: 0.028, SCLERA: 0.03, IRIS: 0.03, TEETH: 0.04, MOUTH: 0.03, LASHES: 0.03, HAIR: 0.0,
@@ -37,11 +40,14 @@ def skin_albedo(melanin, haemoglobin) -> np.ndarray:
 
 
 def vertex_attributes(rig: assets.Rig, data_root=None) -> torch.Tensor:
-    """(V_total, len(ATTRS)) float32: region weights on head vertices, zero elsewhere."""
+    """(V_total, len(ATTRS)) float32: region weights on head vertices, zero elsewhere; on the
+    hair shell, how far it is from the hairline (0 at the hairline, 1 on the crown)."""
     m = assets.load_head(data_root)
     out = torch.zeros(rig.n_vertices, len(ATTRS))
-    for i, k in enumerate(ATTRS[:-1]):
-        out[: rig.n_head, i] = rig.regions[k]
+    for k in _REGIONS:
+        out[: rig.n_head, ATTRS.index(k)] = rig.regions[k]
+    shell = slice(rig.n_head, rig.n_head + rig.scalp.numel())
+    out[shell, ATTRS.index("hair_cover")] = rig.scalp_weight
     # Pupils: iris vertices near the front-most point of each iris.
     for side in ("left", "right"):
         a, b = m.regions[f"iris_{side}"]
@@ -78,7 +84,9 @@ def surface(material: torch.Tensor, uv: torch.Tensor, attrs: torch.Tensor, ident
     pores = _noise(uv, s + 1, 180.0) * 0.5 + _noise(uv, s + 2, 90.0) * 0.5
     mottle = _noise(uv, s + 3, 12.0)
     freckle = ((_noise(uv, s + 4, 60.0) - 0.35).clamp(min=0) * 4.0).clamp(max=1.0) * ident.freckles
-    mel = ident.melanin * (1.0 + 0.15 * mottle) * (1.0 - 0.35 * a["lips"]) * (1.0 + 0.8 * freckle)
+    # Mottling as an absolute melanin change (at most 0.08), so dark skin is not blotchy.
+    mel = (ident.melanin + 0.08 * min(ident.melanin, 1.0) * mottle) * (1.0 - 0.35 * a["lips"]) \
+        * (1.0 + 0.8 * freckle)
     hb = ident.haemoglobin * (1.0 + 1.6 * a["lips"] + 0.7 * a["cheeks"] + 0.15 * mottle)
     skin = torch.from_numpy(skin_albedo(mel.double().numpy(), hb.double().numpy())).float()
     skin = skin * (1.0 + 0.06 * pores)[:, None]
@@ -99,7 +107,11 @@ def surface(material: torch.Tensor, uv: torch.Tensor, attrs: torch.Tensor, ident
     put(MOUTH, torch.tensor([0.35, 0.07, 0.07]).expand(n, 3))
     put(LASHES, (hair_c * 0.5).expand(n, 3))
     hair_strand = 0.55 + 0.45 * (_noise(uv * torch.tensor([1.0, 0.02]), s + 7, 500.0) * 0.5 + 0.5)
-    put(HAIR, hair_c * hair_strand[:, None])
+    # The shell thins to the skin at the hairline: let skin show through there between wisps,
+    # so the hairline is soft and broken rather than the hard rim of a cap.
+    wisp = _noise(uv * torch.tensor([1.0, 0.05]), s + 8, 300.0)
+    cover = ((a["hair_cover"] - 0.08 + 0.25 * wisp) / 0.3).clamp(0.0, 1.0)[:, None]
+    put(HAIR, hair_c * hair_strand[:, None] * cover + skin * (1.0 - cover))
     cloth = torch.tensor(ident.clothes_colour, dtype=torch.float32) * (1.0 + 0.1 * pores)[:, None]
     put(CLOTHES, cloth)
     lut = lambda table, default: torch.tensor(  # noqa: E731

@@ -136,8 +136,9 @@ def load(path: pathlib.Path) -> PairRecord:
     frames, labels = [], []
     for n in range(2):
         frames.append(shading.ShadeInputs(
-            t(a[f"idx{n}"]).long(), t(a[f"diffuse{n}"]), t(a[f"specular{n}"]), t(a[f"albedo{n}"]),
-            t(a[f"sss{n}"]), float(a[f"px_per_cm{n}"].reshape(-1)[0]), t(a[f"mask{n}"]), t(a[f"backdrop{n}"])))
+            t(a[f"idx{n}"]).long(), t(a[f"diffuse{n}"]), t(a[f"specular{n}"]),
+            t(a[f"albedo{n}"]), t(a[f"sss{n}"]), float(a[f"px_per_cm{n}"].reshape(-1)[0]),
+            t(a[f"mask{n}"]), t(a[f"backdrop{n}"])))
         labels.append(t(a[f"label{n}"]).long())
     return PairRecord(tuple(frames), tuple(labels), t(a["flow_fw"]), t(a["flow_bw"]),
                       t(a["valid_fw"]).float(), t(a["valid_bw"]).float())
