@@ -147,3 +147,32 @@ def to_linear(pixels: np.ndarray, space: ColourSpace, gain: float = 1.0) -> np.n
     if gain != 1.0:
         lin *= np.float32(gain)
     return lin
+
+
+_BAND = 1 << 18  # values per lookup chunk: keeps numpy's index temporary in cache (~2x faster)
+
+
+def to_linear_planar(planes: np.ndarray, space: ColourSpace, gain: float = 1.0) -> np.ndarray:
+    """Channels-first (3, H, W) pixels in ``space`` to a new (3, H, W) float32 array of linear
+    Rec.709 times ``gain``: the pipeline's fast path (same values as ``to_linear``, up to the
+    rounding of the gamut matrix product)."""
+    px = np.asarray(planes)
+    if px.ndim != 3 or px.shape[0] != 3:
+        raise ValueError(f"planes must be (3, H, W), got {px.shape}")
+    out = np.empty(px.shape, np.float32)
+    if px.dtype == np.uint8 or px.dtype == np.uint16:
+        lut = integer_lut(space, 8 * px.dtype.itemsize)
+        lut = lut * np.float32(gain) if gain != 1.0 else lut
+        flat_in, flat_out = px.reshape(3, -1), out.reshape(3, -1)
+        for c in range(3):
+            for s in range(0, flat_in.shape[1], _BAND):
+                np.take(lut, flat_in[c, s:s + _BAND], out=flat_out[c, s:s + _BAND])
+        gain = 1.0
+    else:
+        out[...] = _decode_curve(px, space.curve)
+    if space.matrix is not None:
+        flat = out.reshape(3, -1)
+        flat[...] = space.matrix.astype(np.float32) @ flat
+    if gain != 1.0:
+        out *= np.float32(gain)
+    return out

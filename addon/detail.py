@@ -143,16 +143,23 @@ def ratio_transfer(input_full: np.ndarray, input_low: np.ndarray, relit_low: np.
 
 
 # ---- the same stages as onnxruntime graphs (the pipeline's fast path) ------------------------
+#
+# All graphs work channels-first (1, C, H, W): the layout the network takes, the one onnxruntime's
+# resize kernels are fastest in (NHWC with C = 3 measured 1.5-2x slower), and the one the EXR
+# writer stores (one row of each channel after another), so no full-resolution transpose is left.
+
+HALF_MAX = 65504.0
+
 
 def _shrink_graph() -> bytes:
-    """(1, H, W, C) -> (1, h, w, C): antialiased linear resize (a triangle filter as wide as the
+    """(1, C, H, W) -> (1, C, h, w): antialiased linear resize (a triangle filter as wide as the
     scale), one vectorised pass instead of numpy's several."""
     from . import onnx_graph as g
     return g.model(
         [g.node("Resize", ["x", "", "", "sizes"], ["y"], mode="linear", antialias=1,
                 coordinate_transformation_mode="half_pixel")],
-        [g.value_info("x", g.FLOAT, [1, "H", "W", "C"]), g.value_info("sizes", g.INT64, [4])],
-        [g.value_info("y", g.FLOAT, [1, "h", "w", "C"])], name="shrink")
+        [g.value_info("x", g.FLOAT, [1, "C", "H", "W"]), g.value_info("sizes", g.INT64, [4])],
+        [g.value_info("y", g.FLOAT, [1, "C", "h", "w"])], name="shrink")
 
 
 def _finish_graph(clamp: bool) -> bytes:
@@ -170,20 +177,18 @@ def _finish_graph(clamp: bool) -> bytes:
                 coordinate_transformation_mode="half_pixel"),
          g.node("Mul", ["a_up", "x"], ["ax"]),
          g.node("Add", ["ax", "b_up"], ["out"])] + tail,
-        [g.value_info("a", g.FLOAT, [1, "h", "w", "C"]), g.value_info("b", g.FLOAT,
-                                                                      [1, "h", "w", "C"]),
-         g.value_info("x", g.FLOAT, [1, "H", "W", "C"]), g.value_info("sizes", g.INT64, [4])],
-        [g.value_info("y", g.FLOAT16, [1, "H", "W", "C"])],
+        [g.value_info("a", g.FLOAT, [1, "C", "h", "w"]),
+         g.value_info("b", g.FLOAT, [1, "C", "h", "w"]),
+         g.value_info("x", g.FLOAT, [1, "C", "H", "W"]), g.value_info("sizes", g.INT64, [4])],
+        [g.value_info("y", g.FLOAT16, [1, "C", "H", "W"])],
         consts if clamp else [], name="finish")
 
 
 def _guided_graph(radius: int = RADIUS, eps: float = EPS, floor: float = FLOOR) -> bytes:
-    """guided_coefficients as one graph (NHWC in and out), times ``gain``."""
+    """guided_coefficients as one graph on (1, 3, h, w), times ``gain``."""
     from . import onnx_graph as g
     k = 2 * radius + 1
-    nodes = [g.node("Transpose", ["g"], ["G"], perm=[0, 3, 1, 2]),
-             g.node("Transpose", ["t"], ["T"], perm=[0, 3, 1, 2]),
-             g.node("Mul", ["G", "G"], ["GG"]), g.node("Mul", ["G", "T"], ["GT"])]
+    nodes = [g.node("Mul", ["G", "G"], ["GG"]), g.node("Mul", ["G", "T"], ["GT"])]
 
     def box(src, dst):
         nodes.append(g.node("AveragePool", [src], [dst], kernel_shape=[k, k],
@@ -203,38 +208,44 @@ def _guided_graph(radius: int = RADIUS, eps: float = EPS, floor: float = FLOOR) 
         g.node("Mul", ["a1", "mG"], ["amG"]), g.node("Sub", ["mT", "amG"], ["b1"])]
     box("a1", "A")
     box("b1", "B")
-    nodes += [g.node("Mul", ["A", "gain"], ["Ag"]), g.node("Mul", ["B", "gain"], ["Bg"]),
-              g.node("Transpose", ["Ag"], ["a"], perm=[0, 2, 3, 1]),
-              g.node("Transpose", ["Bg"], ["b"], perm=[0, 2, 3, 1])]
+    nodes += [g.node("Mul", ["A", "gain"], ["a"]), g.node("Mul", ["B", "gain"], ["b"])]
     consts = [g.tensor("eps", np.float32(eps)), g.tensor("floor", np.float32(floor)),
               g.tensor("zero", np.float32(0.0)), g.tensor("maxg", np.float32(MAX_GAIN))]
-    return g.model(nodes, [g.value_info("g", g.FLOAT, [1, "h", "w", 3]),
-                           g.value_info("t", g.FLOAT, [1, "h", "w", 3]),
+    return g.model(nodes, [g.value_info("G", g.FLOAT, [1, 3, "h", "w"]),
+                           g.value_info("T", g.FLOAT, [1, 3, "h", "w"]),
                            g.value_info("gain", g.FLOAT, [])],
-                   [g.value_info("a", g.FLOAT, [1, "h", "w", 3]),
-                    g.value_info("b", g.FLOAT, [1, "h", "w", 3])], consts, name="guided")
+                   [g.value_info("a", g.FLOAT, [1, 3, "h", "w"]),
+                    g.value_info("b", g.FLOAT, [1, 3, "h", "w"])], consts, name="guided")
 
 
 def _upsample_graph() -> bytes:
-    """(1, h, w, C) -> (1, H, W, C) half, bilinear, clamped to [lo, hi]."""
+    """(1, C, h, w) -> (1, C, H, W) half, bilinear, clamped to [lo, hi]."""
     from . import onnx_graph as g
     return g.model(
         [g.node("Resize", ["x", "", "", "sizes"], ["u"], mode="linear",
                 coordinate_transformation_mode="half_pixel"),
          g.node("Clip", ["u", "lo", "hi"], ["c"]),
          g.node("Cast", ["c"], ["y"], to=g.FLOAT16)],
-        [g.value_info("x", g.FLOAT, [1, "h", "w", "C"]), g.value_info("sizes", g.INT64, [4]),
+        [g.value_info("x", g.FLOAT, [1, "C", "h", "w"]), g.value_info("sizes", g.INT64, [4]),
          g.value_info("lo", g.FLOAT, []), g.value_info("hi", g.FLOAT, [])],
-        [g.value_info("y", g.FLOAT16, [1, "H", "W", "C"])], name="upsample")
+        [g.value_info("y", g.FLOAT16, [1, "C", "H", "W"])], name="upsample")
 
 
-HALF_MAX = 65504.0
+def _chw(x: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.moveaxis(np.asarray(x, np.float32), -1, 0))
+
+
+def _hwc(x: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.moveaxis(x, 0, -1))
 
 
 class FullRes:
     """The full-resolution stages as small onnxruntime graphs, built once per run.
 
-    Holds only its sessions (no per-call state), so the decode and write threads can share it.
+    The ``*_planar`` methods take and return channels-first (C, H, W) arrays (the pipeline's
+    path); the others are the same computation on channels-last arrays, for callers that hold
+    (H, W, C) images. Holds only its sessions (no per-call state), so the decode and write
+    threads can share it.
     """
 
     def __init__(self, threads: int | None = 1):
@@ -248,45 +259,69 @@ class FullRes:
         self._guided = ort.InferenceSession(_guided_graph(), so, providers=cpu)
         self._upsample = ort.InferenceSession(_upsample_graph(), so, providers=cpu)
 
-    def shrink(self, x: np.ndarray, height: int, width: int) -> np.ndarray:
-        """(H, W, C) float32 -> (height, width, C), antialiased."""
+    # -- channels-first (the pipeline) --
+
+    def shrink_planar(self, x: np.ndarray, height: int, width: int) -> np.ndarray:
+        """(C, H, W) float32 -> (C, height, width), antialiased."""
         x = np.ascontiguousarray(x, dtype=np.float32)
-        if x.shape[:2] == (height, width):
+        if x.shape[1:] == (height, width):
             return x
-        sizes = np.array([1, height, width, x.shape[2]], np.int64)
+        sizes = np.array([1, x.shape[0], height, width], np.int64)
         return self._shrink.run(None, {"x": x[None], "sizes": sizes})[0][0]
 
-    def coefficients(self, guide: np.ndarray, target: np.ndarray, gain: float):
-        """guided_coefficients(guide, target) times ``gain``, finite (non-finite inputs are 0,
-        overflow becomes a huge finite value that the half clamp then catches)."""
-        feeds = {"g": np.nan_to_num(np.asarray(guide, np.float32))[None],
-                 "t": np.nan_to_num(np.asarray(target, np.float32))[None],
+    def coefficients_planar(self, guide: np.ndarray, target: np.ndarray, gain: float):
+        """guided_coefficients of (3, h, w) arrays times ``gain``, as (3, h, w) (a, b); finite
+        (non-finite inputs are 0, overflow becomes a huge finite value that the half clamp then
+        catches). Low resolution, so the clean-up passes here cost little."""
+        feeds = {"G": np.nan_to_num(np.asarray(guide, np.float32))[None],
+                 "T": np.nan_to_num(np.asarray(target, np.float32))[None],
                  "gain": np.array(gain, np.float32)}
         a, b = self._guided.run(None, feeds)
         big = np.float32(1e30)
         return (np.nan_to_num(a[0], nan=0.0, posinf=big, neginf=-big),
                 np.nan_to_num(b[0], nan=0.0, posinf=big, neginf=-big))
 
-    def finish(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
-               x_max: float) -> tuple[np.ndarray, bool]:
-        """(half (H, W, 3) of up(a) * x_full + up(b), whether it may have been clamped).
+    def finish_planar(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
+                      x_max: float) -> tuple[np.ndarray, bool]:
+        """(half (3, H, W) of up(a) * x_full + up(b), whether it may have been clamped).
         ``a``, ``b`` finite; ``x_max`` bounds x_full from above (x_full >= 0): with bilinear
         weights |out| <= max|a| * x_max + max|b|, so the clamp pass runs only when needed."""
         x = np.ascontiguousarray(x_full, dtype=np.float32)
         bound = float(np.abs(a).max()) * float(x_max) + float(np.abs(b).max())
         clamp = not bound <= HALF_MAX
-        sizes = np.array([1, x.shape[0], x.shape[1], x.shape[2]], np.int64)
+        sizes = np.array([1, *x.shape], np.int64)
         y = self._finish[clamp].run(None, {"a": np.ascontiguousarray(a, np.float32)[None],
                                            "b": np.ascontiguousarray(b, np.float32)[None],
                                            "x": x[None], "sizes": sizes})[0]
         return y[0], clamp
 
-    def upsample_half(self, low: np.ndarray, height: int, width: int, lo: float,
-                      hi: float) -> np.ndarray:
-        """(h, w, C) float32 -> half (height, width, C), bilinear, clamped to [lo, hi]."""
+    def upsample_half_planar(self, low: np.ndarray, height: int, width: int, lo: float,
+                             hi: float) -> np.ndarray:
+        """(C, h, w) float32 -> half (C, height, width), bilinear, clamped to [lo, hi]."""
         low = np.ascontiguousarray(np.nan_to_num(low, nan=0.0, posinf=hi, neginf=lo),
                                    dtype=np.float32)
-        sizes = np.array([1, height, width, low.shape[2]], np.int64)
+        sizes = np.array([1, low.shape[0], height, width], np.int64)
         return self._upsample.run(None, {"x": low[None], "sizes": sizes,
                                          "lo": np.array(lo, np.float32),
                                          "hi": np.array(hi, np.float32)})[0][0]
+
+    # -- channels-last: the same graphs, transposed at the boundary --
+
+    def shrink(self, x: np.ndarray, height: int, width: int) -> np.ndarray:
+        """(H, W, C) float32 -> (height, width, C), antialiased."""
+        if np.shape(x)[:2] == (height, width):
+            return np.ascontiguousarray(x, dtype=np.float32)
+        return _hwc(self.shrink_planar(_chw(x), height, width))
+
+    def coefficients(self, guide: np.ndarray, target: np.ndarray, gain: float):
+        a, b = self.coefficients_planar(_chw(guide), _chw(target), gain)
+        return _hwc(a), _hwc(b)
+
+    def finish(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
+               x_max: float) -> tuple[np.ndarray, bool]:
+        y, clamp = self.finish_planar(_chw(x_full), _chw(a), _chw(b), x_max)
+        return _hwc(y), clamp
+
+    def upsample_half(self, low: np.ndarray, height: int, width: int, lo: float,
+                      hi: float) -> np.ndarray:
+        return _hwc(self.upsample_half_planar(_chw(low), height, width, lo, hi))

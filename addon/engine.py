@@ -148,7 +148,7 @@ def session_options(ort, threads: int | None = None, spin: bool = True):
 
 @dataclass(frozen=True)
 class EngineResult:
-    relit: np.ndarray         # (H, W, 3) float32, same units as the image given to pre-process
+    relit: np.ndarray         # (H, W, 3) float32 (run_planar: (3, H, W)), image's units
     source_light: np.ndarray  # (16, 16, 3) float32
     parsing: np.ndarray       # (K, H, W) float32 in [0, 1], channel order = card.classes
 
@@ -186,12 +186,20 @@ class RelightSession:
         img = np.asarray(image, dtype=np.float32)
         if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
             raise ValueError(f"image must be (H, W, 3), got {img.shape}")
-        h, w = img.shape[:2]
+        return self.preprocess_planar(img.transpose(2, 0, 1), light)
+
+    def preprocess_planar(self, image: np.ndarray, light: np.ndarray) -> Prepared:
+        """As ``preprocess`` for a channels-first (3, H, W) image (no copy when no padding is
+        needed and the image is contiguous float32)."""
+        img = np.asarray(image, dtype=np.float32)
+        if img.ndim != 3 or img.shape[0] != 3 or img.shape[1] < 1 or img.shape[2] < 1:
+            raise ValueError(f"image must be (3, H, W), got {img.shape}")
+        h, w = img.shape[1:]
         s = self.card.stride
         ph, pw = -h % s, -w % s
         if ph or pw:
-            img = np.pad(img, ((0, ph), (0, pw), (0, 0)), mode="reflect")
-        chw = np.ascontiguousarray(img.transpose(2, 0, 1)[None])
+            img = np.pad(img, ((0, 0), (0, ph), (0, pw)), mode="reflect")
+        chw = np.ascontiguousarray(img[None])
         lt = np.ascontiguousarray(lightvec.validate(light).transpose(2, 0, 1)[None])
         return Prepared({contract.INPUT_IMAGE: chw, contract.INPUT_LIGHT: lt}, h, w)
 
@@ -199,8 +207,8 @@ class RelightSession:
         names = [contract.OUTPUT_RELIT, contract.OUTPUT_SOURCE_LIGHT, contract.OUTPUT_PARSING]
         return dict(zip(names, self.session.run(names, prepared.feeds)))
 
-    def postprocess(self, outputs: dict, prepared: Prepared) -> EngineResult:
-        """Crop the padding away and go back to channels-last; check every shape."""
+    def postprocess_planar(self, outputs: dict, prepared: Prepared) -> EngineResult:
+        """Check every shape and crop the padding away; relit stays channels-first (3, H, W)."""
         h, w = prepared.height, prepared.width
         hp, wp = prepared.feeds[contract.INPUT_IMAGE].shape[2:]
         relit = outputs[contract.OUTPUT_RELIT]
@@ -215,13 +223,24 @@ class RelightSession:
                 f"contract needs (1,3,{hp},{wp}), (1,3,16,16), (1,{k},{hp},{wp}). The model "
                 "or its card is wrong; reinstall it.")
         return EngineResult(
-            relit=np.ascontiguousarray(relit[0, :, :h, :w].transpose(1, 2, 0), dtype=np.float32),
+            relit=np.ascontiguousarray(relit[0, :, :h, :w], dtype=np.float32),
             source_light=np.ascontiguousarray(src[0].transpose(1, 2, 0), dtype=np.float32),
             parsing=np.ascontiguousarray(par[0, :, :h, :w], dtype=np.float32))
+
+    def postprocess(self, outputs: dict, prepared: Prepared) -> EngineResult:
+        """Crop the padding away and go back to channels-last; check every shape."""
+        res = self.postprocess_planar(outputs, prepared)
+        return EngineResult(np.ascontiguousarray(res.relit.transpose(1, 2, 0)),
+                            res.source_light, res.parsing)
 
     def run(self, image: np.ndarray, light: np.ndarray) -> EngineResult:
         prepared = self.preprocess(image, light)
         return self.postprocess(self.process(prepared), prepared)
+
+    def run_planar(self, image: np.ndarray, light: np.ndarray) -> EngineResult:
+        """``run`` for a channels-first (3, H, W) image; ``relit`` comes back (3, H, W)."""
+        prepared = self.preprocess_planar(image, light)
+        return self.postprocess_planar(self.process(prepared), prepared)
 
 
 def new_session(model_path, providers=None, threads: int | None = None, spin: bool = True,

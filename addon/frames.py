@@ -17,6 +17,10 @@ from __future__ import annotations
 import os
 import pathlib
 import re
+import socket
+import struct
+import sys
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,8 +131,8 @@ def _exr_rgb_names(names) -> tuple[list[str], bool]:
     raise InputError(f"The EXR has channels {sorted(names)}; the relighter needs R, G, B (or Y).")
 
 
-def _read_exr(path) -> tuple[np.ndarray, bool]:
-    """(float32 (H, W, 3) pixels, had_alpha)."""
+def _read_exr(path, planar: bool = False) -> tuple[np.ndarray, bool]:
+    """(float32 (H, W, 3) pixels, or (3, H, W) when ``planar``, had_alpha)."""
     OpenEXR = _exr()
     try:
         with OpenEXR.File(str(path), separate_channels=True) as f:
@@ -141,7 +145,7 @@ def _read_exr(path) -> tuple[np.ndarray, bool]:
         raise InputError(f"Cannot read the EXR file {path} ({err}).") from err
     if len(planes) == 1:
         planes = planes * 3
-    return np.stack(planes, axis=-1), alpha
+    return np.stack(planes, axis=0 if planar else -1), alpha
 
 
 def _frame_alpha(fmt) -> bool:
@@ -157,14 +161,24 @@ def _to_rgb(frame) -> np.ndarray:
     return frame.to_ndarray(format="rgb48le" if _deep(frame.format) else "rgb24")
 
 
-def _read_image(path) -> tuple[np.ndarray, bool]:
+def _to_planes(frame) -> np.ndarray:
+    """Decoded PyAV frame -> (3, H, W) RGB planes, uint8 (uint16 if deeper than 8 bits).
+
+    Through interleaved RGB and one transposing copy of the code values (1.5 ms at 1080p): the
+    pipeline then works channels-first up to the EXR write. (swscale's own planar 'gbrp' output
+    would save that copy, but PyAV 18's FFmpeg leaves garbage at the right edge of rows whose
+    width is not a multiple of 16; tests/core/test_frames.py checks odd widths.)"""
+    return np.ascontiguousarray(_to_rgb(frame).transpose(2, 0, 1))
+
+
+def _read_image(path, planar: bool = False) -> tuple[np.ndarray, bool]:
     if _is_exr(path):
-        return _read_exr(path)
+        return _read_exr(path, planar)
     av = _av()
     try:
         with av.open(str(path)) as c:
             frame = next(c.decode(video=0))
-            return _to_rgb(frame), _frame_alpha(frame.format)
+            return (_to_planes if planar else _to_rgb)(frame), _frame_alpha(frame.format)
     except (av.FFmpegError, StopIteration, OSError) as err:
         raise InputError(f"Cannot read the image {path} ({err}).") from err
 
@@ -248,10 +262,11 @@ def _index_runs(indices: list[int]) -> list[list[int]]:
     return runs
 
 
-def iter_movie(path, indices):
-    """Yield (index, frame) for the 0-based ``indices`` in increasing order: a seek to the first
+def iter_movie(path, indices, planar: bool = False):
+    """Yield (index, pixels) for the 0-based ``indices`` in increasing order: a seek to the first
     of each run of nearby indices, then sequential decoding (frames before a target are decoded
-    and dropped, so every frame is exact). Raises InputError if the movie ends too early."""
+    and dropped, so every frame is exact). Pixels are (H, W, 3), or (3, H, W) when ``planar``.
+    Raises InputError if the movie ends too early."""
     indices = sorted(set(int(i) for i in indices))
     if not indices:
         return
@@ -261,10 +276,11 @@ def iter_movie(path, indices):
         fps = _stream_fps(s)
         start = s.start_time or 0
         for run in _index_runs(indices):
-            yield from _decode_run(c, s, run, fps, start, path)
+            yield from _decode_run(c, s, run, fps, start, path,
+                                   _to_planes if planar else _to_rgb)
 
 
-def _decode_run(c, s, run, fps, start, path):
+def _decode_run(c, s, run, fps, start, path, convert):
     want = iter(run)
     target = next(want)
     if target > 0 and fps:
@@ -281,7 +297,7 @@ def _decode_run(c, s, run, fps, start, path):
         if idx > target:
             raise InputError(f"{path}: frame {target} could not be decoded (the stream jumps "
                              f"to frame {idx}); re-encode the movie.")
-        yield idx, _to_rgb(frame)
+        yield idx, convert(frame)
         target = next(want, None)
         if target is None:
             return
@@ -322,31 +338,33 @@ def probe_clip(path_or_files) -> ClipInfo:
 @dataclass(frozen=True)
 class Decoded:
     index: int
-    pixels: np.ndarray         # (H, W, 3) uint8 / uint16 / float32 code values
+    pixels: np.ndarray         # (H, W, 3) or planar (3, H, W) uint8 / uint16 / float32 codes
     had_alpha: bool
 
 
-def iter_frames(kind: str, path: str, files, indices, size: tuple[int, int] | None = None):
+def iter_frames(kind: str, path: str, files, indices, size: tuple[int, int] | None = None,
+                planar: bool = False):
     """Yield Decoded frames for sorted 0-based ``indices`` of a movie or an image sequence.
 
     ``size`` (width, height): every frame must have it (a sequence that changes size mid-way
-    is refused rather than stretched)."""
+    is refused rather than stretched). ``planar``: pixels channels-first (3, H, W)."""
     if kind == "movie":
-        source = ((i, px, False) for i, px in iter_movie(path, indices))
+        source = ((i, px, False) for i, px in iter_movie(path, indices, planar))
     elif kind == "images":
         def _images():
             for i in sorted(indices):
                 if not 0 <= i < len(files):
                     raise InputError(f"Frame {i} is outside the image sequence of "
                                      f"{len(files)} frames.")
-                px, alpha = _read_image(files[i])
+                px, alpha = _read_image(files[i], planar)
                 yield i, px, alpha
         source = _images()
     else:
         raise InputError(f"Unknown clip kind '{kind}' (expected 'movie' or 'images').")
     for i, px, alpha in source:
-        if size is not None and (px.shape[1], px.shape[0]) != tuple(size):
-            raise InputError(f"Frame {i} is {px.shape[1]}x{px.shape[0]} but the clip is "
+        h, w = px.shape[1:] if planar else px.shape[:2]
+        if size is not None and (w, h) != tuple(size):
+            raise InputError(f"Frame {i} is {w}x{h} but the clip is "
                              f"{size[0]}x{size[1]}; all frames of a clip must have one size.")
         yield Decoded(i, px, alpha)
 
@@ -386,11 +404,127 @@ def write_exr(path, pixels: np.ndarray, compression: str = "none") -> int:
     else:
         raise ValueError(f"pixels must be (H, W, 3) or (H, W), got {px.shape}")
     header = {"compression": _compression(OpenEXR, compression), "type": OpenEXR.scanlineimage}
-    path = str(path)
-    tmp = f"{path}.{os.getpid()}.partial"
+    _write_atomic(path, lambda tmp: _openexr_write(OpenEXR, tmp, header, channels))
+    return n
+
+
+def write_exr_planes(path, planes: np.ndarray, compression: str = "none") -> None:
+    """Write channels-first half pixels atomically: (3, H, W) -> R, G, B; (H, W) -> Y.
+
+    Uncompressed files are written here directly (the format is a header, a line offset table
+    and per scanline the channels' halves in B, G, R order): one copy into file order, no
+    OpenEXR frame-buffer pass; the result reads back bit for bit through OpenEXR."""
+    px = np.asarray(planes)
+    if px.dtype != np.float16:
+        raise ValueError(f"planes must be float16, got {px.dtype}")
+    if px.ndim == 3 and px.shape[0] == 3:
+        names, stored = ("B", "G", "R"), px[::-1]  # EXR stores channels in name order
+    elif px.ndim == 2:
+        names, stored = ("Y",), px[None]
+    else:
+        raise ValueError(f"planes must be (3, H, W) or (H, W), got {px.shape}")
+    if compression == "none":
+        _write_atomic(path, lambda tmp: _write_uncompressed(tmp, stored, names))
+        return
+    OpenEXR = _exr()
+    header = {"compression": _compression(OpenEXR, compression), "type": OpenEXR.scanlineimage}
+    channels = {n: np.ascontiguousarray(p) for n, p in zip(names, stored)}  # strides ignored
+    _write_atomic(path, lambda tmp: _openexr_write(OpenEXR, tmp, header, channels))
+
+
+def _openexr_write(OpenEXR, tmp: str, header: dict, channels: dict) -> None:
+    with OpenEXR.File(header, channels) as f:
+        f.write(tmp)
+
+
+def _attribute(name: str, kind: str, value: bytes) -> bytes:
+    return name.encode() + b"\0" + kind.encode() + b"\0" + struct.pack("<i", len(value)) + value
+
+
+def exr_header(width: int, height: int, names) -> bytes:
+    """Magic, version 2 (single-part scanline) and the required attributes of an uncompressed
+    half-float image; ``names`` sorted (the spec's channel order)."""
+    half, linear, sampling = 1, 0, (1, 1)
+    chlist = b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", half, linear, *sampling)
+                      for n in names) + b"\0"
+    box = struct.pack("<4i", 0, 0, width - 1, height - 1)
+    return (b"\x76\x2f\x31\x01" + struct.pack("<i", 2)
+            + _attribute("channels", "chlist", chlist)
+            + _attribute("compression", "compression", b"\0")  # NO_COMPRESSION
+            + _attribute("dataWindow", "box2i", box) + _attribute("displayWindow", "box2i", box)
+            + _attribute("lineOrder", "lineOrder", b"\0")      # INCREASING_Y
+            + _attribute("pixelAspectRatio", "float", struct.pack("<f", 1.0))
+            + _attribute("screenWindowCenter", "v2f", struct.pack("<2f", 0.0, 0.0))
+            + _attribute("screenWindowWidth", "float", struct.pack("<f", 1.0)) + b"\0")
+
+
+def _write_uncompressed(tmp: str, stored: np.ndarray, names) -> None:
+    """``stored`` (C, H, W) float16 in channel-name order."""
+    c, h, w = stored.shape
+    header = exr_header(w, h, names)
+    line = 8 + 2 * c * w  # int32 y, int32 byte count, then each channel's row
+    offsets = len(header) + 8 * h + line * np.arange(h, dtype="<u8")
+    body = np.empty((h, line), np.uint8)
+    head = body[:, :8].view("<i4")
+    head[:, 0] = np.arange(h)
+    head[:, 1] = 2 * c * w
+    body[:, 8:].view("<f2").reshape(h, c, w)[...] = stored.transpose(1, 0, 2)
+    with open(tmp, "wb") as f:
+        f.write(header)
+        f.write(offsets.tobytes())
+        f.write(body.data)
+
+
+_HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname() or "host")
+# <final name>.<host>_<pid>_<thread>.partial, and this module's older <final>.<pid>.partial
+_PARTIAL = re.compile(r"^(?P<final>.+?)\.(?:(?P<host>[A-Za-z0-9-]+)_(?P<pid>\d+)_\d+"
+                      r"|(?P<old_pid>\d+)(?:\.\d+)?)\.partial$")
+
+
+def partial_path(path) -> str:
+    """The temporary name a file is written under before it is renamed into place; it names the
+    writing machine and process, so a later run can tell a dead writer's leftovers."""
+    return f"{path}.{_HOST}_{os.getpid()}_{threading.get_ident()}.partial"
+
+
+def stale_partial(name: str) -> str | None:
+    """The final name of ``name`` if it is a partial file left by a dead process of this machine
+    (an interrupted write); None for anything else, including a live writer's file."""
+    m = _PARTIAL.match(name)
+    if not m:
+        return None
+    if m.group("host") is not None and m.group("host") != _HOST:
+        return None  # another machine's (shared storage): it may still be writing
+    pid = int(m.group("pid") or m.group("old_pid"))
+    return None if pid == os.getpid() or _pid_alive(pid) else m.group("final")
+
+
+def _pid_alive(pid: int) -> bool:
+    if sys.platform == "win32":  # os.kill(pid, 0) would send Ctrl+C there
+        import ctypes
+        k32 = ctypes.windll.kernel32
+        handle = k32.OpenProcess(0x1000, False, pid)  # PROCESS_QUERY_LIMITED_INFORMATION
+        if not handle:
+            return False
+        code = ctypes.c_ulong()
+        ok = k32.GetExitCodeProcess(handle, ctypes.byref(code))
+        k32.CloseHandle(handle)
+        return bool(ok) and code.value == 259  # STILL_ACTIVE
     try:
-        with OpenEXR.File(header, channels) as f:
-            f.write(tmp)
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # exists, another user's
+    return True
+
+
+def _write_atomic(path, write) -> None:
+    """``write(tmp)`` then rename to ``path``; a failure leaves neither file behind."""
+    path = str(path)
+    tmp = partial_path(path)
+    try:
+        write(tmp)
         os.replace(tmp, path)
     except (OSError, RuntimeError) as err:  # OpenEXR reports I/O failures as RuntimeError
         _remove_quietly(tmp)
@@ -399,7 +533,6 @@ def write_exr(path, pixels: np.ndarray, compression: str = "none") -> int:
     except BaseException:
         _remove_quietly(tmp)
         raise
-    return n
 
 
 def _remove_quietly(path) -> None:

@@ -6,6 +6,9 @@ batch script and render-farm chunks (``frames``). Per frame:
     decode -> linear (colour.py) -> / s -> area-resize to the working size -> network (light / k)
     -> full-resolution transfer (detail.py) -> * s * k -> finite, half range -> EXR
 
+Frames stay channels-first (3, H, W) from the decoder to the EXR file (see detail.py); the
+channels-last stage functions below serve callers that hold (H, W, 3) images (benchmarks).
+
 ``s`` is one exposure scale per clip from fixed sample frames over the whole clip, so chunks and
 resumed runs agree bit for bit; ``k`` is the target light's mean radiance (k == 0: black frame,
 network not run). Decoding runs in a worker thread and writing in another while onnxruntime
@@ -14,6 +17,8 @@ runs, so the three overlap.
 Outputs (i = 0-based clip frame index): relit/relit_{i:06d}.exr, matte/matte_{i:06d}.exr (optional),
 source_light/source_{i:06d}.npy, and relight_run.json (the run's identity). A frame is finished
 when its relit file exists: it is renamed into place last, after its matte and source light.
+Files are written under a temporary name first (frames.partial_path); a run sweeps away those
+that a killed process of this machine left behind (see sweep_partials).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import json
 import os
 import pathlib
 import queue
+import re
 import threading
 from dataclasses import asdict, dataclass, field
 
@@ -182,10 +188,35 @@ def _read_run(out_dir: str) -> dict | None:
 
 
 def _atomic_write_text(path: str, text: str) -> None:
-    tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
+    tmp = frames.partial_path(path)
     with open(tmp, "w", encoding="utf-8") as f:
         f.write(text)
     os.replace(tmp, path)
+
+
+_OUTPUT_NAME = re.compile(r"^(relit_\d{6}\.exr|matte_\d{6}\.exr|source_\d{6}\.npy)$")
+
+
+def sweep_partials(out_dir: str) -> list[str]:
+    """Remove the temporary files that writers of this run's own folders left when they were
+    killed mid-write (only names this pipeline writes, only from dead processes of this
+    machine; a concurrent chunk's file in progress is kept). Returns the removed paths."""
+    removed = []
+    for folder, pattern in ((out_dir, re.compile(re.escape(RUN_FILE) + "$")),
+                            (os.path.join(out_dir, "relit"), _OUTPUT_NAME),
+                            (os.path.join(out_dir, "matte"), _OUTPUT_NAME),
+                            (os.path.join(out_dir, "source_light"), _OUTPUT_NAME)):
+        if not os.path.isdir(folder):
+            continue
+        for entry in os.scandir(folder):
+            final = frames.stale_partial(entry.name)
+            if final and pattern.match(final) and entry.is_file(follow_symlinks=False):
+                try:
+                    os.remove(entry.path)
+                except FileNotFoundError:
+                    continue  # another process swept it first
+                removed.append(entry.path)
+    return removed
 
 
 def _clear_outputs(out_dir: str) -> None:
@@ -253,10 +284,11 @@ class Plan:
 
 
 def linearise(pixels: np.ndarray, plan: Plan) -> tuple[np.ndarray, int, float]:
-    """Code values -> exposure-normalised linear (H, W, 3); NaN/Inf/negative become 0.
-    Returns (image, number of values replaced, an upper bound of the image's values)."""
+    """Channels-first code values (3, H, W) -> exposure-normalised linear (3, H, W); NaN/Inf/
+    negative become 0. Returns (image, number of values replaced, an upper bound of the
+    image's values)."""
     gain = 1.0 / plan.scale
-    lin = colour.to_linear(pixels, plan.space, gain)
+    lin = colour.to_linear_planar(pixels, plan.space, gain)
     if np.issubdtype(pixels.dtype, np.integer) and plan.space.matrix is None:
         # Code values through a curve: finite, non-negative, bounded by the table's top.
         lut = colour.integer_lut(plan.space, 8 * pixels.dtype.itemsize)
@@ -268,68 +300,110 @@ def linearise(pixels: np.ndarray, plan: Plan) -> tuple[np.ndarray, int, float]:
     return lin, bad, float(lin.max()) if lin.size else 0.0
 
 
-def shrink(x_full: np.ndarray, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
-    return fullres.shrink(x_full, *plan.working)
+def shrink_planar(x_full: np.ndarray, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
+    return fullres.shrink_planar(x_full, *plan.working)
 
 
-def infer(session: engine.RelightSession, x_low: np.ndarray, light: np.ndarray):
-    """(relit_low, source_light, foreground, k) in normalised units; k == 0: nothing run."""
+def infer_planar(session: engine.RelightSession, x_low: np.ndarray, light: np.ndarray):
+    """(relit_low (3, h, w), source_light, foreground (h, w), k) in normalised units; k == 0:
+    nothing run."""
     light_n, k = normalise.normalise_light(light)
     if k <= 0:
         return None, np.zeros(lightvec.SHAPE, np.float32), None, 0.0
-    res = session.run(x_low, light_n)
+    res = session.run_planar(x_low, light_n)
     fg = res.parsing[session.card.foreground_channel]
     return res.relit, res.source_light, fg, k
 
 
-def coefficients(x_low: np.ndarray, relit_low, k: float, plan: Plan,
-                 fullres: detail.FullRes):
-    """Working-resolution (a, b) with out = up(a) * x_full + up(b) in scene-linear units, finite;
-    None for a black frame."""
+def coefficients_planar(x_low: np.ndarray, relit_low, k: float, plan: Plan,
+                        fullres: detail.FullRes):
+    """Working-resolution (a, b), each (3, h, w), with out = up(a) * x_full + up(b) in
+    scene-linear units, finite; None for a black frame."""
     if relit_low is None:
         return None
     gain = plan.scale * k
-    if plan.detail_transfer and x_low.shape[:2] != (plan.size[1], plan.size[0]):
-        return fullres.coefficients(x_low, relit_low, gain)
+    if plan.detail_transfer and x_low.shape[1:] != (plan.size[1], plan.size[0]):
+        return fullres.coefficients_planar(x_low, relit_low, gain)
     b = np.nan_to_num(np.asarray(relit_low, np.float32) * np.float32(gain), nan=0.0,
                       posinf=1e30, neginf=-1e30)  # plain upsampling: a = 0
     return np.zeros_like(b), b
 
 
-def finish(x_full: np.ndarray, ab, x_max: float,
-           fullres: detail.FullRes) -> tuple[np.ndarray, int]:
-    """The full-resolution half-float frame and how many values were clamped to the half range."""
-    h, w = x_full.shape[:2]
+def finish_planar(x_full: np.ndarray, ab, x_max: float,
+                  fullres: detail.FullRes) -> tuple[np.ndarray, int]:
+    """The full-resolution half-float frame (3, H, W) and how many values were clamped to the
+    half range."""
     if ab is None:
-        return np.zeros((h, w, 3), np.float16), 0
-    y, may_clamp = fullres.finish(x_full, *ab, x_max)
-    clamped = 0
-    if may_clamp:  # count values at +-65504 (half bits 0x7BFF once the sign is masked)
-        clamped = int(np.count_nonzero((y.view(np.uint16) & 0x7FFF) == 0x7BFF))
-    return y, clamped
+        return np.zeros(x_full.shape, np.float16), 0
+    y, may_clamp = fullres.finish_planar(x_full, *ab, x_max)
+    return y, _count_clamped(y) if may_clamp else 0
+
+
+def _count_clamped(y: np.ndarray) -> int:
+    """Values at +-65504 (half bits 0x7BFF once the sign is masked)."""
+    return int(np.count_nonzero((y.view(np.uint16) & 0x7FFF) == 0x7BFF))
 
 
 def matte_full(fg, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
     w, h = plan.size
     if fg is None:
         return np.zeros((h, w), np.float16)
-    return fullres.upsample_half(np.asarray(fg, np.float32)[..., None], h, w, 0.0, 1.0)[..., 0]
+    return fullres.upsample_half_planar(np.asarray(fg, np.float32)[None], h, w, 0.0, 1.0)[0]
+
+
+# The same stages on channels-last (H, W, 3) images, for callers that hold those (the accuracy
+# benchmark): the same graphs, so the same numbers as the pipeline.
+
+def shrink(x_full: np.ndarray, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
+    return fullres.shrink(x_full, *plan.working)
+
+
+def infer(session: engine.RelightSession, x_low: np.ndarray, light: np.ndarray):
+    """(relit_low (h, w, 3), source_light, foreground, k); k == 0: nothing run."""
+    relit, source, fg, k = infer_planar(session, np.moveaxis(x_low, -1, 0), light)
+    return (None if relit is None else np.ascontiguousarray(relit.transpose(1, 2, 0)),
+            source, fg, k)
+
+
+def coefficients(x_low: np.ndarray, relit_low, k: float, plan: Plan,
+                 fullres: detail.FullRes):
+    """(a, b), each (h, w, 3); None for a black frame."""
+    if relit_low is None:
+        return None
+    a, b = coefficients_planar(np.moveaxis(x_low, -1, 0), np.moveaxis(relit_low, -1, 0), k,
+                               plan, fullres)
+    return np.ascontiguousarray(a.transpose(1, 2, 0)), np.ascontiguousarray(b.transpose(1, 2, 0))
+
+
+def finish(x_full: np.ndarray, ab, x_max: float,
+           fullres: detail.FullRes) -> tuple[np.ndarray, int]:
+    """The half-float frame (H, W, 3) and how many values were clamped."""
+    h, w = x_full.shape[:2]
+    if ab is None:
+        return np.zeros((h, w, 3), np.float16), 0
+    y, may_clamp = fullres.finish(x_full, *ab, x_max)
+    return y, _count_clamped(y) if may_clamp else 0
 
 
 def _save_npy(path: str, arr: np.ndarray) -> None:
-    tmp = f"{path}.{os.getpid()}.partial"
-    with open(tmp, "wb") as f:
-        np.save(f, arr)
-    os.replace(tmp, path)
+    tmp = frames.partial_path(path)
+    try:
+        with open(tmp, "wb") as f:
+            np.save(f, arr)
+        os.replace(tmp, path)
+    except OSError as err:
+        frames._remove_quietly(tmp)
+        raise OutputError(f"Cannot write {path} ({err}); check the output folder is writable "
+                          "and the disk has space.") from err
 
 
 def write_frame(out_dir: str, i: int, relit: np.ndarray, matte, source: np.ndarray,
-                plan: Plan) -> int:
-    """Write one frame's files, relit last. Returns the number of relit values clamped."""
+                plan: Plan) -> None:
+    """Write one frame's files, relit (half (3, H, W)) last."""
     _save_npy(source_path(out_dir, i), np.nan_to_num(source).astype(np.float32))
     if plan.write_matte:
-        frames.write_exr(matte_path(out_dir, i), matte, plan.compression)
-    return frames.write_exr(relit_path(out_dir, i), relit, plan.compression)
+        frames.write_exr_planes(matte_path(out_dir, i), matte, plan.compression)
+    frames.write_exr_planes(relit_path(out_dir, i), relit, plan.compression)
 
 
 # ---- exposure -----------------------------------------------------------------------------
@@ -338,9 +412,9 @@ def clip_exposure(clip: ClipSpec, plan: Plan, fullres: detail.FullRes) -> float:
     """s from normalise.sample_frame_indices over the whole clip (never the chunk)."""
     idx = normalise.sample_frame_indices(clip.count)
     probe = Plan(plan.space, 1.0, plan.size, plan.working, False, False, plan.compression)
-    lows = [shrink(linearise(d.pixels, probe)[0], probe, fullres)
+    lows = [shrink_planar(linearise(d.pixels, probe)[0], probe, fullres).transpose(1, 2, 0)
             for d in frames.iter_frames(clip.kind, clip.path, clip.files,
-                                        [clip.first + i for i in idx], plan.size)]
+                                        [clip.first + i for i in idx], plan.size, planar=True)]
     return normalise.exposure_scale(lows)
 
 
@@ -391,13 +465,18 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
                  "opaque).")
     if info.channels in (1, 2):
         out.warn("The footage is greyscale; it is relit as grey RGB.")
-    session = engine.new_session(options.model_path, options.providers, options.threads)
+    # No spinning: idle onnxruntime threads would take the core from the decode/write threads.
+    session = engine.new_session(options.model_path, options.providers, options.threads,
+                                 spin=False)
     working = int(options.working_size or session.card.working_size)
     if working < 1:
         raise InputError(f"The working size must be positive, got {working}.")
     _check_not_source(clip, out_dir)
     identity = run_identity(clip, lights, options, session.card, working)
     stored = prepare_output(out_dir, identity, options.overwrite)
+    swept = sweep_partials(out_dir)
+    if swept:
+        out.info(f"Removed {len(swept)} unfinished file(s) that an interrupted run left.")
     plan = Plan(space, 1.0, (info.width, info.height),
                 detail.working_shape(info.height, info.width, working),
                 options.detail_transfer, options.write_matte, options.exr_compression)
@@ -427,37 +506,45 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
 
 def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, total,
                 on_progress, should_cancel, out: Log) -> int:
-    """Decode (worker thread) -> network and low-resolution coefficients (this thread) ->
-    full-resolution finish and write (worker thread)."""
+    """Decode, linearise and shrink (worker thread) -> network and low-resolution coefficients
+    (this thread) -> full-resolution finish and write (worker thread), each frame channels-first.
+
+    Any thread's failure stops the other two; this thread then raises the first failure (a
+    worker's is raised with its own traceback). Frames written before it stay finished, so a
+    rerun resumes after them."""
     stop = threading.Event()
     decoded: queue.Queue = queue.Queue(maxsize=2)
     results: queue.Queue = queue.Queue(maxsize=2)
-    counts = {"bad_in": 0, "clamped": 0, "written": 0}
+    counts = {"bad_in": 0, "clamped": 0, "written": 0}  # each key written by one thread
 
     def produce():
         try:
             for d in frames.iter_frames(clip.kind, clip.path, clip.files,
-                                        [clip.first + i for i in todo], plan.size):
+                                        [clip.first + i for i in todo], plan.size, planar=True):
                 if stop.is_set():
                     return
                 x_full, bad, x_max = linearise(d.pixels, plan)
                 counts["bad_in"] += bad
                 _put(decoded, (d.index - clip.first, x_full, x_max,
-                               shrink(x_full, plan, fullres)), stop)
+                               shrink_planar(x_full, plan, fullres)), stop)
         finally:
             _put(decoded, _DONE, stop, force=True)
 
     def consume():
-        while True:
-            item = results.get()
-            if item is _DONE:
-                return
-            i, x_full, x_max, ab, fg, source = item
-            relit, clamped = finish(x_full, ab, x_max, fullres)
-            matte = matte_full(fg, plan, fullres) if plan.write_matte else None
-            write_frame(out_dir, i, relit, matte, source, plan)
-            counts["clamped"] += clamped
-            counts["written"] += 1
+        try:
+            while True:
+                item = results.get()
+                if item is _DONE:
+                    return
+                i, x_full, x_max, ab, fg, source = item
+                relit, clamped = finish_planar(x_full, ab, x_max, fullres)
+                matte = matte_full(fg, plan, fullres) if plan.write_matte else None
+                write_frame(out_dir, i, relit, matte, source, plan)
+                counts["clamped"] += clamped
+                counts["written"] += 1
+        except BaseException:
+            stop.set()  # the decoder stops too; this thread's error is raised by the caller
+            raise
 
     reported = [-1]
 
@@ -477,22 +564,23 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             if should_cancel and should_cancel():
                 cancelled = True
                 break
-            item = _get(decoded, reader)
+            item = _get(decoded, reader, writer)
             if item is _DONE:
                 break
             i, x_full, x_max, x_low = item
-            relit_low, source, fg, k = infer(session, x_low, lights[min(i, len(lights) - 1)])
-            ab = coefficients(x_low, relit_low, k, plan, fullres)
+            relit_low, source, fg, k = infer_planar(session, x_low,
+                                                    lights[min(i, len(lights) - 1)])
+            ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
             _put(results, (i, x_full, x_max, ab, fg, source * np.float32(plan.scale)), stop,
                  alive=writer)
             _raise_if_failed(writer)
     finally:
         stop.set()
         _drain(decoded)
-        _put(results, _DONE, threading.Event(), alive=writer)
+        _put(results, _DONE, threading.Event(), alive=writer)  # the writer finishes its queue
         writer.join()
-        reader.join(timeout=10)
-    _raise_if_failed(reader, writer)
+        reader.join()  # it stops at its next frame (stop is set and nobody reads its queue)
+    _raise_if_failed(writer, reader)
     progress()
     if counts["bad_in"]:
         out.warn(f"{counts['bad_in']} input values were NaN, infinite or negative and were "
@@ -508,7 +596,7 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
 
 def _put(q: queue.Queue, item, stop: threading.Event, force=False, alive=None) -> None:
     """Put with a timeout loop, giving up when ``stop`` is set (unless ``force``: then make
-    room by dropping what nobody will read) or when the ``alive`` consumer has died."""
+    room by dropping what nobody will read) or when the ``alive`` consumer has ended."""
     while True:
         if stop.is_set() and not force:
             return
@@ -522,11 +610,14 @@ def _put(q: queue.Queue, item, stop: threading.Event, force=False, alive=None) -
                 _drain(q)
 
 
-def _get(q: queue.Queue, producer: _Worker):
+def _get(q: queue.Queue, producer: _Worker, consumer: _Worker):
+    """The next item, or _DONE once the producer has ended; raises a worker's failure as soon
+    as it is seen (a failed writer must not leave this thread waiting on the decoder)."""
     while True:
         try:
             return q.get(timeout=0.1)
         except queue.Empty:
+            _raise_if_failed(consumer)
             if not producer.is_alive() and q.empty():
                 _raise_if_failed(producer)
                 return _DONE

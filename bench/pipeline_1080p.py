@@ -58,19 +58,19 @@ def time_stages(clip: pipeline.ClipSpec, session, fullres, plan: pipeline.Plan, 
                 out_dir: str, n: int) -> dict[str, list[float]]:
     keys = ("decode", "colour", "resize", "inference", "transfer", "write")
     t = {k: [] for k in keys}
-    it = frames.iter_frames(clip.kind, clip.path, clip.files, range(n), plan.size)
+    it = frames.iter_frames(clip.kind, clip.path, clip.files, range(n), plan.size, planar=True)
     for i in range(n):
         a = time.perf_counter()
         d = next(it)
         b = time.perf_counter()
         x_full, _, x_max = pipeline.linearise(d.pixels, plan)
         c = time.perf_counter()
-        x_low = pipeline.shrink(x_full, plan, fullres)
+        x_low = pipeline.shrink_planar(x_full, plan, fullres)
         e = time.perf_counter()
-        relit_low, source, fg, k = pipeline.infer(session, x_low, light)
+        relit_low, source, fg, k = pipeline.infer_planar(session, x_low, light)
         f = time.perf_counter()
-        ab = pipeline.coefficients(x_low, relit_low, k, plan, fullres)
-        relit, _ = pipeline.finish(x_full, ab, x_max, fullres)
+        ab = pipeline.coefficients_planar(x_low, relit_low, k, plan, fullres)
+        relit, _ = pipeline.finish_planar(x_full, ab, x_max, fullres)
         matte = pipeline.matte_full(fg, plan, fullres) if plan.write_matte else None
         g = time.perf_counter()
         pipeline.write_frame(out_dir, i, relit, matte, source, plan)
@@ -108,7 +108,7 @@ def main(argv=None) -> int:
                                        write_matte=args.matte, threads=args.threads,
                                        exr_compression=args.compression)
         light = lightvec.splat_direction([0.5, 0.4, 1.0], [3.0, 2.5, 2.0]) + 0.2
-        session = engine.new_session(model, threads=args.threads)
+        session = engine.new_session(model, threads=args.threads, spin=False)
         fullres = pipeline.detail.FullRes(threads=1)
         plan = pipeline.Plan(colour_mod.lookup("sRGB"), 1.0, (1920, 1080),
                              pipeline.detail.working_shape(1080, 1920, args.working_size),

@@ -82,3 +82,23 @@ def test_matrices_are_blenders_own():
         np.testing.assert_allclose(m, mat, atol=1e-7, err_msg=name)
     spimtx = np.loadtxt(cfg.parent / "luts" / "xyz_E_to_D65.spimtx")[:, :3]
     np.testing.assert_allclose(colour.XYZ_E_TO_D65, spimtx, atol=1e-8)
+
+
+@pytest.mark.parametrize("name", ["sRGB", "Linear Rec.709", "Rec.2020"])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_planar_conversion_equals_channels_last(name, dtype):
+    rng = np.random.default_rng(0)
+    if dtype == np.float32:
+        px = (rng.random((3, 300, 1000)) * 1.5 - 0.2).astype(np.float32)  # > one lookup band
+    else:
+        px = rng.integers(0, np.iinfo(dtype).max + 1, (3, 300, 1000)).astype(dtype)
+    space = colour.lookup(name)
+    got = colour.to_linear_planar(px, space, 0.25)
+    want = colour.to_linear(px.transpose(1, 2, 0), space, 0.25).transpose(2, 0, 1)
+    assert got.dtype == np.float32 and got.shape == px.shape
+    if space.matrix is None:
+        np.testing.assert_array_equal(got, want)
+    else:  # the gamut matrix product is summed in another order
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match=r"\(3, H, W\)"):
+        colour.to_linear_planar(px.transpose(1, 2, 0), space)

@@ -180,3 +180,18 @@ def test_conv_model_has_the_requested_cost_and_contract(tmp_path):
     assert res.relit.shape == (20, 36, 3) and np.all(np.isfinite(res.relit))
     assert res.parsing.shape == (len(contract.PARSING_CLASSES), 20, 36)
     assert np.all(res.source_light >= 0)
+
+
+@pytest.mark.parametrize("h,w", [(7, 13), (32, 48)])
+def test_planar_run_equals_channels_last_run(session, h, w):
+    rng = np.random.default_rng(5)
+    img = rng.random((h, w, 3)).astype(np.float32)
+    light = lightvec.uniform(1.5)
+    a = session.run(img, light)
+    b = session.run_planar(np.ascontiguousarray(img.transpose(2, 0, 1)), light)
+    assert b.relit.shape == (3, h, w)
+    np.testing.assert_array_equal(b.relit, a.relit.transpose(2, 0, 1))
+    np.testing.assert_array_equal(b.parsing, a.parsing)
+    np.testing.assert_array_equal(b.source_light, a.source_light)
+    with pytest.raises(ValueError, match=r"\(3, H, W\)"):
+        session.run_planar(img, light)

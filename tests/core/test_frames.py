@@ -204,3 +204,106 @@ def test_failed_write_leaves_no_partial_file(tmp_path, monkeypatch):
 def test_unwritable_folder_is_an_output_error(tmp_path):
     with pytest.raises(OutputError, match="Cannot write"):
         frames.write_exr(tmp_path / "no" / "such" / "dir.exr", np.zeros((2, 2, 3), np.float32))
+
+
+# ---- channels-first decoding and the direct EXR writer (the pipeline's fast path) ----------
+
+def test_planar_movie_decode_equals_interleaved(movie):
+    path, src = movie
+    got = list(frames.iter_frames("movie", str(path), (), [0, 5, 6], planar=True))
+    assert [d.index for d in got] == [0, 5, 6]
+    for d in got:
+        assert d.pixels.shape == (3, 48, 64) and d.pixels.dtype == np.uint8
+        np.testing.assert_array_equal(d.pixels, src[d.index].transpose(2, 0, 1))
+
+
+def test_planar_h264_yuv420_equals_interleaved(tmp_path):
+    # Chroma-subsampled 4:2:0 (what cameras write): swscale's planar and interleaved RGB agree.
+    import av
+    src = ramp_frames(2, height=36, width=50)
+    path = tmp_path / "c.mp4"
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264", rate=25)
+        s.width, s.height, s.pix_fmt = 50, 36, "yuv420p"
+        for f in src:
+            for p in s.encode(av.VideoFrame.from_ndarray(f, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    hwc = [d.pixels for d in frames.iter_frames("movie", str(path), (), [0, 1])]
+    chw = [d.pixels for d in frames.iter_frames("movie", str(path), (), [0, 1], planar=True)]
+    for a, b in zip(hwc, chw):
+        np.testing.assert_array_equal(b, a.transpose(2, 0, 1))
+
+
+@pytest.mark.parametrize("kind", ["grey8", "rgba8", "rgb16"])
+def test_planar_png_and_exr_decode_equal_interleaved(tmp_path, kind):
+    base = ramp_frames(1)[0]
+    px = {"grey8": base[..., 0], "rgba8": np.dstack([base, base[..., :1]]),
+          "rgb16": base.astype(np.uint16) * 257 + 1}[kind]
+    write_png(tmp_path / "f_0001.png", px)
+    files = [str(tmp_path / "f_0001.png")]
+    files += write_exr_sequence(tmp_path / "exr", [base.astype(np.float32) / 7])
+    for f in files:
+        a = next(frames.iter_frames("images", "", [f], [0])).pixels
+        b = next(frames.iter_frames("images", "", [f], [0], (64, 48), planar=True)).pixels
+        assert b.dtype == a.dtype
+        np.testing.assert_array_equal(b, a.transpose(2, 0, 1))
+
+
+@pytest.mark.parametrize("h,w", [(1, 1), (3, 5), (48, 64), (17, 2)])
+def test_direct_exr_writer_reads_back_bit_for_bit(tmp_path, h, w):
+    rng = np.random.default_rng(h * w)
+    rgb = rng.standard_normal((3, h, w)).astype(np.float16)
+    rgb[0, 0, 0], rgb[1, -1, -1] = np.float16(65504), np.float16(-0.0)
+    frames.write_exr_planes(tmp_path / "c.exr", rgb)
+    with OpenEXR.File(str(tmp_path / "c.exr")) as f:
+        header, channels = f.header(), f.channels()
+        assert header["compression"] == OpenEXR.NO_COMPRESSION
+        assert [tuple(v) for v in header["dataWindow"]] == [(0, 0), (w - 1, h - 1)]
+        assert [c.name for c in header["channels"]] == ["B", "G", "R"]
+        got = channels["RGB"].pixels
+    assert got.dtype == np.float16
+    np.testing.assert_array_equal(got.view(np.uint16), rgb.transpose(1, 2, 0).view(np.uint16))
+    grey = rng.random((h, w)).astype(np.float16)
+    frames.write_exr_planes(tmp_path / "m.exr", grey)
+    with OpenEXR.File(str(tmp_path / "m.exr")) as f:
+        np.testing.assert_array_equal(f.channels()["Y"].pixels, grey)
+    assert sorted(os.listdir(tmp_path)) == ["c.exr", "m.exr"]
+
+
+@pytest.mark.parametrize("compression", ["rle", "zip", "piz"])
+def test_planar_writer_compressed_is_lossless(tmp_path, compression):
+    rgb = np.random.default_rng(1).random((3, 9, 11)).astype(np.float16)
+    frames.write_exr_planes(tmp_path / "c.exr", rgb, compression)
+    np.testing.assert_array_equal(frames.read_exr(tmp_path / "c.exr"),
+                                  rgb.transpose(1, 2, 0).astype(np.float32))
+
+
+def test_planar_writer_refuses_bad_input_and_reports_unwritable(tmp_path):
+    with pytest.raises(ValueError, match="float16"):
+        frames.write_exr_planes(tmp_path / "a.exr", np.zeros((3, 2, 2), np.float32))
+    with pytest.raises(ValueError, match="compression"):
+        frames.write_exr_planes(tmp_path / "a.exr", np.zeros((3, 2, 2), np.float16), "lzw")
+    with pytest.raises(OutputError, match="Cannot write"):
+        frames.write_exr_planes(tmp_path / "no" / "a.exr", np.zeros((3, 2, 2), np.float16))
+    assert os.listdir(tmp_path) == []
+
+
+def test_stale_partial_names_a_dead_local_writer_only(tmp_path):
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    dead = int(done.stdout)
+    live = os.getppid()  # the process that started pytest is running
+    mine = os.path.basename(frames.partial_path("/x/relit_000001.exr"))
+    assert frames.stale_partial(mine) is None  # this process: may be writing it now
+    ours_dead = mine.replace(f"_{os.getpid()}_", f"_{dead}_")
+    assert frames.stale_partial(ours_dead) == "relit_000001.exr"
+    assert frames.stale_partial(mine.replace(f"_{os.getpid()}_", f"_{live}_")) is None
+    assert frames.stale_partial(f"relit_000001.exr.otherhost_{dead}_7.partial") is None
+    assert frames.stale_partial(f"relit_000001.exr.{dead}.partial") == "relit_000001.exr"
+    assert frames.stale_partial(f"relight_run.json.{dead}.123.partial") == "relight_run.json"
+    assert frames.stale_partial("relit_000001.exr") is None
+    assert frames.stale_partial(f"notes.{dead}.txt") is None
