@@ -162,6 +162,43 @@ def _shrink_graph() -> bytes:
         [g.value_info("y", g.FLOAT, [1, "C", "h", "w"])], name="shrink")
 
 
+def _area_graph() -> bytes:
+    """(1, C, H, W) -> (1, C, h, w): exact area averaging when each axis shrinks by a ratio of
+    small integers p/q (1080p to 512x288 is 15/4 on both): every block of p rows (columns)
+    becomes q by one small matrix, so each axis is a reshape and a matrix product (vectorised,
+    one read of the frame) instead of a resampling loop. See area_blocks."""
+    from . import onnx_graph as g
+    return g.model(
+        [g.node("Reshape", ["x", "rows"], ["xr"]), g.node("MatMul", ["wv", "xr"], ["v"]),
+         g.node("Reshape", ["v", "cols"], ["vr"]), g.node("MatMul", ["vr", "wh"], ["hr"]),
+         g.node("Reshape", ["hr", "out"], ["y"])],
+        [g.value_info("x", g.FLOAT, [1, "C", "H", "W"]),
+         g.value_info("wv", g.FLOAT, ["q", "p"]), g.value_info("wh", g.FLOAT, ["P", "Q"]),
+         g.value_info("rows", g.INT64, [5]), g.value_info("cols", g.INT64, [5]),
+         g.value_info("out", g.INT64, [4])],
+        [g.value_info("y", g.FLOAT, [1, "C", "h", "w"])], name="area")
+
+
+MAX_BLOCK = 64  # longest block (input samples) the area graph takes; else the resize graph
+
+
+def area_blocks(n: int, m: int) -> np.ndarray | None:
+    """The (q, p) matrix of an exact area reduction of n samples to m (n/m = p/q in lowest
+    terms), the same for every block of p samples; None if p > MAX_BLOCK or m > n."""
+    if m > n:
+        return None
+    g = math.gcd(n, m)
+    p, q = n // g, m // g
+    if p > MAX_BLOCK:
+        return None
+    idx, w = _area_taps(n, m)
+    idx, w = idx[:q], w[:q]
+    inside = idx < p  # taps past the block carry zero weight
+    block = np.zeros((q, p), np.float32)
+    np.add.at(block, (np.nonzero(inside)[0], idx[inside]), w[inside])
+    return block
+
+
 def _finish_graph(clamp: bool) -> bytes:
     """out = up(a) * x + up(b), cast to half; with ``clamp``, clamped to the half range first
     (the caller knows from a cheap bound whether that can be needed, and saves the pass)."""
@@ -254,6 +291,7 @@ class FullRes:
         so = engine.session_options(ort, threads, spin=False)
         cpu = ["CPUExecutionProvider"]
         self._shrink = ort.InferenceSession(_shrink_graph(), so, providers=cpu)
+        self._area = ort.InferenceSession(_area_graph(), so, providers=cpu)
         self._finish = {c: ort.InferenceSession(_finish_graph(c), so, providers=cpu)
                         for c in (False, True)}
         self._guided = ort.InferenceSession(_guided_graph(), so, providers=cpu)
@@ -262,12 +300,23 @@ class FullRes:
     # -- channels-first (the pipeline) --
 
     def shrink_planar(self, x: np.ndarray, height: int, width: int) -> np.ndarray:
-        """(C, H, W) float32 -> (C, height, width), antialiased."""
+        """(C, H, W) float32 -> (C, height, width): exact area averaging where both axes shrink
+        by a ratio of small integers (the common video sizes), else antialiased (triangle)
+        resampling. A clip always takes the same path, so its frames agree bit for bit."""
         x = np.ascontiguousarray(x, dtype=np.float32)
-        if x.shape[1:] == (height, width):
+        c, big_h, big_w = x.shape
+        if (big_h, big_w) == (height, width):
             return x
-        sizes = np.array([1, x.shape[0], height, width], np.int64)
-        return self._shrink.run(None, {"x": x[None], "sizes": sizes})[0][0]
+        wv, wh = area_blocks(big_h, height), area_blocks(big_w, width)
+        if wv is None or wh is None:
+            sizes = np.array([1, c, height, width], np.int64)
+            return self._shrink.run(None, {"x": x[None], "sizes": sizes})[0][0]
+        (qv, pv), (qh, ph) = wv.shape, wh.shape
+        feeds = {"x": x[None], "wv": wv, "wh": np.ascontiguousarray(wh.T),
+                 "rows": np.array([1, c, big_h // pv, pv, big_w], np.int64),
+                 "cols": np.array([1, c, height, big_w // ph, ph], np.int64),
+                 "out": np.array([1, c, height, width], np.int64)}
+        return self._area.run(None, feeds)[0][0]
 
     def coefficients_planar(self, guide: np.ndarray, target: np.ndarray, gain: float):
         """guided_coefficients of (3, h, w) arrays times ``gain``, as (3, h, w) (a, b); finite

@@ -8,9 +8,12 @@ of about --gflops GFLOP per 512x512 frame (tests/onnx_fixtures.py) in a temporar
    colour (to linear, exposure), resize (to the working size), inference (onnxruntime, incl.
    padding), full-resolution transfer (detail.py, incl. the matte), write (half EXR);
 2. runs the real pipeline (relight_clip: decode and write overlap inference in threads) and
-   reports frames per second from the per-frame completion times, and what the overlap cost
-   onnxruntime (the inference time inside the pipeline against alone).
-Prints the machine it ran on. Nothing is written outside the temporary folder.
+   reports frames per second from the per-frame completion times, and the process CPU time
+   per frame (user + system, all threads): on a shared machine the frame rate follows the
+   other processes' load, the CPU time much less so; with N free cores the pipeline can run at
+   most N / (CPU time per frame) frames per second.
+Prints the machine and the load average (before and after) it ran under. Nothing is written
+outside the temporary folder.
 """
 
 from __future__ import annotations
@@ -125,12 +128,12 @@ def main(argv=None) -> int:
         print(f"  {'sum':10s} median {total:7.1f} ms  -> {1000 / total:.1f} frames/s serial")
 
         done_at = []
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _cpu_seconds()
         res = pipeline.relight_clip(clip, light[None], os.path.join(tmp, "run"), opts,
                                     on_progress=lambda d, tot, m: done_at.append(
-                                        (d, time.perf_counter())))
+                                        (d, time.perf_counter(), _cpu_seconds())))
         wall = time.perf_counter() - t0
-        stamps = [t for d, t in done_at if d > 0]
+        stamps = [t for d, t, _ in done_at if d > 0]
         gaps = 1000 * np.diff(stamps) if len(stamps) > 2 else np.array([np.nan])
         print(f"\nend to end (relight_clip, threads overlap; includes exposure sampling and "
               f"model load): {res.written} frames in {wall:.2f} s = {res.written / wall:.1f} "
@@ -138,7 +141,20 @@ def main(argv=None) -> int:
         steady = gaps[len(gaps) // 5:] if len(gaps) > 10 else gaps
         print(f"  per-frame interval after warm-up: {stats(list(steady))} -> "
               f"{1000 / np.median(steady):.1f} frames/s")
+        # CPU time over the frames after warm-up (the first fifth, as above, is left out)
+        cpu = [(d, c) for d, _, c in done_at if d > 0]
+        (d0, c0), (d1, c1) = cpu[len(cpu) // 5], cpu[-1]
+        if d1 > d0:
+            per = 1000 * (c1 - c0) / (d1 - d0)
+            print(f"  CPU time per frame after warm-up (all threads, user + system): {per:.1f} ms"
+                  f" -> at most {2000 / per:.1f} frames/s on 2 free cores")
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
     return 0
+
+
+def _cpu_seconds() -> float:
+    t = os.times()
+    return t.user + t.system
 
 
 if __name__ == "__main__":

@@ -7,7 +7,8 @@ import pytest
 from addon import detail, onnx_graph as g
 
 
-@pytest.mark.parametrize("build", [detail._shrink_graph, lambda: detail._finish_graph(True),
+@pytest.mark.parametrize("build", [detail._shrink_graph, detail._area_graph,
+                                   lambda: detail._finish_graph(True),
                                    lambda: detail._finish_graph(False), detail._guided_graph,
                                    detail._upsample_graph])
 def test_graphs_pass_the_onnx_checker(build):
@@ -93,3 +94,27 @@ def test_upsample_half_clamps(fullres):
     y = fullres.upsample_half(low, 4, 4, 0.0, 1.0)
     assert y.dtype == np.float16 and y.shape == (4, 4, 1)
     assert y.min() >= 0 and y.max() <= 1
+
+
+@pytest.mark.parametrize("big,small", [((1080, 1920), (288, 512)), ((720, 1280), (288, 512)),
+                                       ((45, 70), (9, 14)), ((48, 64), (48, 32)),
+                                       ((2160, 3840), (288, 512))])
+def test_area_shrink_of_common_sizes_is_exact_area_averaging(fullres, big, small):
+    assert detail.area_blocks(big[0], small[0]) is not None
+    x = np.random.default_rng(3).random((3, *big)).astype(np.float32)
+    got = fullres.shrink_planar(x, *small)
+    want = detail.resize(x.transpose(1, 2, 0), *small).transpose(2, 0, 1)
+    assert got.shape == (3, *small)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_area_blocks_tile_the_axis_and_odd_ratios_fall_back(fullres):
+    block = detail.area_blocks(1080, 288)
+    assert block.shape == (4, 15)
+    np.testing.assert_allclose(block.sum(axis=1), 1.0, rtol=1e-6)  # each output a mean
+    np.testing.assert_allclose(block.sum(axis=0), 4 / 15, rtol=1e-6)  # every input counted once
+    assert detail.area_blocks(700, 358) is None and detail.area_blocks(10, 20) is None
+    x = np.random.default_rng(4).random((3, 100, 80)).astype(np.float32)
+    y = fullres.shrink_planar(x, 13, 11)  # 100/13: the antialiased resize instead
+    assert y.shape == (3, 13, 11)
+    np.testing.assert_allclose(y.mean(axis=(1, 2)), x.mean(axis=(1, 2)), rtol=1e-2)
