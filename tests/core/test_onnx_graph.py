@@ -118,3 +118,33 @@ def test_area_blocks_tile_the_axis_and_odd_ratios_fall_back(fullres):
     y = fullres.shrink_planar(x, 13, 11)  # 100/13: the antialiased resize instead
     assert y.shape == (3, 13, 11)
     np.testing.assert_allclose(y.mean(axis=(1, 2)), x.mean(axis=(1, 2)), rtol=1e-2)
+
+
+@pytest.mark.parametrize("big,small", [((1080, 1920), (288, 512)), ((17, 9), (5, 3)),
+                                       ((48, 64), (48, 32)), ((3, 2), (1, 1)),
+                                       ((100, 80), (13, 11))])  # the last: no small blocks
+def test_planar_finish_by_blocks_or_resize_equals_the_numpy_reference(fullres, big, small):
+    rng = np.random.default_rng(7)
+    x = rng.random((3, *big)).astype(np.float32)
+    a = (rng.random((3, *small)) * 2).astype(np.float32)
+    b = rng.random((3, *small)).astype(np.float32)
+    y, may_clamp = fullres.finish_planar(x, a, b, x_max=1.0)
+    up = detail.resize(np.concatenate([a, b]).transpose(1, 2, 0), *big).transpose(2, 0, 1)
+    assert y.dtype == np.float16 and y.shape == (3, *big) and not may_clamp
+    np.testing.assert_allclose(y.astype(np.float32), up[:3] * x + up[3:], rtol=1e-3, atol=1e-4)
+    assert (detail.upsample_blocks(small[0], big[0]) is None) == (big == (100, 80))
+
+
+def test_upsample_blocks_rows_are_bilinear_weights():
+    mat, windows = detail.upsample_blocks(288, 1080)
+    assert mat.shape == (15, 6) and windows.shape == (72, 6)
+    np.testing.assert_allclose(mat.sum(axis=1), 1.0, rtol=1e-6)
+    assert np.all((mat > 0).sum(axis=1) <= 2) and windows[1, 0] == 4
+    assert detail.upsample_blocks(1080, 288) is None and detail.upsample_blocks(13, 100) is None
+
+
+def test_planar_finish_by_blocks_clamps_to_half(fullres):
+    x = np.full((3, 8, 8), 10.0, np.float32)
+    y, may_clamp = fullres.finish_planar(x, np.full((3, 4, 4), 1e5, np.float32),
+                                         np.zeros((3, 4, 4), np.float32), x_max=10.0)
+    assert may_clamp and np.all(y == np.float16(65504))
