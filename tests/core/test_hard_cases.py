@@ -100,8 +100,9 @@ def sqrt_light(tmp_path_factory):
 
 
 def shipped_models() -> list[str]:
-    """Real trained models in models/ (none until training has shipped one)."""
-    return sorted(str(p) for p in (ROOT / "models").glob("*.onnx"))
+    """Real trained models in models/ with their cards (none until training has shipped one)."""
+    return sorted(str(p) for p in (ROOT / "models").glob("*.onnx")
+                  if p.with_suffix(".json").is_file())
 
 
 # ---- helpers ------------------------------------------------------------------------------
