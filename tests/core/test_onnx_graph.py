@@ -8,6 +8,9 @@ from addon import detail, onnx_graph as g
 
 
 @pytest.mark.parametrize("build", [detail._shrink_graph, detail._area_graph,
+                                   lambda: detail._finish_blocks_graph(True),
+                                   lambda: detail._finish_blocks_graph(False),
+                                   detail._upsample_blocks_graph,
                                    lambda: detail._finish_graph(True),
                                    lambda: detail._finish_graph(False), detail._guided_graph,
                                    detail._upsample_graph])
@@ -148,3 +151,12 @@ def test_planar_finish_by_blocks_clamps_to_half(fullres):
     y, may_clamp = fullres.finish_planar(x, np.full((3, 4, 4), 1e5, np.float32),
                                          np.zeros((3, 4, 4), np.float32), x_max=10.0)
     assert may_clamp and np.all(y == np.float16(65504))
+
+
+@pytest.mark.parametrize("small,big", [((9, 14), (45, 70)), ((13, 11), (100, 80))])
+def test_matte_upsample_by_blocks_or_resize_equals_the_reference(fullres, small, big):
+    low = np.random.default_rng(8).random((1, *small)).astype(np.float32) * 1.4 - 0.2
+    y = fullres.upsample_half_planar(low, *big, 0.0, 1.0)
+    want = np.clip(detail.resize(low.transpose(1, 2, 0), *big), 0, 1).transpose(2, 0, 1)
+    assert y.dtype == np.float16 and y.shape == (1, *big)
+    np.testing.assert_allclose(y.astype(np.float32), want, atol=1e-3)
