@@ -1,14 +1,18 @@
 """Frame I/O: probe and decode movie files and image sequences, write half-float EXR.
 
-Decoding returns the file's own code values (uint8, uint16 or float32, (H, W, 3)); colour.py turns
-them into scene linear. Movies go through PyAV sequentially after one seek to the first needed
+Decoding returns the file's own code values (uint8, uint16 or float32; (H, W, 3), or (3, H, W)
+with ``planar=True``, the pipeline's layout); colour.py turns them into scene linear. Movies go through PyAV sequentially after one seek to the first needed
 frame (frame-accurate: frames before the target are decoded and dropped). PNG/JPEG go through
 PyAV's image decoders, EXR through the OpenEXR module.
 
 EXR output is written to a temporary name and renamed into place, so a killed run never leaves a
-half-written frame under its final name. Compression is a speed/size trade measured at 1080p on
-the project's 2-core machine (bench/pipeline_1080p.py --exr): none 17 ms / 12.5 MB, RLE 39 ms,
-PIZ 48 ms / 6.7 MB, ZIP 112 ms / 7.3 MB per frame; uncompressed is the default because a write
+half-written frame under its final name (partial_path names the writer, so a later run can sweep
+a dead writer's leftovers). Uncompressed half EXR is written directly from channels-first planes
+(write_exr_planes); the compressions go through OpenEXR. Compression is a speed/size trade,
+measured on the project's 2-core machine for one 1080p frame (`python -m bench.pipeline_1080p
+--exr-options`, load average 6): none 22 ms CPU / 12.5 MB (most of it the kernel taking 12.5 MB
+of new page cache), RLE 37 ms / 11.5 MB, PIZ 40 ms / 3.6 MB (a smooth synthetic frame; footage
+compresses less), ZIPS 106 ms, ZIP 125 ms / 7.5 MB. Uncompressed is the default because a write
 slower than the network would cap the frame rate.
 """
 

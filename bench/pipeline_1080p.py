@@ -1,6 +1,7 @@
 """Time the per-frame pipeline on a synthetic 1080p clip, stage by stage and end to end.
 
-    .venv/bin/python -m bench.pipeline_1080p [--frames 40] [--threads 2] [--gflops 5]
+    .venv/bin/python -m bench.pipeline_1080p [--frames 40] [--threads 1] [--gflops 5]
+    .venv/bin/python -m bench.pipeline_1080p --exr-options     # EXR compressions only
 
 Makes a 1920x1080 H.264 clip (yuv420p, textured moving gradient) and a random-weight conv model
 of about --gflops GFLOP per 512x512 frame (tests/onnx_fixtures.py) in a temporary folder, then
@@ -92,12 +93,16 @@ def main(argv=None) -> int:
     ap.add_argument("--compression", default="none", choices=frames.COMPRESSIONS)
     ap.add_argument("--matte", action="store_true")
     ap.add_argument("--no-detail", action="store_true")
+    ap.add_argument("--exr-options", action="store_true",
+                    help="only time the EXR compressions on one relit-like 1080p frame")
     args = ap.parse_args(argv)
     n = args.frames
     print(f"machine: {platform.machine()} {platform.processor() or ''}, {os.cpu_count()} cores, "
           f"python {platform.python_version()}, load average {os.getloadavg()[0]:.1f} "
           "(other processes share these cores: compare runs at similar load)")
     with tempfile.TemporaryDirectory(prefix="relight_bench_") as tmp:
+        if args.exr_options:
+            return exr_options(tmp)
         model = write_conv_model(tmp, gflops_at_512=args.gflops, name="bench")
         card = engine.load_card(model)
         print(f"model: {card.data['cost']['gflops_at_512']} GFLOP at 512x512 "
@@ -148,6 +153,27 @@ def main(argv=None) -> int:
             per = 1000 * (c1 - c0) / (d1 - d0)
             print(f"  CPU time per frame after warm-up (all threads, user + system): {per:.1f} ms"
                   f" -> at most {2000 / per:.1f} frames/s on 2 free cores")
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
+    return 0
+
+
+def exr_options(tmp: str, repeats: int = 10) -> int:
+    """Write time (wall and this thread's CPU) and size of each EXR compression for the bench
+    clip's first frame, linearised to half (what the pipeline writes)."""
+    path = make_clip(os.path.join(tmp, "clip.mp4"), 1)
+    d = next(frames.iter_frames("movie", path, (), [0], planar=True))
+    y = colour_mod.to_linear_planar(d.pixels, colour_mod.lookup("sRGB")).astype(np.float16)
+    print("EXR write of one 1920x1080 half RGB frame, median of", repeats)
+    for comp in frames.COMPRESSIONS:
+        wall, cpu = [], []
+        for i in range(repeats):
+            out = os.path.join(tmp, f"{comp}_{i}.exr")
+            t, c = time.perf_counter(), time.thread_time()
+            frames.write_exr_planes(out, y, comp)
+            wall.append(1000 * (time.perf_counter() - t))
+            cpu.append(1000 * (time.thread_time() - c))
+        print(f"  {comp:5s} wall {statistics.median(wall):6.1f} ms  CPU {statistics.median(cpu):6.1f}"
+              f" ms  {os.path.getsize(out) / 1e6:5.1f} MB")
     print(f"load average after: {os.getloadavg()[0]:.1f}")
     return 0
 
