@@ -77,10 +77,14 @@ def machine() -> dict:
             "providers": ort.get_available_providers()}
 
 
+QUIET_LOAD = 2.5  # above this 1-minute load average (2 cores) timings are noisy
+
+
 def machine_line(m: dict) -> str:
+    end = m.get("load_avg_end")
     return (f"{m['cpu']}, {m['cores']} cores, {m['platform']}; onnxruntime {m['onnxruntime']} "
-            f"({', '.join(m['providers'])}); load average {m['load_avg_1_5_15'][0]} at the start; "
-            f"{m['date']}")
+            f"({', '.join(m['providers'])}); load average {m['load_avg_1_5_15'][0]} at the start"
+            + (f", {end} at the end" if end is not None else "") + f"; {m['date']}")
 
 
 def spread(times_s) -> dict:
@@ -683,6 +687,8 @@ def main(argv=None) -> dict:
     info = {"machine": machine(), "command": "python -m bench.frontier " + " ".join(
         sys.argv[1:] if argv is None else argv)}
     log(f"machine: {machine_line(info['machine'])}")
+    if info["machine"]["load_avg_1_5_15"][0] >= QUIET_LOAD:
+        log(f"warning: load average >= {QUIET_LOAD}; timings will be noisy")
     skipped = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = pathlib.Path(tmp)
@@ -700,6 +706,13 @@ def main(argv=None) -> dict:
         if "conversion" not in args.skip:
             rows += conversion_group(args, folder, log)
     mark_frontier(rows)
+    info["machine"]["load_avg_end"] = round(os.getloadavg()[0], 2) if hasattr(
+        os, "getloadavg") else None
+    loads = [info["machine"]["load_avg_1_5_15"][0], info["machine"]["load_avg_end"]]
+    if any(x is not None and x >= QUIET_LOAD for x in loads):
+        skipped.append(f"a quiet machine: the load average reached {max(x for x in loads if x)} "
+                       f"(>= {QUIET_LOAD}): other work shared the cores, so timings are noisy "
+                       "(the p10-p90 spread shows how much)")
     import onnxruntime as ort
 
     gpu = [p for p in ort.get_available_providers()
