@@ -119,7 +119,8 @@ def quantize_int8(fp32_path, out_path, feeds: list[dict]) -> pathlib.Path:
     pre = out_path.with_suffix(".pre.onnx")
     quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=True)
     try:
-        # The light MLP and the output heads stay float: they set colour and exposure directly.
+        # Only convolutions are quantised: the light MLP (Gemm) and the element-wise output
+        # stage (gain * image + residual) stay float, as they set colour and exposure directly.
         quantize_static(str(pre), str(out_path), Reader(), quant_format=QuantFormat.QDQ,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         per_channel=True, op_types_to_quantize=["Conv"])
