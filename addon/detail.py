@@ -357,6 +357,15 @@ def _upsample_graph() -> bytes:
         [g.value_info("y", g.FLOAT16, [1, "C", "H", "W"])], name="upsample")
 
 
+def _finite(x: np.ndarray, big: float) -> np.ndarray:
+    """float32 ``x`` with NaN -> 0 and +-Inf -> +-big; no copy when all is finite already (the
+    usual case: one cheap check instead of a rewrite)."""
+    x = np.asarray(x, np.float32)
+    if np.isfinite(x).all():
+        return x
+    return np.nan_to_num(x, nan=0.0, posinf=np.float32(big), neginf=-np.float32(big))
+
+
 def _chw(x: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(np.asarray(x, np.float32), -1, 0))
 
@@ -415,13 +424,11 @@ class FullRes:
         """guided_coefficients of (3, h, w) arrays times ``gain``, as (3, h, w) (a, b); finite
         (non-finite inputs are 0, overflow becomes a huge finite value that the half clamp then
         catches). Low resolution, so the clean-up passes here cost little."""
-        feeds = {"G": np.nan_to_num(np.asarray(guide, np.float32))[None],
-                 "T": np.nan_to_num(np.asarray(target, np.float32))[None],
+        top = np.finfo(np.float32).max  # as np.nan_to_num: Inf becomes the largest float
+        feeds = {"G": _finite(guide, top)[None], "T": _finite(target, top)[None],
                  "gain": np.array(gain, np.float32)}
         a, b = self._guided.run(None, feeds)
-        big = np.float32(1e30)
-        return (np.nan_to_num(a[0], nan=0.0, posinf=big, neginf=-big),
-                np.nan_to_num(b[0], nan=0.0, posinf=big, neginf=-big))
+        return _finite(a[0], 1e30), _finite(b[0], 1e30)
 
     def finish_planar(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
                       x_max: float) -> tuple[np.ndarray, bool]:
