@@ -506,10 +506,10 @@ def stale_partial(name: str) -> str | None:
 def _pid_alive(pid: int) -> bool:
     if sys.platform == "win32":  # os.kill(pid, 0) would send Ctrl+C there
         import ctypes
-        k32 = ctypes.windll.kernel32
+        k32 = ctypes.WinDLL("kernel32", use_last_error=True)
         handle = k32.OpenProcess(0x1000, False, pid)  # PROCESS_QUERY_LIMITED_INFORMATION
         if not handle:
-            return False
+            return ctypes.get_last_error() == 5  # access denied: it exists (another user's)
         code = ctypes.c_ulong()
         ok = k32.GetExitCodeProcess(handle, ctypes.byref(code))
         k32.CloseHandle(handle)
