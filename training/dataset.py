@@ -5,8 +5,10 @@ first, in absolute linear radiance (training applies addon/normalise itself):
 
 * ``img_t_i`` frame t under L^i, ``img_t1_j`` frame t+1 under L^j, ``gt_t_k`` / ``gt_t1_k`` frames
   t and t+1 under L^k (3, H, W); ``light_i/j/k`` (16, 16, 3) light vectors (addon.lightvec);
-* ``mask_t``, ``mask_t1`` (1, H, W) foreground; ``parsing_t``, ``parsing_t1`` (K, H, W) in {0, 1},
-  channels in addon.contract.PARSING_CLASSES order (channel 0 = foreground);
+* ``mask_t``, ``mask_t1`` (1, H, W) foreground coverage in [0, 1] (2 x 2 sub-samples, so
+  silhouettes are anti-aliased like the images; 0 wherever the pixel centre misses the subject);
+  ``parsing_t``, ``parsing_t1`` (K, H, W) in {0, 1}, channels in addon.contract.PARSING_CLASSES
+  order (channel 0 = the pixel centre hits the subject: mask > 0);
 * ``flow_fw`` (2, H, W) on frame t's pixels, displacement (dx, dy) in pixels to frame t+1;
   ``flow_bw`` the same from t+1 to t; ``valid_fw``, ``valid_bw`` (1, H, W): 1 where the point is
   visible in both frames.

@@ -110,10 +110,16 @@ def test_samples_follow_the_api(dataset):
     for key, shape in shapes.items():
         assert s[key].shape == shape and s[key].dtype == np.float32, key
         assert np.isfinite(s[key]).all(), key
-    np.testing.assert_array_equal(s["parsing_t"][0], s["mask_t"][0])
+    np.testing.assert_array_equal(s["parsing_t"][0], s["mask_t"][0] > 0)
     # Every foreground pixel carries exactly one semantic class; the background none.
-    np.testing.assert_array_equal(s["parsing_t"][1:].sum(0), s["mask_t"][0])
+    np.testing.assert_array_equal(s["parsing_t"][1:].sum(0), s["parsing_t"][0])
     assert s["mask_t"].mean() > 0.05
+    # Anti-aliased silhouettes: coverage in quarters, fractional along the outline only.
+    m = s["mask_t"][0]
+    assert m.min() >= 0 and m.max() <= 1
+    np.testing.assert_array_equal(m * 4, np.round(m * 4))
+    edge = (m > 0) & (m < 1)
+    assert 0 < edge.sum() < 0.2 * (m > 0).sum()
 
 
 def test_samples_are_deterministic(dataset, shared_data):

@@ -102,6 +102,19 @@ def gbuffer(frame: PosedFrame, rig: assets.Rig, cam: Camera, vertex_attrs: torch
     return GBuffer(r, pos, nrm, uv, mat, lab, attrs, tan)
 
 
+COVER_SS = 2  # silhouette coverage from 2 x 2 samples per pixel
+
+
+def coverage(frame: PosedFrame, rig: assets.Rig, cam: Camera, ss: int = COVER_SS) -> torch.Tensor:
+    """(H, W) fraction of each pixel's ss x ss sub-samples that hit the subject: soft silhouette
+    edges (the shading itself stays one sample per pixel)."""
+    scr = cam.project(frame.verts.double())
+    scr = torch.stack([scr[:, 0] * ss, scr[:, 1] * ss, scr[:, 2]], 1)
+    r = rasterise(scr, rig.faces, cam.height * ss, cam.width * ss)
+    hit = r.mask.float().view(cam.height, ss, cam.width, ss)
+    return hit.mean(dim=(1, 3))
+
+
 def flow(src: GBuffer, rig: assets.Rig, verts_dst: torch.Tensor, dst: GBuffer, cam: Camera,
          tol: float = 0.01):
     """Exact flow from ``src``'s pixels to the frame whose vertices are ``verts_dst``.

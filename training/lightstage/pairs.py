@@ -23,7 +23,7 @@ from . import layout, shading
 from .scene import Scene, next_time, stage_dirs
 
 FORMAT = 2
-MAGIC = "lightstage-pair/2"
+MAGIC = "lightstage-pair/2"  # "cover" arrays are optional: older files lack them
 _F16_MAX = 65504.0
 
 
@@ -59,7 +59,7 @@ def assemble(rec: PairRecord, lights, n_classes: int) -> dict:
     for key, s, lab in (("t", rec.frames[0], rec.labels[0]), ("t1", rec.frames[1], rec.labels[1])):
         parsing = torch.stack([(lab == i) for i in range(n_classes)], 0).float()
         parsing[0] = s.mask.float()
-        out[f"mask_{key}"] = s.mask[None].float()
+        out[f"mask_{key}"] = (s.mask.float() if s.cover is None else s.cover)[None]
         out[f"parsing_{key}"] = parsing
     out = {k: np.ascontiguousarray(v.numpy(), dtype=np.float32) for k, v in out.items()}
     out.update(light_i=np.asarray(li, np.float32), light_j=np.asarray(lj, np.float32),
@@ -88,6 +88,7 @@ def save(rec: PairRecord, path: pathlib.Path) -> int:
         arrs[f"albedo{n}"] = s.albedo.numpy()
         arrs[f"sss{n}"] = s.sss.numpy()
         arrs[f"mask{n}"] = s.mask.numpy()
+        arrs[f"cover{n}"] = (s.mask.float() if s.cover is None else s.cover).numpy()
         arrs[f"label{n}"] = lab.numpy().astype(np.uint8)
         arrs[f"backdrop{n}"] = s.backdrop.numpy()
         arrs[f"px_per_cm{n}"] = np.float64(s.px_per_cm)
@@ -138,7 +139,8 @@ def load(path: pathlib.Path) -> PairRecord:
         frames.append(shading.ShadeInputs(
             t(a[f"idx{n}"]).long(), t(a[f"diffuse{n}"]), t(a[f"specular{n}"]),
             t(a[f"albedo{n}"]), t(a[f"sss{n}"]), float(a[f"px_per_cm{n}"].reshape(-1)[0]),
-            t(a[f"mask{n}"]), t(a[f"backdrop{n}"])))
+            t(a[f"mask{n}"]), t(a[f"backdrop{n}"]),
+            t(a[f"cover{n}"]) if f"cover{n}" in a else None))
         labels.append(t(a[f"label{n}"]).long())
     return PairRecord(tuple(frames), tuple(labels), t(a["flow_fw"]), t(a["flow_bw"]),
                       t(a["valid_fw"]).float(), t(a["valid_bw"]).float())

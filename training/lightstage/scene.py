@@ -43,6 +43,7 @@ class Frame:
     px_per_cm: float
     f0: torch.Tensor | None = None      # (N,) specular reflectance
     rough: torch.Tensor | None = None   # (N,) GGX roughness
+    cover: torch.Tensor | None = None   # (H, W) sub-pixel coverage where the centre hits
 
 
 class Scene:
@@ -85,8 +86,10 @@ class Scene:
         sss_img = torch.zeros(self.cam.height * self.cam.width)
         sss_img[idx] = sss
         depth = float(gb.raster.depth.reshape(-1)[idx].median()) if idx.numel() else self.cam.distance
+        # Coverage only where the pixel centre hits: those pixels carry the subject's shading.
+        cover = geometry.coverage(posed, self.rig, self.cam) * gb.mask
         f = Frame(t, posed, gb, idx, albedo, sss_img.view(self.cam.height, self.cam.width), None,
-                  self.cam.focal / max(depth, 1e-3), f0, rough)
+                  self.cam.focal / max(depth, 1e-3), f0, rough, cover)
         if with_transfer:
             f.transfer = self.transfer(f, f0, rough)
         return f
@@ -111,7 +114,7 @@ class Scene:
         """Everything shading needs from a frame (what the frame cache stores)."""
         tr = f.transfer if tr is None else tr
         return shading.ShadeInputs(f.idx, tr.diffuse, tr.specular, f.albedo, f.sss, f.px_per_cm,
-                                   f.gb.mask, self.backdrop)
+                                   f.gb.mask, self.backdrop, f.cover)
 
     def shade_weights(self, f: Frame, w: torch.Tensor, tr: shading.Transfer | None = None,
                       lights: torch.Tensor | None = None, low: torch.Tensor | None = None):
