@@ -166,7 +166,9 @@ def to_linear_planar(planes: np.ndarray, space: ColourSpace, gain: float = 1.0) 
         flat_in, flat_out = px.reshape(3, -1), out.reshape(3, -1)
         for c in range(3):
             for s in range(0, flat_in.shape[1], _BAND):
-                np.take(lut, flat_in[c, s:s + _BAND], out=flat_out[c, s:s + _BAND])
+                # mode="clip": no bounds check (codes always fit the table), and numpy does
+                # not buffer ``out`` as it does for mode="raise" (2x faster)
+                np.take(lut, flat_in[c, s:s + _BAND], out=flat_out[c, s:s + _BAND], mode="clip")
         gain = 1.0
     else:
         out[...] = _decode_curve(px, space.curve)
