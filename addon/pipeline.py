@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from . import colour, detail, engine, frames, lightvec, normalise
-from .errors import Cancelled, InputError, LightingError, OutputError
+from .errors import Cancelled, InputError, LightingError, ModelError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
 
 RUN_FILE = "relight_run.json"
@@ -281,6 +281,18 @@ class Plan:
     detail_transfer: bool
     write_matte: bool
     compression: str
+    relit_times_s: bool = True  # the model's relit output is in image / (s k) units (old cards)
+
+
+def relit_times_s(card) -> bool:
+    """Whether the card's relit output is brought back by s * k ('s*k', cards written before the
+    key existed) or by k alone ('k': image / s is the scene under lights / s, so a decoder fed
+    light / k renders relit / k; see training.train.normalise_sample)."""
+    value = card.data.get("relit_scale", "s*k")
+    if value not in ("s*k", "k"):
+        raise ModelError(f"The model card of {card.name} has relit_scale {value!r}; expected "
+                         "'k' or 's*k'. Reinstall the model with its card.")
+    return value == "s*k"
 
 
 def linearise(pixels: np.ndarray, plan: Plan) -> tuple[np.ndarray, int, float]:
@@ -321,7 +333,7 @@ def coefficients_planar(x_low: np.ndarray, relit_low, k: float, plan: Plan,
     scene-linear units, finite; None for a black frame."""
     if relit_low is None:
         return None
-    gain = plan.scale * k
+    gain = (plan.scale if plan.relit_times_s else 1.0) * k
     if plan.detail_transfer and x_low.shape[1:] != (plan.size[1], plan.size[0]):
         return fullres.coefficients_planar(x_low, relit_low, gain)
     b = np.nan_to_num(np.asarray(relit_low, np.float32) * np.float32(gain), nan=0.0,
@@ -489,7 +501,7 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
             {"identity": identity, "exposure_scale": scale, "model": session.card.name,
              "providers": session.providers}, indent=2))
     plan = Plan(space, scale, plan.size, plan.working, plan.detail_transfer, plan.write_matte,
-                plan.compression)
+                plan.compression, relit_times_s(session.card))
     out.info(f"Relighting {len(selected)} frames at {plan.working[1]}x{plan.working[0]} with "
              f"{session.card.name} on {session.providers[0]}; exposure scale {scale:.6g}.")
 

@@ -1,7 +1,7 @@
 """Held-out accuracy: RMSE, PSNR and SSIM on the portrait region, as in the paper (sec. 5.1).
 
-    python -m training.evaluate --run runs/draft-01 --n 48
-    python -m training.evaluate --onnx models/relight-draft.onnx --n 48
+    python -m training.evaluate --run runs/draft-01            # the fixed test set (64 samples)
+    python -m training.evaluate --onnx models/relight-draft.onnx
 
 How values are "normalised to [0, 1]" (the paper's images are display images): each prediction and
 its ground truth (absolute linear radiance) are divided by the ground truth's 99th-percentile
@@ -130,6 +130,12 @@ def _normalised_inputs(sample: dict):
     return n["img_t"][None], n["light_k"][None], float(n["scale"]), float(n["light_scale"])
 
 
+def _absolute(relit, s, k):
+    from .train import relit_to_absolute  # the one place that defines the output's units
+
+    return relit_to_absolute(relit, s, k)
+
+
 def _pad(img: np.ndarray, stride: int) -> np.ndarray:
     h, w = img.shape[-2:]
     return np.pad(img, ((0, 0), (0, 0), (0, -h % stride), (0, -w % stride)), mode="reflect")
@@ -140,7 +146,7 @@ def onnx_predictor(session, stride: int):
         img, light, s, k = _normalised_inputs(sample)
         h, w = img.shape[-2:]
         relit, _, parsing = session.run(None, {"image": _pad(img, stride), "target_light": light})
-        return relit[0, :, :h, :w] * s * k, {"foreground": parsing[0, 0, :h, :w]}
+        return _absolute(relit[0, :, :h, :w], s, k), {"foreground": parsing[0, 0, :h, :w]}
     return predict
 
 
@@ -153,14 +159,31 @@ def torch_predictor(net):
         with torch.no_grad():
             relit, _, parsing = net(torch.from_numpy(_pad(img, net.cfg.stride)),
                                     torch.from_numpy(light))
-        return relit[0, :, :h, :w].numpy() * s * k, {"foreground": parsing[0, 0, :h, :w].numpy()}
+        return (_absolute(relit[0, :, :h, :w].numpy(), s, k),
+                {"foreground": parsing[0, 0, :h, :w].numpy()})
     return predict
 
 
 def heldout_dataset(resolution: int, seed: int = 12345, split: str = "test"):
+    """The fixed test set (training.make_testset: stored, rebuilt bit-identically) for the default
+    test split and seed; other splits or seeds are rendered on the fly."""
+    from . import make_testset
+
+    if split == "test" and seed == make_testset.TEST_SEED:
+        return make_testset.TestSet(resolution)
     from .train import make_dataset
 
     return make_dataset(split, resolution, seed)
+
+
+def dataset_id(ds) -> dict:
+    """What the metrics were measured on: the fixed test set's content sha256 where it is one."""
+    from . import make_testset
+
+    if isinstance(ds, make_testset.TestSet):
+        return {"testset": "training.make_testset", "samples_in_set": len(ds),
+                "testset_sha256": make_testset.content_sha256(ds.arrays)}
+    return {"dataset": type(ds).__name__}
 
 
 def main(argv=None):
@@ -168,7 +191,7 @@ def main(argv=None):
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--run", help="a training run folder (uses its checkpoint.pt)")
     src.add_argument("--onnx", help="an exported model")
-    p.add_argument("--n", type=int, default=48)
+    p.add_argument("--n", type=int, default=64)
     p.add_argument("--resolution", type=int, default=128)
     p.add_argument("--split", default="test")
     p.add_argument("--seed", type=int, default=12345)
@@ -189,7 +212,7 @@ def main(argv=None):
         so.intra_op_num_threads = a.threads
         card = json.loads(open(a.onnx[:-5] + ".json").read()) if a.onnx.endswith(".onnx") else {}
         predict = onnx_predictor(ort.InferenceSession(a.onnx, so), int(card.get("stride", 32)))
-    print(json.dumps(evaluate(predict, ds, a.n), indent=2))
+    print(json.dumps({**evaluate(predict, ds, a.n), **dataset_id(ds)}, indent=2))
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ OPSET = 17
 # source light and the parsing probabilities: max |difference| <= atol + rtol * |torch value|.
 TOLERANCE = {"atol": 1e-4, "rtol": 1e-3}
 VERIFY_SIZES = ((64, 64), (96, 160))
+CALIBRATION_SEED = 4242  # int8 calibration frames: training identities, not the eval samples
 MODELS = pathlib.Path(__file__).resolve().parents[1] / "models"
 
 
@@ -170,11 +171,17 @@ COLOUR = {
               f"{normalise.REFERENCE_LEVEL}); one s per clip, never per frame"),
     "target_light": ("light vector / k, channels first [N,3,16,16]: k = "
                      "addon.normalise.light_scale (mean radiance), so the input has unit power"),
-    "relit": "in the units of image / (s k): multiply by s * k for absolute radiance",
+    "relit": ("the input relit under the target light, in the units of image / k: multiply by "
+              "k (not s) for scene-linear radiance (card key relit_scale 'k'). image / s is the "
+              "scene under lights / s, so a decoder fed light / k renders relit / k"),
     "source_light": ("the estimated light of the input in the normalised image's units "
                      "(light / s): multiply by s for absolute radiance"),
     "parsing": "sigmoid probabilities in [0, 1], one channel per class (multi-label)",
 }
+
+
+# How the engine brings relit back to scene-linear (addon.pipeline.relit_times_s): by k alone.
+RELIT_SCALE = "k"
 
 
 def io_spec(classes: int) -> tuple[list, list]:
@@ -195,7 +202,7 @@ def make_card(name: str, preset: str, onnx_path, net: network.RelightNet, traini
         "contract": contract.CONTRACT_VERSION, "name": name, "preset": preset,
         "onnx": pathlib.Path(onnx_path).name, "sha256": sha256(onnx_path),
         "inputs": inputs, "outputs": outputs, "stride": net.cfg.stride,
-        "working_size": int(working_size), "colour": COLOUR,
+        "working_size": int(working_size), "colour": COLOUR, "relit_scale": RELIT_SCALE,
         "classes": list(contract.PARSING_CLASSES[:net.cfg.classes]),
         "training": training, "metrics": metrics, "cost": cost,
         "architecture": {"config": net.cfg.to_dict(), "parameters": network.parameter_count(net),
@@ -225,7 +232,7 @@ def main(argv=None):
     p.add_argument("--run", required=True)
     p.add_argument("--name", required=True)
     p.add_argument("--out-dir", default=str(MODELS))
-    p.add_argument("--eval", type=int, default=48, help="held-out samples for the card metrics")
+    p.add_argument("--eval", type=int, default=64, help="held-out samples for the card metrics")
     p.add_argument("--eval-resolution", type=int, default=0, help="default: the training size")
     p.add_argument("--working-size", type=int, default=0, help="default: the training size")
     p.add_argument("--int8", action="store_true", help="also try static int8 QDQ")
@@ -244,7 +251,8 @@ def main(argv=None):
     ds = evaluate.heldout_dataset(res)
     metrics = evaluate.evaluate(evaluate.onnx_predictor(session(onnx_path, a.threads),
                                                         net.cfg.stride), ds, a.eval)
-    metrics.update(split="test", resolution=res, definition=evaluate.__doc__.split("\n\n")[2])
+    metrics.update(split="test", resolution=res, definition=evaluate.__doc__.split("\n\n")[2],
+                   **evaluate.dataset_id(ds))
     print("metrics:", json.dumps(metrics))
     cost = {"cpu": measure_cost(onnx_path, threads=a.threads),
             "machine": "2-core x86-64 CPU (AMD EPYC, AVX-512 VNNI), shared and noisy"}
@@ -261,7 +269,10 @@ def main(argv=None):
 def export_int8(a, net, fp32_path, ds, training, res, working, fp32_cost):
     from . import evaluate
 
-    calib = [ds[i] for i in range(len(ds) - 1, max(len(ds) - 17, -1), -1)]  # not the eval ones
+    from .train import make_dataset
+
+    train_ds = make_dataset("train", res, CALIBRATION_SEED)  # training identities: never the test set
+    calib = [train_ds[i] for i in range(16)]
     q_path = quantize_int8(fp32_path, fp32_path.with_name(f"{a.name}-int8.onnx"),
                            calibration_feeds(calib, net.cfg.stride))
     cost = {"cpu": measure_cost(q_path, threads=a.threads), "machine": fp32_cost["machine"]}
@@ -276,7 +287,7 @@ def export_int8(a, net, fp32_path, ds, training, res, working, fp32_cost):
         return
     card = make_card(f"{a.name}-int8", training["recipe"]["args"]["preset"], q_path, net,
                      {**training, "quantisation": "static int8 QDQ, per-channel, calibrated on "
-                                                  "16 light-stage frames"},
+                                                  "16 light-stage training frames"},
                      metrics, cost, working, {"speedup_vs_fp32_512": round(speedup, 2)})
     print("card:", write_card(card, q_path))
 

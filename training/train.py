@@ -33,6 +33,7 @@ from addon import normalise
 
 from . import losses, network, warp
 
+VAL_SEED = 777  # val samples (held-out identities) for the curves logged during training
 IMAGE_KEYS = ("img_t", "img_t1", "gt_t", "gt_t1")
 MASK_KEYS = ("mask_t", "mask_t1", "parsing_t", "parsing_t1")
 
@@ -46,11 +47,18 @@ def _hwc(img: np.ndarray) -> np.ndarray:
 def normalise_sample(sample: dict) -> dict:
     """A light-stage sample (absolute radiance) -> the network's normalised units, exactly as the
     engine will see a clip: one exposure scale s for both frames (one clip), the target light at
-    unit power (k), ground truth relit / (s k), source lights / s. Images stay channels-first."""
+    unit power (k), ground truth relit / k, source lights / s. Images stay channels-first.
+
+    Why relit / k and not / (s k): image / s is the scene seen under lights / s (shading is linear
+    in the light), so the target light L^k is L^k / s there, and its render is R(L^k / k) * k / s;
+    back to absolute (* s) that is R(L^k / k) * k. The decoder sees L^k / k, so its output is
+    R(L^k / k) = relit / k, a function of what the network sees. Dividing by s as well made the
+    target depend on the absolute source power (unobservable in image / s) and the self-relit
+    path (training.losses) disagree with the target path by that factor."""
     f32 = lambda a: np.asarray(a, dtype=np.float32)  # noqa: E731
     s = normalise.exposure_scale([_hwc(f32(sample["img_t_i"])), _hwc(f32(sample["img_t1_j"]))])
     unit_k, k = normalise.normalise_light(f32(sample["light_k"]))
-    gain = 1.0 / (s * k) if k > 0 else 0.0  # an all-dark target: black ground truth
+    gain = 1.0 / k if k > 0 else 0.0  # an all-dark target: black ground truth
     out = {
         "img_t": f32(sample["img_t_i"]) / s, "img_t1": f32(sample["img_t1_j"]) / s,
         "gt_t": f32(sample["gt_t_k"]) * gain, "gt_t1": f32(sample["gt_t1_k"]) * gain,
@@ -62,6 +70,13 @@ def normalise_sample(sample: dict) -> dict:
     for key in MASK_KEYS + ("flow_fw", "flow_bw", "valid_fw", "valid_bw"):
         out[key] = f32(sample[key])
     return out
+
+
+def relit_to_absolute(relit, scale: float, light_scale: float):
+    """The network's relit output -> absolute radiance: the inverse of normalise_sample's target
+    (relit / k). ``scale`` (s) is taken for symmetry with the inputs and deliberately unused."""
+    del scale
+    return relit * light_scale
 
 
 def collate(samples: list[dict], device="cpu") -> dict:
@@ -299,16 +314,34 @@ def train(args) -> pathlib.Path:
     if args.cache:
         ds = CachedSamples(args.cache)
         recipe["data_cache"] = json.loads((pathlib.Path(args.cache) / "cache.json").read_text())
+    elif args.data_cache:
+        ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling,
+                          cache_dir=args.data_cache)
+        recipe["data_cache"] = {"dir": str(args.data_cache), "pool": ds.pool}
     else:
         ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling)
+    if args.overfit:  # a sanity check: can the model fit a few samples far below the baselines?
+        ds = [ds[i] for i in range(args.overfit)]
+        val = ds
+    else:
+        val = validation_samples(args.resolution, args.val_n)
     batches = Batches(ds, args.batch, args.seed, device)
     trainer = Trainer(net, sw, args, device)
     stages = parse_stages(args.progressive)
     budget, start, step = args.minutes * 60.0, time.monotonic(), 0
+    next_val = 0.0
     with open(out / "log.jsonl", "w") as log:
         while True:
             frac = (time.monotonic() - start) / budget
-            if frac >= 1.0 or (args.max_steps and step >= args.max_steps):
+            done = frac >= 1.0 or (args.max_steps and step >= args.max_steps)
+            if val and (done or time.monotonic() - start >= next_val):
+                row = {"val": validate(net, val), "step": step,
+                       "minutes": round((time.monotonic() - start) / 60, 2)}
+                log.write(json.dumps(row) + "\n")
+                log.flush()
+                print(json.dumps(row), flush=True)
+                next_val += args.val_every * 60.0
+            if done:
                 break
             b = downsample_batch(next(batches), factor_at(stages, frac))
             parts = trainer.step(b, lr_at(args.lr, frac), adv_on=frac >= args.adv_start)
@@ -326,6 +359,30 @@ def train(args) -> pathlib.Path:
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
     save_checkpoint(out / "checkpoint.pt", net, recipe, step)
     return out
+
+
+# ------------------------------------------------------------------------------------ validation
+
+def validation_samples(resolution: int, n: int) -> list:
+    """The first n samples of the val split (held-out identities, rendered once, kept in memory)."""
+    if n <= 0:
+        return []
+    ds = make_dataset("val", resolution, VAL_SEED)
+    return [ds[i] for i in range(n)]
+
+
+def validate(net, samples) -> dict:
+    """Val RMSE / PSNR / SSIM of the model and both baselines (training.evaluate's metrics)."""
+    from . import evaluate
+
+    was_training = net.training
+    net.eval()
+    try:
+        res = evaluate.evaluate(evaluate.torch_predictor(net), samples)
+    finally:
+        net.train(was_training)
+    return {name: {k: round(v, 4) for k, v in res[name].items()}
+            for name in ("model", "identity", "irradiance_ratio")}
 
 
 # ------------------------------------------------------------------------------ speed measurement
@@ -376,6 +433,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--log-every", type=int, default=20)
     p.add_argument("--save-every", type=int, default=200)
     p.add_argument("--cache", help="read rendered samples from this folder (see --render)")
+    p.add_argument("--data-cache", metavar="DIR",
+                   help="light-stage pair cache root (python -m training.build_cache), e.g. "
+                        "cache/lightstage: about 50x faster than rendering")
+    p.add_argument("--overfit", type=int, default=0, metavar="N",
+                   help="train on the first N samples only and report metrics on them")
+    p.add_argument("--val-n", type=int, default=16, help="val samples for the logged curves")
+    p.add_argument("--val-every", type=float, default=5.0, help="minutes between val metrics")
     p.add_argument("--render", metavar="FOLDER",
                    help="render training samples into FOLDER instead of training")
     p.add_argument("--start", type=int, default=0, help="first sample index for --render")
