@@ -47,8 +47,8 @@ def nearest_light(d) -> int:
     return int(np.argmax(layout.directions() @ d))
 
 
-def our_frame(res: int, identity: int = 3, t: float = 0.8):
-    root = assets.default_data_root()
+def our_frame(res: int, identity: int = 3, t: float = 0.8, data_root=None):
+    root = data_root or assets.default_data_root()
     m = assets.load_head(root)
     cam = Camera(focal=res * 1.8, cx=res / 2, cy=res / 2, distance=72.0, height=res, width=res)
     perf = Performance(identity, m.expression_names, head_range=0.4)
@@ -124,9 +124,9 @@ def render(sc, sun_obj, direction, folder) -> tuple[np.ndarray, np.ndarray]:
     return px[..., :3].mean(axis=2), px[..., 3]
 
 
-def compare(res: int, samples: int, out: pathlib.Path) -> list[dict]:
+def compare(res: int, samples: int, out: pathlib.Path, data_root=None) -> list[dict]:
     torch.set_num_threads(2)
-    scene, frame = our_frame(res)
+    scene, frame = our_frame(res, data_root=data_root)
     sc, sun = cycles_scene(scene, frame, samples)
     mat = frame.gb.material.numpy()
     ours_fg = frame.gb.mask.numpy()
