@@ -463,20 +463,26 @@ def exr_header(width: int, height: int, names) -> bytes:
 
 
 def _write_uncompressed(tmp: str, stored: np.ndarray, names) -> None:
-    """``stored`` (C, H, W) float16 in channel-name order."""
+    """``stored`` (C, H, W) float16 in channel-name order. Scanlines go out in ~1 MB bands
+    through one small buffer (a frame-sized one would be fresh memory, page-faulted in, on
+    many calls)."""
     c, h, w = stored.shape
     header = exr_header(w, h, names)
     line = 8 + 2 * c * w  # int32 y, int32 byte count, then each channel's row
     offsets = len(header) + 8 * h + line * np.arange(h, dtype="<u8")
-    body = np.empty((h, line), np.uint8)
-    head = body[:, :8].view("<i4")
-    head[:, 0] = np.arange(h)
+    band = max(1, min(h, (1 << 20) // line))
+    buf = np.empty((band, line), np.uint8)
+    head = buf[:, :8].view("<i4")
     head[:, 1] = 2 * c * w
-    body[:, 8:].view("<f2").reshape(h, c, w)[...] = stored.transpose(1, 0, 2)
+    rows = buf[:, 8:].view("<f2").reshape(band, c, w)
     with open(tmp, "wb") as f:
         f.write(header)
         f.write(offsets.tobytes())
-        f.write(body.data)
+        for y in range(0, h, band):
+            n = min(band, h - y)
+            head[:n, 0] = np.arange(y, y + n)
+            rows[:n] = stored[:, y:y + n].transpose(1, 0, 2)
+            f.write(buf[:n].data)
 
 
 _HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname() or "host")

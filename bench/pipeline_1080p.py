@@ -2,6 +2,7 @@
 
     .venv/bin/python -m bench.pipeline_1080p [--frames 40] [--threads 1] [--gflops 5]
     .venv/bin/python -m bench.pipeline_1080p --exr-options     # EXR compressions only
+    .venv/bin/python -m bench.pipeline_1080p --graph-options   # full-res graph variants only
 
 Makes a 1920x1080 H.264 clip (yuv420p, textured moving gradient) and a random-weight conv model
 of about --gflops GFLOP per 512x512 frame (tests/onnx_fixtures.py) in a temporary folder, then
@@ -95,6 +96,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-detail", action="store_true")
     ap.add_argument("--exr-options", action="store_true",
                     help="only time the EXR compressions on one relit-like 1080p frame")
+    ap.add_argument("--graph-options", action="store_true",
+                    help="only time the full-resolution graphs against their resize-op variants")
     args = ap.parse_args(argv)
     n = args.frames
     print(f"machine: {platform.machine()} {platform.processor() or ''}, {os.cpu_count()} cores, "
@@ -103,6 +106,8 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="relight_bench_") as tmp:
         if args.exr_options:
             return exr_options(tmp)
+        if args.graph_options:
+            return graph_options()
         model = write_conv_model(tmp, gflops_at_512=args.gflops, name="bench")
         card = engine.load_card(model)
         print(f"model: {card.data['cost']['gflops_at_512']} GFLOP at 512x512 "
@@ -159,21 +164,58 @@ def main(argv=None) -> int:
 
 def exr_options(tmp: str, repeats: int = 10) -> int:
     """Write time (wall and this thread's CPU) and size of each EXR compression for the bench
-    clip's first frame, linearised to half (what the pipeline writes)."""
+    clip's first frame, linearised to half (what the pipeline writes). The options take turns,
+    so a stall of the file system hits them alike."""
     path = make_clip(os.path.join(tmp, "clip.mp4"), 1)
     d = next(frames.iter_frames("movie", path, (), [0], planar=True))
     y = colour_mod.to_linear_planar(d.pixels, colour_mod.lookup("sRGB")).astype(np.float16)
-    print("EXR write of one 1920x1080 half RGB frame, median of", repeats)
-    for comp in frames.COMPRESSIONS:
-        wall, cpu = [], []
-        for i in range(repeats):
-            out = os.path.join(tmp, f"{comp}_{i}.exr")
+    hwc = np.ascontiguousarray(y.transpose(1, 2, 0))
+    options = ("none", "none via OpenEXR") + frames.COMPRESSIONS[1:]
+    wall, cpu, size = ({k: [] for k in options} for _ in range(3))
+    for i in range(repeats):
+        for comp in options:
+            out = os.path.join(tmp, f"{comp}_{i}.exr".replace(" ", "_"))
             t, c = time.perf_counter(), time.thread_time()
-            frames.write_exr_planes(out, y, comp)
-            wall.append(1000 * (time.perf_counter() - t))
-            cpu.append(1000 * (time.thread_time() - c))
-        print(f"  {comp:5s} wall {statistics.median(wall):6.1f} ms  CPU {statistics.median(cpu):6.1f}"
-              f" ms  {os.path.getsize(out) / 1e6:5.1f} MB")
+            if comp == "none via OpenEXR":  # the same file through OpenEXR's frame buffer
+                frames.write_exr(out, hwc)
+            else:
+                frames.write_exr_planes(out, y, comp)
+            wall[comp].append(1000 * (time.perf_counter() - t))
+            cpu[comp].append(1000 * (time.thread_time() - c))
+            size[comp] = os.path.getsize(out)
+    print(f"EXR write of one 1920x1080 half RGB frame, median of {repeats} (options in turn)")
+    for comp in options:
+        print(f"  {comp:16s} wall {statistics.median(wall[comp]):6.1f} ms  CPU "
+              f"{statistics.median(cpu[comp]):6.1f} ms  {size[comp] / 1e6:5.1f} MB")
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
+    return 0
+
+
+def graph_options(repeats: int = 30) -> int:
+    """The 1080p shrink and finish graphs (exact area / window-gather matrix products) against
+    the resize-op graphs they replace for sizes with small-integer ratios; interleaved runs."""
+    fr = pipeline.detail.FullRes(threads=1)
+    rng = np.random.default_rng(0)
+    x = rng.random((1, 3, 1080, 1920), dtype=np.float32)
+    a, b = (rng.random((3, 288, 512), dtype=np.float32) for _ in range(2))
+    full = np.array([1, 3, 1080, 1920], np.int64)
+    cases = {
+        "shrink: area matrix products": lambda: fr.shrink_planar(x[0], 288, 512),
+        "shrink: resize op (antialiased)": lambda: fr._shrink.run(
+            None, {"x": x, "sizes": np.array([1, 3, 288, 512], np.int64)}),
+        "finish: window gather + matrix products": lambda: fr.finish_planar(x[0], a, b, 1.0),
+        "finish: resize op": lambda: fr._finish[False].run(
+            None, {"a": a[None], "b": b[None], "x": x, "sizes": full}),
+    }
+    times = {k: [] for k in cases}
+    for _ in range(repeats):
+        for k, f in cases.items():
+            t = time.perf_counter()
+            f()
+            times[k].append(1000 * (time.perf_counter() - t))
+    print(f"1080p graphs, one onnxruntime thread, {repeats} interleaved runs (ms):")
+    for k, v in times.items():
+        print(f"  {k:42s} {stats(v)}")
     print(f"load average after: {os.getloadavg()[0]:.1f}")
     return 0
 
