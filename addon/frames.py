@@ -9,11 +9,12 @@ EXR output is written to a temporary name and renamed into place, so a killed ru
 half-written frame under its final name (partial_path names the writer, so a later run can sweep
 a dead writer's leftovers). Uncompressed half EXR is written directly from channels-first planes
 (write_exr_planes); the compressions go through OpenEXR. Compression is a speed/size trade,
-measured on the project's 2-core machine for one 1080p frame (`python -m bench.pipeline_1080p
---exr-options`, load average 6): none 22 ms CPU / 12.5 MB (most of it the kernel taking 12.5 MB
-of new page cache), RLE 37 ms / 11.5 MB, PIZ 40 ms / 3.6 MB (a smooth synthetic frame; footage
-compresses less), ZIPS 106 ms, ZIP 125 ms / 7.5 MB. Uncompressed is the default because a write
-slower than the network would cap the frame rate.
+measured on the project's 2-core machine for one 1080p frame, each option in turn (`python -m
+bench.pipeline_1080p --exr-options`, load average 5): none 3.3 ms CPU / 12.5 MB (11 ms through
+OpenEXR's frame buffer), RLE 36 ms / 11.5 MB, PIZ 38 ms / 3.6 MB (a smooth synthetic frame;
+footage compresses less), ZIPS 89 ms / 8.1 MB, ZIP 117 ms / 7.5 MB; the wall time of a write adds
+the kernel's page-cache work, which varies with other processes' I/O. Uncompressed is the
+default because a write slower than the network would cap the frame rate.
 """
 
 from __future__ import annotations
