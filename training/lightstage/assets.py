@@ -71,6 +71,7 @@ def load_head(data_root=None) -> HeadModel:
     names = [str(n) for n in d["material_names"]]
     tri_mat = d["triangle_material"]
     keep = ~np.isin(tri_mat, [names.index(n) for n in _DROPPED])
+    keep &= ~_cornea(d, names)
     tris = d["triangles"][keep].astype(np.int64)
     material = np.array([_ICT_MATERIAL[names[m]] for m in tri_mat[keep]], dtype=np.int64)
     uv = np.zeros((len(d["neutral"]), 2), np.float32)
@@ -81,6 +82,26 @@ def load_head(data_root=None) -> HeadModel:
                      d["expression_modes"].astype(np.float32),
                      tuple(str(n) for n in d["expression_names"]), tris, material, uv,
                      d["landmarks68"].astype(np.int64), regions)
+
+
+CORNEA_RADIUS = 0.62  # cm: the visible iris (about 12 mm across)
+
+
+def _cornea(d, names) -> np.ndarray:
+    """(F,) True for the sclera triangles over the iris. ICT-FaceKit's sclera mesh runs over the
+    cornea, which is clear in a real eye; drawn opaque it hides the iris (white, blind-looking
+    eyes), so it is left out and the iris mesh behind it shows."""
+    v, tri, mat = d["neutral"], d["triangles"], d["triangle_material"]
+    regions = {str(n): (int(a), int(b)) for n, (a, b) in zip(d["region_names"],
+                                                            d["region_vertex_ranges"])}
+    out = np.zeros(len(tri), bool)
+    for side, label in (("left", "M_ScleraLeft"), ("right", "M_ScleraRight")):
+        a, b = regions[f"iris_{side}"]
+        front = v[a + int(np.argmax(v[a:b + 1, 2]))]
+        r = np.linalg.norm(v[tri][..., :2] - front[:2], axis=2).max(axis=1)
+        z = v[tri][..., 2].min(axis=1)
+        out |= (mat == names.index(label)) & (r < CORNEA_RADIUS) & (z > front[2] - 0.6)
+    return out
 
 
 def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -141,9 +162,27 @@ def head_regions(data_root=None) -> dict:
              * skin_v * (~lips) * (v[:, 1] > jaw_y - 3.0))
     oily = (np.exp(-((v[:, 0] / 1.5) ** 2)) * _smoothstep((v[:, 1] + 1.0) / 3.0)
             * front)  # the T-zone: nose ridge and forehead
+    # Lash line: skin within a millimetre or two of the eyelash cards' roots. The cards
+    # themselves are left out; at 128-256 pixels lashes read as a dark line along the lid.
+    lash_d = _lash_root_distance(m)
+    lash = _smoothstep((0.16 - lash_d) / 0.1) * skin_v
     return {"lips": lips.astype(np.float32), "brows": brows.astype(np.float32),
+            "lash": lash.astype(np.float32),
             "neck": neck, "cheeks": cheeks.astype(np.float32), "beard": beard.astype(np.float32),
             "oily": oily.astype(np.float32), "skin": skin_v}
+
+
+def _lash_root_distance(m: HeadModel) -> np.ndarray:
+    """Distance (cm, neutral mesh) from every vertex to the nearest eyelash root: the lash-card
+    vertices nearest the face (where the lashes grow from the lid)."""
+    lash_ids = np.concatenate([np.arange(a, b + 1) for n, (a, b) in m.regions.items()
+                               if n.startswith("eyelashes")])
+    face = torch.from_numpy(m.neutral[: m.regions["face"][1] + 1]).double()
+    lash = torch.from_numpy(m.neutral[lash_ids]).double()
+    to_face = torch.cdist(lash, face).min(dim=1).values
+    roots = lash[to_face <= torch.quantile(to_face, 0.25)]
+    d = torch.cdist(torch.from_numpy(m.neutral).double(), roots).min(dim=1).values
+    return d.numpy()
 
 
 @functools.lru_cache(maxsize=2)
@@ -225,7 +264,10 @@ def build_rig(style: HairStyle, neckline: float, data_root=None) -> Rig:
     label_v[reg["neck"]] = LABEL["neck"]
     label_v[reg["brows"] > 0.35] = LABEL["brows"]
     label_v[reg["lips"] > 0.5] = LABEL["lips_mouth"]
-    below = reg["skin"] & (v[:, 1] < neckline - 0.04 * np.maximum(v[:, 2], 0.0) ** 2)
+    # Signed height below the neckline (cm, > 0 on the clothes): interpolated per pixel, it puts
+    # the neckline between triangle edges (scene.py), so it is a smooth curve, not a zigzag.
+    neck_s = neckline - 0.04 * np.maximum(v[:, 2], 0.0) ** 2 - v[:, 1]
+    below = reg["skin"] & (neck_s > 0)
     label_v[below] = LABEL["clothes"]
     mat_label = {SKIN: None, SCLERA: LABEL["eyes"], IRIS: LABEL["eyes"], LASHES: LABEL["eyes"],
                  TEETH: LABEL["teeth"], MOUTH: LABEL["lips_mouth"]}
@@ -297,7 +339,8 @@ def build_rig(style: HairStyle, neckline: float, data_root=None) -> Rig:
                label=t(np.concatenate(all_label), torch.int64),
                scalp=t(scalp, torch.int64), scalp_weight=t(sw), loop=t(loop, torch.int64),
                head_weight=t(head_w), uv=t(np.concatenate(uv)),
-               regions={k: t(val.astype(np.float32)) for k, val in reg.items()})
+               regions={k: t(val.astype(np.float32))
+                        for k, val in {**reg, "neckline": neck_s}.items()})
 
 
 def torso_vertices(loop_pts: torch.Tensor) -> torch.Tensor:

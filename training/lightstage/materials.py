@@ -22,8 +22,9 @@ SKIN_BASE = np.array([0.80, 0.64, 0.54])
 # (linear albedo about (0.08, 0.03, 0.02) at melanin 4) instead of saturating to orange.
 K_MELANIN = np.array([0.58, 0.70, 0.82])
 K_HAEMOGLOBIN = np.array([0.03, 0.35, 0.25])
-ATTRS = ("lips", "brows", "beard", "oily", "cheeks", "pupil", "hair_cover")
-_REGIONS = ("lips", "brows", "beard", "oily", "cheeks")
+ATTRS = ("lips", "brows", "beard", "oily", "cheeks", "pupil", "hair_cover", "lash", "neckline")
+_REGIONS = ("lips", "brows", "beard", "oily", "cheeks", "lash", "neckline")
+NECKLINE_FAR = 5.0  # the neckline attribute on the torso (all clothes) and hair (none), in cm
 
 # Specular reflectance at normal incidence and GGX roughness per material (hair uses its own lobe).
 F0 = {SKIN: 0.028, SCLERA: 0.03, IRIS: 0.03, TEETH: 0.04, MOUTH: 0.03, LASHES: 0.03, HAIR: 0.0,
@@ -48,6 +49,8 @@ def vertex_attributes(rig: assets.Rig, data_root=None) -> torch.Tensor:
         out[: rig.n_head, ATTRS.index(k)] = rig.regions[k]
     shell = slice(rig.n_head, rig.n_head + rig.scalp.numel())
     out[shell, ATTRS.index("hair_cover")] = rig.scalp_weight
+    out[shell, ATTRS.index("neckline")] = -NECKLINE_FAR
+    out[shell.stop:, ATTRS.index("neckline")] = NECKLINE_FAR
     # Pupils: iris vertices near the front-most point of each iris.
     for side in ("left", "right"):
         a, b = m.regions[f"iris_{side}"]
@@ -94,7 +97,8 @@ def surface(material: torch.Tensor, uv: torch.Tensor, attrs: torch.Tensor, ident
     strands = (_noise(uv * torch.tensor([1.0, 0.05]), s + 5, 400.0) * 0.5 + 0.5)
     brow = (a["brows"] * ident.brow_density * (0.6 + 0.6 * strands)).clamp(0, 1)
     stubble = (a["beard"] * ident.beard * (0.4 + 0.6 * (_noise(uv, s + 6, 250.0) > 0.1).float()))
-    dark = torch.maximum(brow, 0.6 * stubble)[:, None]
+    lash = 0.85 * a["lash"]
+    dark = torch.maximum(torch.maximum(brow, 0.6 * stubble), lash)[:, None]
     skin = skin * (1 - dark) + hair_c * dark
     albedo = torch.zeros(n, 3)
     put = lambda mat, val: albedo.copy_(torch.where((material == mat)[:, None], val, albedo))  # noqa: E731

@@ -78,6 +78,7 @@ class Scene:
     def frame(self, t: float, with_transfer: bool = True) -> Frame:
         posed = self.pose(t)
         gb = geometry.gbuffer(posed, self.rig, self.cam, self.attrs)
+        self._neckline(gb)
         idx = torch.nonzero(gb.mask.reshape(-1)).squeeze(1)
         mat = gb.material.reshape(-1)[idx]
         uv = gb.uv.reshape(-1, 2)[idx]
@@ -93,6 +94,19 @@ class Scene:
         if with_transfer:
             f.transfer = self.transfer(f, f0, rough)
         return f
+
+    @staticmethod
+    def _neckline(gb: geometry.GBuffer) -> None:
+        """Skin or clothes per pixel from the interpolated height below the neckline, not per
+        triangle (which gave a zigzag collar)."""
+        s = gb.attrs[..., materials.ATTRS.index("neckline")]
+        body = gb.mask & ((gb.material == assets.SKIN) | (gb.material == assets.CLOTHES))
+        cloth = body & (s > 0)
+        bare = body & (s <= 0)
+        gb.material = torch.where(cloth, assets.CLOTHES, torch.where(bare, assets.SKIN, gb.material))
+        was_cloth = gb.label == assets.LABEL["clothes"]
+        gb.label = torch.where(cloth, assets.LABEL["clothes"],
+                               torch.where(bare & was_cloth, assets.LABEL["neck"], gb.label))
 
     def transfer(self, f: Frame, f0, rough, lights: torch.Tensor | None = None) -> shading.Transfer:
         """Transfer for all 114 lights (or the subset ``lights``, indices)."""
