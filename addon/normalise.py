@@ -1,12 +1,17 @@
 """Exposure and light normalisation shared by the engine and training (one code path).
 
-The network sees ``image / s`` and ``light / k`` and its relit output is brought back with
-``relit * s * k``:
+The network sees ``image / s`` and ``light / k``; its relit output is brought back to scene-linear
+radiance with ``relit * k`` (model cards say ``relit_scale: "k"``):
 * ``s`` is one exposure scale per clip (never per frame: per-frame normalisation flickers), from a
-  fixed sample of frames spread over the whole clip, so farm chunks agree bit for bit;
+  fixed sample of frames spread over the whole clip, so farm chunks agree bit for bit. It only
+  conditions the input; the output does not depend on the footage's exposure, because the source
+  light's absolute power cannot be observed from a normalised image (training targets that kept
+  ``s`` asked the network for exactly that);
 * ``k`` is the target light's mean radiance, so twice the light gives twice the output exactly,
   and an all-zero light gives a black frame without running the network.
-Training divides inputs the same way and its ground truth by ``s * k``.
+Training divides its inputs the same way and its relit ground truth by ``k``; the estimated source
+light is in the normalised image's units (light / s). Cards from before this rule say
+``relit_scale: "s*k"`` (output * s * k) and are still honoured by the engine.
 """
 
 from __future__ import annotations
