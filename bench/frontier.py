@@ -163,7 +163,7 @@ def heldout_samples(resolution: int, n: int, seed: int, cache: pathlib.Path | No
 
 
 def _rendered(resolution: int, n: int, seed: int, cache: pathlib.Path | None) -> list[dict]:
-    from training import evaluate
+    from training.dataset import LightStageDataset
 
     folder = None
     if cache is not None:
@@ -176,7 +176,7 @@ def _rendered(resolution: int, n: int, seed: int, cache: pathlib.Path | None) ->
             with np.load(path) as z:
                 out.append({k: z[k] for k in KEYS})
             continue
-        ds = ds or evaluate.heldout_dataset(resolution, seed)
+        ds = ds or LightStageDataset("test", resolution, seed=seed, length=n)
         s = ds[idx]
         out.append({k: np.asarray(s[k], np.float32) for k in KEYS})
         if path is not None:
@@ -452,10 +452,11 @@ def lightstage_group(args, log) -> list[Row]:
     import torch
 
     from bench import lightstage_throughput as lt
-    from training import evaluate
+    from training.dataset import LightStageDataset
 
     torch.set_num_threads(1)
-    ds = evaluate.heldout_dataset(args.lightstage_res, args.seed)
+    ds = LightStageDataset("test", args.lightstage_res, seed=args.seed,
+                           length=args.lightstage_samples)
     energies = (0.95, 0.8) if args.quick else (0.99, 0.95, 0.9, 0.8)
     runs = []
     for i in range(max(1, args.lightstage_repeats)):
