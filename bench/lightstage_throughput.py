@@ -14,6 +14,7 @@ sample does not depend on the pool size once the files are in the page cache).
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import sys
 import tempfile
@@ -86,10 +87,12 @@ def cached(res: int, n: int, cache_dir) -> dict:
             ms, _ = _ms(lambda: pairs.assemble(rec, lights, 9))
             rows["relight + assemble"].append(ms)
         out = {k: float(np.median(v)) for k, v in rows.items()}
-        t = time.perf_counter()
+        t, cpu = time.perf_counter(), time.process_time()
         for i in range(n):
             ds[1000 + i]
         out["whole sample"] = (time.perf_counter() - t) * 1000.0 / n
+        # CPU time: what the sample costs whatever else the shared machine is running
+        out["cpu per sample"] = (time.process_time() - cpu) * 1000.0 / n
         out["pool"] = ds.pool
         out["source"] = "temporary 8-pair cache" if tmp else str(ds.cache)
         return out
@@ -130,7 +133,8 @@ def main(argv=None):
     ap.add_argument("--no-selective", action="store_true", help="skip the effect shortcut")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
-    print(f"torch threads: {a.threads}")
+    load = " ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"torch threads: {a.threads}; load average {load}")
     for res in a.res:
         ds = LightStageDataset("train", res, seed=123, length=10_000)
         ds[0]  # warm the caches (head model, rigs, HDRI bank)
@@ -138,18 +142,21 @@ def main(argv=None):
         print(f"\n== {res}x{res}: median ms per frame and stage")
         for k, v in st.items():
             print(f"  {k:18s} {v:8.1f}")
-        t = time.perf_counter()
+        t, cpu = time.perf_counter(), time.process_time()
         for i in range(a.samples):
             ds[100 + i]
         dt = (time.perf_counter() - t) / a.samples
+        dc = (time.process_time() - cpu) / a.samples
         print(f"  whole sample (2 frames, 4 images, flows): {dt * 1000:.0f} ms = "
-              f"{1 / dt:.2f} samples/s")
+              f"{1 / dt:.2f} samples/s (CPU {dc * 1000:.0f} ms = {1 / dc:.2f} samples/s per "
+              "core)")
         c = cached(res, a.cached_samples, a.cache)
         print(f"\n  from the frame cache ({c['source']}, pool {c['pool']}): median ms per sample")
         for k in ("read pair", "lighting triplet", "relight + assemble"):
             print(f"  {k:18s} {c[k]:8.2f}")
         print(f"  whole sample: {c['whole sample']:.1f} ms = {1000 / c['whole sample']:.1f} "
-              f"samples/s")
+              f"samples/s (CPU {c['cpu per sample']:.1f} ms = "
+              f"{1000 / c['cpu per sample']:.1f} samples/s per core)")
         if a.no_selective:
             continue
         print(f"\n  selective shading vs the full 114-light sum (L^k of {a.samples} samples):")
