@@ -209,12 +209,13 @@ def frames_of(samples) -> list[Frame]:
     return out
 
 
-def card_for(onnx_path, stride: int, working: int, name: str, preset: str,
-             classes) -> engine.ModelCard:
-    """A card in memory for a variant made here (untrained export, int8), never written."""
+def card_for(onnx_path, stride: int, working: int, name: str, preset: str, classes,
+             data: dict | None = None) -> engine.ModelCard:
+    """A card in memory for a variant made here (untrained export, int8, fp16), never written;
+    ``data``: the original card's, so the variant keeps its units (relit_scale)."""
     p = pathlib.Path(onnx_path)
     return engine.ModelCard(p.with_suffix(".json"), p, name, preset, contract.CONTRACT_VERSION,
-                            "", stride, working, tuple(classes), {})
+                            "", stride, working, tuple(classes), dict(data or {}))
 
 
 def open_session(card: engine.ModelCard, threads: int, provider: str):
@@ -230,7 +231,8 @@ def relight_frame(session, f: Frame, working: int, detail_on: bool,
     """The pipeline's per-frame stages (addon/pipeline.py) -> half (H, W, 3) absolute radiance."""
     h, w = f.x_full.shape[:2]
     plan = pipeline.Plan(LINEAR, f.scale, (w, h), detail.working_shape(h, w, working),
-                         detail_on, False, "none")
+                         detail_on, False, "none",
+                         relit_times_s=pipeline.relit_times_s(session.card))
     x_low = pipeline.shrink(f.x_full, plan, fullres)
     relit_low, _, _, k = pipeline.infer(session, x_low, f.light)
     ab = pipeline.coefficients(x_low, relit_low, k, plan, fullres)
@@ -301,7 +303,7 @@ def quantised(session, frames, working: int, fullres, folder: pathlib.Path):
     out = folder / f"{card.name}-int8.onnx"
     export.quantize_int8(card.onnx_path, out, feeds)
     return card_for(out, card.stride, card.working_size, f"{card.name}-int8", card.preset,
-                    card.classes), ""
+                    card.classes, card.data), ""
 
 
 def half_precision(card: engine.ModelCard, folder: pathlib.Path) -> engine.ModelCard:
@@ -314,7 +316,7 @@ def half_precision(card: engine.ModelCard, folder: pathlib.Path) -> engine.Model
     onnx.save(convert_float_to_float16(onnx.load(str(card.onnx_path)), keep_io_types=True),
               str(out))
     return card_for(out, card.stride, card.working_size, f"{card.name}-fp16", card.preset,
-                    card.classes)
+                    card.classes, card.data)
 
 
 def network_group(args, frames, folder: pathlib.Path, log) -> tuple[list[Row], dict]:
@@ -410,7 +412,8 @@ def untrained_rows(args, frames, folder, fullres, log) -> list[Row]:
         kw = dict(kw)
         net = network.build(kw.pop("preset"), **kw).eval()
         path = export.export_onnx(net, folder / f"untrained-{i}.onnx")
-        card = card_for(path, net.cfg.stride, ws, label, label, contract.PARSING_CLASSES)
+        card = card_for(path, net.cfg.stride, ws, label, label, contract.PARSING_CLASSES,
+                        {"relit_scale": export.RELIT_SCALE})
         variants = [("fp32", card)]
         if i == 0:
             q, why = quantised(open_session(card, 1, CPU), frames, ws, fullres, folder)
