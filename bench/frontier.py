@@ -594,11 +594,15 @@ def make_plot(path, rows: list[Row], info: dict) -> None:
         pts = [{"ms": r.ms, "error": r.error, "kind": r.kind, "frontier": r.frontier,
                 "front": front_of(r), "label": r.label} for r in rows if r.group == group and r.error is not None
                and r.ms]
+        refs = [(r.error, r.label) for r in rows if r.group == "reference"
+                and group == "network"]
         if pts:
-            panels.append((group, TIME_NAMES[group] + " (log)", ERROR_NAMES[group], pts))
+            panels.append((group, TIME_NAMES[group] + " (log)", ERROR_NAMES[group], pts, refs))
     m = info["machine"]
-    png_plot.plot(path, panels, f"{m['cpu']}, {m['cores']} cores, load {m['load_avg_1_5_15'][0]},"
-                                f" {m['date']}. Ringed + red line: Pareto frontier.")
+    load = f"load {m['load_avg_1_5_15'][0]}" + (f"-{m['load_avg_end']}" if m.get(
+        "load_avg_end") is not None else "")
+    png_plot.plot(path, panels, f"{m['cpu']}, {m['cores']} cores, {load}, {m['date']}. "
+                                "Ringed + red line: Pareto frontier. Dashed: baselines.")
 
 
 def splice_readme(text: str, body: str) -> str:

@@ -98,8 +98,9 @@ def _fmt(v: float) -> str:
     return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
 
 
-def draw_panel(c: Canvas, top, left, h, w, title, xlabel, ylabel, points, kinds):
-    """points: dicts with ms, error, kind, frontier (bool), front (which frontier), label."""
+def draw_panel(c: Canvas, top, left, h, w, title, xlabel, ylabel, points, kinds, refs=()):
+    """points: dicts with ms, error, kind, frontier (bool), front (which frontier), label;
+    refs: (error, label) drawn as dashed horizontal lines (baselines that take no time)."""
     c.text(top, left + w // 2, title, anchor="centre")
     y0, x0, y1, x1 = top + 40, left + 70, top + h - 50, left + w - 20
     c.rect(y0, x0, y1, x0, (0, 0, 0))
@@ -110,7 +111,7 @@ def draw_panel(c: Canvas, top, left, h, w, title, xlabel, ylabel, points, kinds)
         return
     lx = [math.log10(p["ms"]) for p in pts]
     xlo, xhi = math.floor(min(lx) * 4) / 4 - 0.1, math.ceil(max(lx) * 4) / 4 + 0.1
-    errs = [p["error"] for p in pts]
+    errs = [p["error"] for p in pts] + [v for v, _ in refs]
     elo, ehi = min(0.0, min(errs)), max(errs) * 1.1 or 1.0
 
     def xy(p):
@@ -143,18 +144,24 @@ def draw_panel(c: Canvas, top, left, h, w, title, xlabel, ylabel, points, kinds)
         if p.get("frontier"):
             c.ring(y, x, 7, FRONTIER)
             c.text(y - 16, x + 6, p.get("label", "")[:24], scale=1)
-    for i, kind in enumerate(kinds):
-        yy = y0 + 6 + 14 * i
-        c.rect(yy, x1 - 150, yy + 6, x1 - 144, PALETTE[i % len(PALETTE)])
-        c.text(yy, x1 - 138, kind[:20], scale=1)
+    for v, label in refs:
+        yy = y1 - (v - elo) / (ehi - elo) * (y1 - y0)
+        for xx in range(int(x0) + 2, int(x1), 8):
+            c.rect(yy, xx, yy, xx + 3, (128, 128, 128))
+        c.text(yy - 9, x1, label[:40], (96, 96, 96), scale=1, anchor="right")
+    for i, kind in enumerate(kinds):  # bottom left: the fast and accurate corner stays empty
+        yy = y1 - 14 * (len(kinds) - i) - 4
+        c.rect(yy, x0 + 10, yy + 6, x0 + 16, PALETTE[i % len(PALETTE)])
+        c.text(yy, x0 + 22, kind[:34], scale=1)
 
 
 def plot(path, panels, footer: str = "") -> None:
-    """panels: (title, xlabel, ylabel, points) tuples, drawn side by side."""
+    """panels: (title, xlabel, ylabel, points[, refs]) tuples, drawn side by side."""
     ph, pw = 420, 520
     c = Canvas(ph + 30, pw * max(len(panels), 1))
-    for i, (title, xlabel, ylabel, points) in enumerate(panels):
+    for i, (title, xlabel, ylabel, points, *refs) in enumerate(panels):
         kinds = sorted({p["kind"] for p in points})
-        draw_panel(c, 10, i * pw, ph, pw, title, xlabel, ylabel, points, kinds)
+        draw_panel(c, 10, i * pw, ph, pw, title, xlabel, ylabel, points, kinds,
+                   refs[0] if refs else ())
     c.text(ph + 12, 10, footer[:150], scale=1)
     write_png(path, c.px)
