@@ -1,6 +1,6 @@
 """Export a trained network to ONNX with its model card (the contract in addon/contract.py).
 
-    python -m training.export --run runs/draft-01 --name relight-draft [--int8] [--eval 48]
+    python -m training.export --run runs/draft-01 --name relight-draft [--checkpoint best.pt] [--int8]
 
 Steps: export (opset 17, dynamic N, H, W; names from addon.contract), verify onnxruntime against
 PyTorch on several sizes within ``TOLERANCE``, optionally quantise to int8 (static, QDQ, calibrated
@@ -230,6 +230,8 @@ def main(argv=None):
 
     p = argparse.ArgumentParser(description="export a run to models/<name>.onnx + card")
     p.add_argument("--run", required=True)
+    p.add_argument("--checkpoint", default="checkpoint.pt",
+                   help="file in the run folder: checkpoint.pt (last) or best.pt (best on val)")
     p.add_argument("--name", required=True)
     p.add_argument("--out-dir", default=str(MODELS))
     p.add_argument("--eval", type=int, default=64, help="held-out samples for the card metrics")
@@ -240,8 +242,9 @@ def main(argv=None):
     p.add_argument("--note", default="")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
-    net, ck = load_checkpoint(pathlib.Path(a.run) / "checkpoint.pt")
-    recipe = ck["recipe"]
+    net, ck = load_checkpoint(pathlib.Path(a.run) / a.checkpoint)
+    recipe = {**ck["recipe"], "exported_checkpoint": {"file": a.checkpoint, "step": ck["step"],
+                                                      "val": ck.get("val")}}
     res = a.eval_resolution or int(recipe["args"]["resolution"])
     working = a.working_size or int(recipe["args"]["resolution"])
     out_dir = pathlib.Path(a.out_dir)

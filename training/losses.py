@@ -41,7 +41,10 @@ class Switches:
     @classmethod
     def ablation(cls, name: str) -> "Switches":
         names = {"full": {}, "no_structure": {"structure": False}, "no_temporal": {"temporal": False},
-                 "no_parsing": {"parsing": False}, "no_sampling": {"sampling": False}}
+                 "no_parsing": {"parsing": False}, "no_sampling": {"sampling": False},
+                 # diagnosis only: the basic term alone (is another term fighting it?)
+                 "basic_only": {"structure": False, "temporal": False, "parsing": False,
+                                "adversarial": False}}
         if name not in names:
             raise ValueError(f"unknown ablation {name!r}; choose one of {sorted(names)}")
         return cls(**names[name])

@@ -41,6 +41,10 @@ class NetConfig:
     code: int = 64  # channels of the structure code e
     light_embed: int = 64  # width of the light MLP
     classes: int = len(contract.PARSING_CLASSES)
+    # "smooth": the residual is a 1/4-resolution map up-sampled bilinearly like the gain, so fine
+    # detail can only come from gain * image. "shuffle" (the first Draft's; checkpoints without
+    # this key): 4x4 pixel-shuffled residual, which trained into a blurred, gridded image.
+    residual: str = "shuffle"
 
     @property
     def stride(self) -> int:
@@ -53,13 +57,13 @@ class NetConfig:
 
 PRESETS = {
     "draft": NetConfig(widths=(16, 24, 48, 64), blocks=(1, 1, 1, 1), expand=2, code=32,
-                       light_embed=48),
+                       light_embed=48, residual="smooth"),
     "standard": NetConfig(widths=(32, 48, 96, 128), blocks=(1, 2, 2, 2), expand=2, code=64,
-                          light_embed=64),
+                          light_embed=64, residual="smooth"),
     # Wide at low resolution, narrow at 1/4: 48 x 3 expanded channels at 1/4 resolution ran 4x
     # slower than this on the 2-core CPU for about the same FLOPs (memory-bound).
     "final": NetConfig(widths=(32, 64, 128, 192), blocks=(1, 3, 4, 3), expand=3, code=128,
-                       light_embed=128),
+                       light_embed=128, residual="smooth"),
 }
 
 
@@ -180,7 +184,10 @@ class Decoder(nn.Module):
         # Heads at 1/4 resolution: a 3-channel shading gain (smooth, up-sampled bilinearly), a
         # residual folded back to full resolution (pixel shuffle), and parsing logits.
         self.gain = nn.Conv2d(w[0], 3, 1)
-        self.residual = nn.Conv2d(w[0], 3 * STEM * STEM, 1)
+        if cfg.residual not in ("smooth", "shuffle"):
+            raise ValueError(f"unknown residual {cfg.residual!r}; use 'smooth' or 'shuffle'")
+        self.shuffle = cfg.residual == "shuffle"
+        self.residual = nn.Conv2d(w[0], 3 * STEM * STEM if self.shuffle else 3, 1)
         self.parsing = nn.Conv2d(w[0], cfg.classes, 1)
         for m in (self.gain, self.residual):
             nn.init.zeros_(m.weight)
@@ -193,12 +200,18 @@ class Decoder(nn.Module):
         for j, block in enumerate(self.blocks):
             if j > 0:
                 skip = skips[-1 - j]
-                x = F.interpolate(x, size=skip.shape[-2:], mode="nearest")
+                # bilinear, not nearest: nearest copies of the 1/32 features left 8-pixel
+                # blocks in the relit image that the skips never smoothed away
+                x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
                 x = self.merge[j - 1](torch.cat([x, skip], dim=1))
             x = block(film(x, films[j]))
         size = image.shape[-2:]
         gain = F.interpolate(self.gain(x), size=size, mode="bilinear", align_corners=False)
-        residual = F.pixel_shuffle(self.residual(x), STEM)
+        if self.shuffle:
+            residual = F.pixel_shuffle(self.residual(x), STEM)
+        else:
+            residual = F.interpolate(self.residual(x), size=size, mode="bilinear",
+                                     align_corners=False)
         relit = gain * image.clamp(0.0, INPUT_CEILING) + residual
         parsing = F.interpolate(self.parsing(x), size=size, mode="bilinear", align_corners=False)
         return relit, parsing  # parsing as logits: the BCE loss is stabler on logits

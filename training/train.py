@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import inspect
 import json
 import math
@@ -258,14 +259,15 @@ class Trainer:
         return {k: v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 else v
                 for k, v in b.items()}
 
-    def step(self, b: dict, lr: float, adv_on: bool) -> dict:
+    def step(self, b: dict, lr: float, adv_on: bool, temporal_on: bool = True) -> dict:
         b = self._layout(b)
         for g in self.opt.param_groups:
             g["lr"] = lr
         use_adv = adv_on and self.critic is not None
+        sw = self.sw if temporal_on else dataclasses.replace(self.sw, temporal=False)
         with self.autocast():
             total, parts, fake = losses.generator_objective(
-                self.net, b, self.sw, self.critic if use_adv else None)
+                self.net, b, sw, self.critic if use_adv else None)
         self.opt.zero_grad(set_to_none=True)
         total.backward()
         torch.nn.utils.clip_grad_norm_(self.net.parameters(), 5.0)
@@ -329,7 +331,7 @@ def train(args) -> pathlib.Path:
     trainer = Trainer(net, sw, args, device)
     stages = parse_stages(args.progressive)
     budget, start, step = args.minutes * 60.0, time.monotonic(), 0
-    next_val = 0.0
+    next_val, best = 0.0, math.inf
     with open(out / "log.jsonl", "w") as log:
         while True:
             frac = (time.monotonic() - start) / budget
@@ -337,6 +339,9 @@ def train(args) -> pathlib.Path:
             if val and (done or time.monotonic() - start >= next_val):
                 row = {"val": validate(net, val), "step": step,
                        "minutes": round((time.monotonic() - start) / 60, 2)}
+                if row["val"]["model"]["rmse"] < best:  # chosen on val, never on the test set
+                    best = row["val"]["model"]["rmse"]
+                    save_checkpoint(out / "best.pt", net, recipe, step, {"val": row["val"]})
                 log.write(json.dumps(row) + "\n")
                 log.flush()
                 print(json.dumps(row), flush=True)
@@ -344,7 +349,8 @@ def train(args) -> pathlib.Path:
             if done:
                 break
             b = downsample_batch(next(batches), factor_at(stages, frac))
-            parts = trainer.step(b, lr_at(args.lr, frac), adv_on=frac >= args.adv_start)
+            parts = trainer.step(b, lr_at(args.lr, frac), adv_on=frac >= args.adv_start,
+                                 temporal_on=frac >= args.temporal_start)
             step += 1
             if step % args.log_every == 0 or step == 1:
                 parts.update(step=step, minutes=round((time.monotonic() - start) / 60, 2),
@@ -413,7 +419,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=0, help="stop early after this many steps")
     p.add_argument("--out", default="runs/latest")
     p.add_argument("--ablation", default="full",
-                   choices=["full", "no_structure", "no_temporal", "no_parsing", "no_sampling"])
+                   choices=["full", "no_structure", "no_temporal", "no_parsing", "no_sampling",
+                            "basic_only"])
     p.add_argument("--resolution", type=int, default=128, help="light-stage render size")
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--seed", type=int, default=0, help="torch and data seed")
@@ -424,6 +431,10 @@ def parser() -> argparse.ArgumentParser:
                    help="fraction:downsample stages (low resolution first)")
     p.add_argument("--adv-start", type=float, default=0.3,
                    help="fraction of the budget after which adversarial training starts")
+    p.add_argument("--temporal-start", type=float, default=0.5,
+                   help="fraction of the budget after which the temporal term is on: from the "
+                        "start it drove the first Draft to a blurred, input-independent output "
+                        "(a smooth image is temporally consistent) before it learnt to relight")
     p.add_argument("--n-critic", type=int, default=1)
     p.add_argument("--critic-width", type=int, default=32)
     p.add_argument("--bf16", action="store_true", help="bf16 autocast")

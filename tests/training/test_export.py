@@ -121,3 +121,11 @@ def test_empty_mask_is_refused():
     s = standin.sample(32, 0)
     with pytest.raises(ValueError, match="empty"):
         evaluate.image_metrics(s["gt_t_k"], s["gt_t_k"], np.zeros((32, 32), bool))
+
+
+def test_every_resize_in_the_graph_is_bilinear(onnx_path):
+    """Nearest up-sampling in the decoder left 8-pixel blocks in the first Draft's relit images
+    (the 1/32 features copied, never smoothed by the skips); every resize must interpolate."""
+    modes = [a.s for n in onnx.load(str(onnx_path)).graph.node if n.op_type == "Resize"
+             for a in n.attribute if a.name == "mode"]
+    assert modes and all(m == b"linear" for m in modes)

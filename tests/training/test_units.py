@@ -100,3 +100,16 @@ def test_engine_output_matches_training_units_for_an_exported_model(tmp_path):
     np.testing.assert_allclose(b, want, rtol=1e-3, atol=1e-4 * float(np.abs(want).max()))
     np.testing.assert_allclose(source_hwc, np.moveaxis(source[0].numpy(), 0, -1), rtol=1e-3,
                                atol=1e-5)
+
+
+def test_trainer_leaves_the_temporal_term_out_until_it_starts():
+    """From the first step, the temporal term drove the network to a blurred output that ignores
+    the input (temporally consistent, but not relit); train.py turns it on later."""
+    from training import losses
+
+    args = train.parser().parse_args(["--batch", "1"])
+    trainer = train.Trainer(network.RelightNet(TINY), losses.Switches(), args)
+    b = train.collate([train.normalise_sample(standin.sample(32, 1))])
+    assert "temporal" not in trainer.step(b, 1e-4, adv_on=False, temporal_on=False)
+    assert "temporal" in trainer.step(b, 1e-4, adv_on=False, temporal_on=True)
+    assert args.temporal_start > 0  # the default recipe starts without it
