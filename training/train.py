@@ -391,6 +391,29 @@ def validate(net, samples) -> dict:
             for name in ("model", "identity", "irradiance_ratio")}
 
 
+def curve(run) -> str:
+    """A run's log as a markdown table: val metrics of the model and both baselines over time,
+    and the mean training loss terms since the previous val row."""
+    rows = [json.loads(line) for line in open(pathlib.Path(run) / "log.jsonl")]
+    terms = ("basic", "latent", "parsing", "temporal", "adv")
+    out = ["| step | min | model RMSE / PSNR / SSIM | identity | irradiance ratio | "
+           + " | ".join(terms) + " |", "|" + "---|" * (5 + len(terms))]
+    pending = []
+    for r in rows:
+        if "val" not in r:
+            pending.append(r)
+            continue
+        v = r["val"]
+        cell = lambda m: f"{m['rmse']:.4f} / {m['psnr']:.2f} / {m['ssim']:.3f}"  # noqa: E731
+        means = [np.mean([p[k] for p in pending if k in p]) if any(k in p for p in pending)
+                 else float("nan") for k in terms]
+        out.append(f"| {r['step']} | {r['minutes']} | {cell(v['model'])} | {cell(v['identity'])} | "
+                   f"{cell(v['irradiance_ratio'])} | " + " | ".join(f"{m:.3f}" for m in means)
+                   + " |")
+        pending = []
+    return "\n".join(out)
+
+
 # ------------------------------------------------------------------------------ speed measurement
 
 def measure_speed(args, batch_fn) -> list[dict]:
@@ -455,6 +478,8 @@ def parser() -> argparse.ArgumentParser:
                    help="render training samples into FOLDER instead of training")
     p.add_argument("--start", type=int, default=0, help="first sample index for --render")
     p.add_argument("--count", type=int, default=1000, help="samples for --render")
+    p.add_argument("--curve", metavar="RUN",
+                   help="print a run's val curve (model vs baselines) and loss terms, then exit")
     p.add_argument("--measure-speed", action="store_true")
     p.add_argument("--speed-steps", type=int, default=5)
     return p
@@ -462,6 +487,9 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None):
     args = parser().parse_args(argv)
+    if args.curve:
+        print(curve(args.curve))
+        return
     if args.render:
         torch.set_num_threads(args.threads)
         render_cache(args.render, "train", args.resolution, args.seed, args.start, args.count,
