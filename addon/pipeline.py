@@ -4,7 +4,7 @@ One function, ``relight_clip``, serves the modal operator (on_progress / should_
 batch script and render-farm chunks (``frames``). Per frame:
 
     decode -> linear (colour.py) -> / s -> area-resize to the working size -> network (light / k)
-    -> full-resolution transfer (detail.py) -> * s * k -> finite, half range -> EXR
+    -> full-resolution transfer (detail.py) -> * k (* s for old "s*k" cards) -> finite, half -> EXR
 
 Frames stay channels-first (3, H, W) from the decoder to the EXR file (see detail.py); the
 channels-last stage functions below serve callers that hold (H, W, 3) images (benchmarks).
