@@ -11,7 +11,6 @@ measure the cost per resolution and provider, and write ``models/<name>.onnx`` +
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import pathlib
 import time
@@ -20,7 +19,7 @@ import warnings
 import numpy as np
 import torch
 
-from addon import contract, normalise
+from addon import contract, engine, normalise
 
 from . import network
 
@@ -156,12 +155,6 @@ def measure_cost(path, sizes=(256, 512), threads: int = 2, repeats: int = 20,
 
 # ----------------------------------------------------------------------------------------- card
 
-def sha256(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 COLOUR = {
@@ -200,7 +193,7 @@ def make_card(name: str, preset: str, onnx_path, net: network.RelightNet, traini
     inputs, outputs = io_spec(net.cfg.classes)
     card = {
         "contract": contract.CONTRACT_VERSION, "name": name, "preset": preset,
-        "onnx": pathlib.Path(onnx_path).name, "sha256": sha256(onnx_path),
+        "onnx": pathlib.Path(onnx_path).name, "sha256": engine.file_sha256(onnx_path),
         "inputs": inputs, "outputs": outputs, "stride": net.cfg.stride,
         "working_size": int(working_size), "colour": COLOUR, "relit_scale": RELIT_SCALE,
         "classes": list(contract.PARSING_CLASSES[:net.cfg.classes]),
