@@ -5,10 +5,10 @@ drawn as a line through its ringed points, and a 3x5 pixel font for labels."""
 from __future__ import annotations
 
 import math
-import struct
-import zlib
 
 import numpy as np
+
+from training.lightstage.png import write_png  # noqa: F401  (one PNG writer; part of this API)
 
 _GLYPHS = {
     "0": "111101101101111", "1": "010110010010111", "2": "111001111100111",
@@ -32,21 +32,6 @@ _GLYPHS = {
 PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75),
            (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
 FRONTIER = (214, 39, 40)
-
-
-def write_png(path, rgb: np.ndarray) -> None:
-    """(H, W, 3) uint8 -> an 8-bit RGB PNG (filter 0 on every row, zlib level 9)."""
-    h, w = rgb.shape[:2]
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), rgb.reshape(h, w * 3)], axis=1)
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return (struct.pack(">I", len(data)) + kind + data
-                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
-
-    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
-           + chunk(b"IDAT", zlib.compress(raw.tobytes(), 9)) + chunk(b"IEND", b""))
-    with open(path, "wb") as f:
-        f.write(png)
 
 
 class Canvas:
