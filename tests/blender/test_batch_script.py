@@ -75,9 +75,10 @@ def test_killed_run_resumes_to_identical_output(extension, toy_models, tmp_path)
     resumed = run(batch_cmd(blend, strip, toy_models, tmp_path / "killed"))
     assert resumed.returncode == 0, resumed.stderr
     assert "resumed" in resumed.stdout.lower()
-    # Every finished frame is byte-identical to the uninterrupted run's. (A temporary file the
-    # killed process was writing may remain under its temporary name; no strip refers to it.)
+    # Every finished frame is byte-identical to the uninterrupted run's, and the temporary files
+    # the killed process was writing are swept when the run resumes (their writer is dead).
     assert relit_digests(tmp_path / "killed", strip) == relit_digests(tmp_path / "whole", strip)
+    assert not list((tmp_path / "killed").rglob("*.partial"))
 
 
 @pytest.mark.parametrize("args,code,message", [
