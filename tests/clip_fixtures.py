@@ -56,15 +56,20 @@ def write_png(path, pixels: np.ndarray) -> None:
     pathlib.Path(path).write_bytes(b"".join(bytes(p) for p in packets))
 
 
-def write_png_sequence(folder, frames, prefix: str = "shot_", start: int = 1) -> list[str]:
+def _write_sequence(folder, frames, prefix: str, start: int, ext: str, write) -> list[str]:
+    """Numbered files prefix####.ext from ``start``, one per frame, each written by ``write``."""
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = []
     for i, f in enumerate(frames):
-        p = folder / f"{prefix}{start + i:04d}.png"
-        write_png(p, f)
+        p = folder / f"{prefix}{start + i:04d}.{ext}"
+        write(p, f)
         out.append(str(p))
     return out
+
+
+def write_png_sequence(folder, frames, prefix: str = "shot_", start: int = 1) -> list[str]:
+    return _write_sequence(folder, frames, prefix, start, "png", write_png)
 
 
 def write_exr_float(path, pixels: np.ndarray) -> None:
@@ -76,11 +81,4 @@ def write_exr_float(path, pixels: np.ndarray) -> None:
 
 
 def write_exr_sequence(folder, frames, prefix: str = "plate.", start: int = 1001) -> list[str]:
-    folder = pathlib.Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    out = []
-    for i, f in enumerate(frames):
-        p = folder / f"{prefix}{start + i:04d}.exr"
-        write_exr_float(p, f)
-        out.append(str(p))
-    return out
+    return _write_sequence(folder, frames, prefix, start, "exr", write_exr_float)
