@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from . import colour
 from .errors import LightingError
 
 ROWS = 16
@@ -174,6 +175,4 @@ def to_preview(light: np.ndarray, exposure: float | None = None) -> np.ndarray:
     light = np.clip(light, 0.0, None)
     peak = float(light.max())
     scale = 1.0 / peak if exposure is None and peak > 0 else 2.0 ** (exposure or 0.0)
-    x = np.clip(light * scale, 0.0, 1.0)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return srgb.astype(np.float32)
+    return colour.linear_to_srgb(np.clip(light * scale, 0.0, 1.0))

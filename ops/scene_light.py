@@ -15,7 +15,7 @@ from typing import Callable
 import bpy
 import numpy as np
 
-from ..addon import hdri, hdri_io, lamps, lightvec
+from ..addon import colour, hdri, hdri_io, lamps, lightvec
 from ..addon.errors import InputError, LightingError
 
 SOURCES = ("WORLD", "LAMPS", "WORLD_AND_LAMPS", "HDRI_FILE", "BUILTIN")
@@ -298,7 +298,7 @@ def _image_pixels(image) -> np.ndarray:
     image.pixels.foreach_get(buf)
     px = buf.reshape(h, w, image.channels)[::-1, :, :3]
     if not image.is_float and image.colorspace_settings.name.lower().startswith("srgb"):
-        px = np.where(px <= 0.04045, px / 12.92, ((px + 0.055) / 1.055) ** 2.4)
+        px = colour.srgb_to_linear(px)
     return np.ascontiguousarray(px, dtype=np.float32)
 
 
