@@ -4,9 +4,10 @@
 
 The run folder gets ``recipe.json`` (every argument, git commit, data seed, versions, machine) at
 the start, ``log.jsonl`` (losses over time) and ``checkpoint.pt`` (weights + config + recipe);
-training/export.py copies the recipe into the model card. Training is time-boxed (``--minutes``):
-the learning-rate schedule, the progressive resolutions and the start of adversarial training are
-all fractions of that budget, so a run's recipe is reproducible on the same machine class.
+training/export.py copies the recipe into the model card. Training is time-boxed (``--minutes``)
+or step-boxed (``--steps``): the learning-rate schedule, the progressive resolutions and the starts
+of adversarial and temporal training are all fractions of that budget. A step budget makes runs
+independent of the machine's load (the ablations use it); a time budget fits a run into a slot.
 
 ``--measure-speed`` times training steps for fp32 / bf16 autocast / channels-last instead.
 """
@@ -285,6 +286,19 @@ class Trainer:
         return parts
 
 
+def net_overrides(args) -> dict:
+    """Width / depth overrides of the preset (the extra points of the accuracy/time frontier)."""
+    out = {}
+    for key in ("widths", "blocks"):
+        text = getattr(args, key, None)
+        if text:
+            vals = tuple(int(v) for v in text.split(","))
+            if len(vals) != 4 or min(vals) < 1:
+                raise SystemExit(f"--{key} takes four positive integers, e.g. 16,24,48,64")
+            out[key] = vals
+    return out
+
+
 def save_checkpoint(path, net, recipe, step, extra=None):
     torch.save({"state_dict": net.state_dict(), "config": net.cfg.to_dict(), "recipe": recipe,
                 "step": step, **(extra or {})}, path)
@@ -307,7 +321,7 @@ def train(args) -> pathlib.Path:
     if device.type == "cpu" and args.threads:
         torch.set_num_threads(args.threads)
     sw = losses.Switches.ablation(args.ablation)
-    net = network.build(args.preset).to(device)
+    net = network.build(args.preset, **net_overrides(args)).to(device)
     recipe = {"command": "python -m training.train " + " ".join(sys.argv[1:]), "args": vars(args),
               "switches": sw.to_dict(), "net": net.cfg.to_dict(), "git_commit": git_commit(),
               "data_seed": args.seed, "machine": machine(), "device": str(device),
@@ -334,9 +348,14 @@ def train(args) -> pathlib.Path:
     next_val, best = 0.0, math.inf
     with open(out / "log.jsonl", "w") as log:
         while True:
-            frac = (time.monotonic() - start) / budget
+            if args.steps:  # a step budget: the schedule no longer depends on the machine's load
+                frac = step / args.steps
+                val_due = step >= next_val
+            else:
+                frac = (time.monotonic() - start) / budget
+                val_due = time.monotonic() - start >= next_val
             done = frac >= 1.0 or (args.max_steps and step >= args.max_steps)
-            if val and (done or time.monotonic() - start >= next_val):
+            if val and (done or val_due):
                 row = {"val": validate(net, val), "step": step,
                        "minutes": round((time.monotonic() - start) / 60, 2)}
                 if row["val"]["model"]["rmse"] < best:  # chosen on val, never on the test set
@@ -345,7 +364,7 @@ def train(args) -> pathlib.Path:
                 log.write(json.dumps(row) + "\n")
                 log.flush()
                 print(json.dumps(row), flush=True)
-                next_val += args.val_every * 60.0
+                next_val += args.val_every_steps if args.steps else args.val_every * 60.0
             if done:
                 break
             b = downsample_batch(next(batches), factor_at(stages, frac))
@@ -440,6 +459,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="standard", choices=sorted(network.PRESETS))
     p.add_argument("--minutes", type=float, default=100.0, help="wall-clock training budget")
     p.add_argument("--max-steps", type=int, default=0, help="stop early after this many steps")
+    p.add_argument("--steps", type=int, default=0,
+                   help="a step budget instead of --minutes: the learning-rate schedule, "
+                        "progressive stages and the adversarial/temporal starts become fractions "
+                        "of it, so runs compare fairly on a loaded machine (ablations)")
+    p.add_argument("--val-every-steps", type=int, default=250,
+                   help="steps between val metrics when --steps is given")
+    p.add_argument("--widths", help="override the preset's four encoder widths, e.g. 12,16,32,48")
+    p.add_argument("--blocks", help="override the preset's four block counts, e.g. 1,1,1,1")
     p.add_argument("--out", default="runs/latest")
     p.add_argument("--ablation", default="full",
                    choices=["full", "no_structure", "no_temporal", "no_parsing", "no_sampling",
