@@ -96,8 +96,10 @@ def mean_metrics(rows: list[dict]) -> dict:
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
 
 
-def evaluate(predict, dataset, n: int | None = None, baselines: bool = True) -> dict:
-    """``predict(sample) -> (relit (3,H,W) absolute, extras dict)`` over the first n samples."""
+def evaluate(predict, dataset, n: int | None = None, baselines: bool = True,
+             per_sample: bool = False) -> dict:
+    """``predict(sample) -> (relit (3,H,W) absolute, extras dict)`` over the first n samples.
+    ``per_sample`` also returns every sample's metrics (for paired comparisons of models)."""
     n = len(dataset) if n is None else min(n, len(dataset))
     rows = {"model": [], "identity": [], "irradiance_ratio": []}
     fg_iou = []
@@ -117,6 +119,8 @@ def evaluate(predict, dataset, n: int | None = None, baselines: bool = True) -> 
     if fg_iou:
         out["model"]["foreground_iou"] = float(np.mean(fg_iou))
     out["samples"] = n
+    if per_sample:
+        out["per_sample"] = rows
     return out
 
 
