@@ -94,7 +94,9 @@ def stage_sources(stage: pathlib.Path) -> None:
     for folder in INCLUDE_DIRS:
         for path in sorted((ROOT / folder).rglob("*")):
             if (path.is_file() and path.suffix in INCLUDE_SUFFIXES
-                    and "__pycache__" not in path.parts):
+                    and "__pycache__" not in path.parts
+                    and not path.is_relative_to(ROOT / "models" / "research")):
+                # models/research: ablation and frontier variants, measured, never offered
                 _copy(path, stage)
     for name in INCLUDE_FILES:
         _copy(ROOT / name, stage)

@@ -85,6 +85,7 @@ def test_zip_holds_only_the_extension(linux_zip):
                     if n.startswith("wheels/"))
     assert wheels == ["av", "onnxruntime", "openexr"]          # never numpy: Blender has it
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc")]
+    assert not [n for n in names if n.startswith("models/research/")]  # measured, not offered
     manifest = zipfile.ZipFile(linux_zip).read("blender_manifest.toml").decode()
     assert 'platforms = ["linux-x64"]' in manifest
 
