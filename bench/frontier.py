@@ -10,10 +10,13 @@ Knob groups, each with its own error measure (so each has its own frontier):
 * network: the per-frame path of addon/pipeline.py (shrink -> network -> guided coefficients ->
   full-resolution finish; decoding and writing excluded) against the light stage's ground truth,
   RMSE on the portrait region as training/evaluate.py defines it. Knobs: the shipped presets
-  (models/*.onnx), extra widths and depths exported untrained from training/network.py (time only:
-  their accuracy is not measured and is labelled so), working resolution (256, 384, 512, full),
-  the full-resolution detail transfer on/off, precision (fp32, int8 made with
-  onnxruntime.quantization; fp16 made with onnxruntime.transformers.float16, which the CPU
+  (models/*.onnx); width and depth trained at an equal step budget (--research, default
+  models/research/: ablation-full, width-narrow, width-deep, each at its working size, its row
+  naming widths, blocks, GFLOP, parameters and training steps; absent files are skipped); extra
+  widths and depths exported untrained from training/network.py, only for configs with no trained
+  model here (time only: their accuracy is not measured and is labelled so), working resolution
+  (256, 384, 512, full), the full-resolution detail transfer on/off, precision (fp32, int8 made
+  with onnxruntime.quantization; fp16 made with onnxruntime.transformers.float16, which the CPU
   provider runs) and execution provider (CPU; GPU providers where present).
 * light stage: the selective-effects shortcut against the full 114-light sum
   (bench/lightstage_throughput.py), relative RMSE of the radiance.
@@ -21,9 +24,14 @@ Knob groups, each with its own error measure (so each has its own frontier):
   (bench/light_conversion.py), relative RMSE on a diffuse sphere; time per conversion.
 
 Timings are medians over repeated runs with the 10th-90th percentile spread, on the machine that
-each output names (platform, CPU model, cores, load average, date). Writes frontier.md, .json
-and .png into --out; with --readme it replaces the README section between the frontier markers,
-with --write-cards it adds a "frontier" entry to each measured model card in --models.
+each output names (platform, CPU model, cores, load average, date). The settings compared are
+timed together: a few warm-up runs of each, then round-robin rounds (every setting once per round,
+the order shuffled with a fixed seed), so start-up costs and load drifts do not fall on the setting
+measured first (one run showed an untrained Draft slower than the untrained Final).
+
+Writes frontier.md, .json and .png into --out; with --readme it replaces the README section
+between the frontier markers, with --write-cards it adds a "frontier" entry to each measured
+model card in --models (the research cards are left as they are).
 """
 
 from __future__ import annotations
@@ -31,7 +39,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import hashlib
-import itertools
 import json
 import os
 import pathlib
@@ -94,15 +101,21 @@ def spread(times_s) -> dict:
             "p90": float(np.percentile(t, 90)), "runs": int(t.size)}
 
 
-def timed(fn, repeats: int, warmup: int = 1):
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return spread(times)
+def interleaved_times(fns, repeats: int, warmup: int = 3, seed: int = 0) -> list[dict]:
+    """Median and spread of each ``fn(round)``, timed round-robin: ``warmup`` untimed rounds,
+    then ``repeats`` rounds that each run every fn once, in an order shuffled with a fixed seed.
+    Timed one after the other, the first variant paid the thread spin-up, page faults and cold
+    caches (an untrained Draft once measured slower than the untrained Final); interleaved, every
+    variant's runs spread over the whole session and share its drifts in load."""
+    rng = np.random.default_rng(seed)
+    times = [[] for _ in fns]
+    for r in range(-warmup, repeats):
+        for i in rng.permutation(len(fns)):
+            t0 = time.perf_counter()
+            fns[i](r)
+            if r >= 0:
+                times[i].append(time.perf_counter() - t0)
+    return [spread(t) for t in times]
 
 
 @dataclass
@@ -239,38 +252,174 @@ def relight_frame(session, f: Frame, working: int, detail_on: bool,
     return pipeline.finish(f.x_full, ab, f.x_max, fullres)[0]
 
 
-def measure_network(session, frames, working: int, detail_on: bool, repeats: int,
-                    fullres, accuracy: bool = True) -> dict:
+@dataclass
+class Variant:
+    """One network setting to measure: how to run a frame, and the fields of its row."""
+    kind: str
+    label: str
+    session: object
+    working: int
+    detail: bool
+    settings: dict
+    note: str = ""
+    accuracy: bool = True  # False: an untrained export, timed only
+    extra: dict = field(default_factory=dict)
+
+    def run(self, frame: Frame, fullres) -> np.ndarray:
+        return relight_frame(self.session, frame, self.working, self.detail, fullres)
+
+
+def accuracy_of(v: Variant, frames, fullres) -> dict:
+    """Mean held-out RMSE / PSNR / SSIM on the portrait region (training/evaluate.py)."""
     from training import evaluate
 
-    metrics = []
-    if accuracy:
-        for f in frames:
-            y = relight_frame(session, f, working, detail_on, fullres).astype(np.float32)
-            metrics.append(evaluate.image_metrics(np.moveaxis(y, -1, 0), f.gt, f.mask))
-    cycle = itertools.cycle(frames)  # timed runs go round the test frames
-    t = timed(lambda: relight_frame(session, next(cycle), working, detail_on, fullres), repeats)
-    if metrics:
-        t.update({k: float(np.mean([m[k] for m in metrics])) for k in metrics[0]})
-    return t
+    m = [evaluate.image_metrics(np.moveaxis(v.run(f, fullres).astype(np.float32), -1, 0),
+                                f.gt, f.mask) for f in frames]
+    return {k: float(np.mean([x[k] for x in m])) for k in m[0]}
 
 
-def network_row(kind, label, result, settings, note="") -> Row:
-    return Row("network", kind, label, result.get("rmse"), result["ms"],
-               result["p10"], result["p90"], result["runs"], settings,
-               {k: result[k] for k in ("psnr", "ssim") if k in result}, note)
+def measure_variants(variants: list[Variant], frames, fullres, args, log) -> list[dict]:
+    """Accuracy of each variant, then the time of all of them interleaved (interleaved_times);
+    round r relights test frame r for every variant, so all time the same frames."""
+    results = []
+    for v in variants:
+        if v.accuracy:
+            log(f"accuracy: {v.kind}: {v.label}")
+        results.append(accuracy_of(v, frames, fullres) if v.accuracy else {})
+    log(f"timing {len(variants)} network settings round-robin ({args.warmup} warm-up + "
+        f"{args.repeats} rounds)")
+    fns = [lambda r, v=v: v.run(frames[r % len(frames)], fullres) for v in variants]
+    for res, t in zip(results, interleaved_times(fns, args.repeats, args.warmup)):
+        res.update(t)
+    return results
 
 
-def shipped_models(models_dir: pathlib.Path) -> list[engine.ModelCard]:
+def network_row(v: Variant, result: dict) -> Row:
+    return Row("network", v.kind, v.label, result.get("rmse"), result["ms"], result["p10"],
+               result["p90"], result["runs"], v.settings,
+               {**v.extra, **{k: result[k] for k in ("psnr", "ssim") if k in result}}, v.note)
+
+
+def shipped_models(models_dir: pathlib.Path, names=None, log=None) -> list[engine.ModelCard]:
+    """Checked cards of ``models_dir``'s *.onnx (or of ``names`` there: stems); a missing or
+    broken one is reported and left out, never measured."""
+    folder = pathlib.Path(models_dir)
+    paths = sorted(folder.glob("*.onnx")) if names is None else [folder / f"{n}.onnx"
+                                                                   for n in names]
+    log = log or (lambda msg: print(msg, file=sys.stderr))
     cards = []
-    for p in sorted(pathlib.Path(models_dir).glob("*.onnx")):
+    for p in paths:
         try:
             card = engine.load_card(p)
             engine.verify_checksum(card)
             cards.append(card)
         except Exception as err:  # noqa: BLE001  a broken card is reported, not measured
-            print(f"skipping {p.name}: {err}", file=sys.stderr)
+            log(f"skipping {p.name}: {err}")
     return cards
+
+
+def config_of(card: engine.ModelCard) -> dict | None:
+    """The network config (widths, blocks...) the card was exported from, if it says."""
+    data = card.data
+    arch = data.get("architecture") if isinstance(data.get("architecture"), dict) else {}
+    training = data.get("training") if isinstance(data.get("training"), dict) else {}
+    return arch.get("config") or (training.get("recipe") or {}).get("net")
+
+
+def training_steps(card: engine.ModelCard) -> dict:
+    """How long the card's network trained, from its recipe (training/train.py): the step budget
+    (--steps; None for a run boxed in minutes), the steps run, and the exported checkpoint's
+    step (best.pt is the best on val, which may come before the end)."""
+    training = card.data.get("training") if isinstance(card.data.get("training"), dict) else {}
+    recipe = training.get("recipe") or {}
+    args, ck = recipe.get("args") or {}, recipe.get("exported_checkpoint") or {}
+    return {"step_budget": args.get("steps") or None,
+            "minutes_budget": None if args.get("steps") else args.get("minutes"),
+            "steps_run": recipe.get("steps"), "checkpoint": ck.get("file"),
+            "checkpoint_step": ck.get("step"), "ablation": args.get("ablation")}
+
+
+@dataclass
+class Context:
+    """What the network group's builders share: arguments, full size, sizes, scratch folder."""
+    args: argparse.Namespace
+    res: int
+    sizes: list
+    folder: pathlib.Path
+    fullres: object
+    log: object
+
+    def settings(self, card, ws, det, precision="fp32", prov=CPU) -> dict:
+        return {"model": card.name, "preset": card.preset, "working": ws, "full": self.res,
+                "detail": det, "precision": precision, "provider": prov,
+                "threads": self.args.threads}
+
+    def name(self, card, ws, precision="fp32") -> str:
+        return f"{card.preset} {precision} {ws if ws < self.res else 'full'}"
+
+    def cost(self, config: dict | None, ws: int, stride: int) -> dict:
+        """GFLOP per frame at the working shape of the test frames padded to the stride (as the
+        engine runs it), and parameters, of a network config; {} where the card has none."""
+        from training import network
+
+        try:
+            net = network.RelightNet(network.NetConfig(**{
+                k: tuple(v) if isinstance(v, list) else v for k, v in (config or {}).items()}))
+        except (TypeError, ValueError) as err:  # no config, or one this code does not know
+            self.log(f"no cost for config {config}: {err}")
+            return {}
+        h, w = (-(-n // stride) * stride for n in detail.working_shape(self.res, self.res, ws))
+        return {"gflop_at_working": round(network.count_flops(net, h, w) / 1e9, 4),
+                "parameters": network.parameter_count(net)}
+
+
+RESEARCH_POINTS = ("ablation-full", "width-narrow", "width-deep")
+TRAINED_KIND = "width/depth (trained, equal steps)"
+
+
+def research_variants(ctx: Context, skipped: list) -> list[Variant]:
+    """The width/depth networks trained at an equal step budget (models/research/, exported by
+    training/export.py), each at its working size like the shipped presets. Missing files are
+    logged and left out; with none, the group is absent."""
+    args, log = ctx.args, ctx.log
+    if "research" in args.skip:
+        return []
+    missing = [n for n in RESEARCH_POINTS if not (args.research / f"{n}.onnx").is_file()]
+    if missing:
+        log(f"research models missing in {args.research}: {', '.join(missing)}")
+        skipped.append(f"trained width/depth point(s) {', '.join(missing)} "
+                       f"(not in {args.research})")
+    cards = shipped_models(args.research, [n for n in RESEARCH_POINTS if n not in missing], log)
+    steps = [training_steps(c) for c in cards]
+    budgets = {s["step_budget"] for s in steps}
+    kind = TRAINED_KIND if len(budgets) == 1 and None not in budgets else "width/depth (trained)"
+    if cards and kind != TRAINED_KIND:
+        log(f"research models: step budgets {sorted(budgets, key=str)}: not an equal-step set")
+    out = []
+    for card, st in zip(cards, steps):
+        ws, config = min(card.working_size, ctx.res), config_of(card)
+        settings = {**ctx.settings(card, ws, True), "widths": (config or {}).get("widths"),
+                    "blocks": (config or {}).get("blocks"),
+                    **ctx.cost(config, ws, card.stride), "training": st, "config": config}
+        out.append(Variant(kind, f"{card.name} fp32 {ws if ws < ctx.res else 'full'}",
+                           open_session(card, args.threads, CPU), ws, True, settings,
+                           research_note(settings)))
+    return out
+
+
+def research_note(s: dict) -> str:
+    """The config and training of a trained width/depth point, for the table's note column."""
+    def join(v):
+        return ",".join(map(str, v)) if v else "?"
+
+    t = s["training"]
+    trained = (f"{t['step_budget']} steps" if t["step_budget"] else
+               f"{t['minutes_budget']} min" if t["minutes_budget"] else "training not recorded")
+    if t["checkpoint_step"] is not None:
+        trained += f" ({t['checkpoint'] or 'checkpoint'} at step {t['checkpoint_step']})"
+    cost = (f"; {s['gflop_at_working']} GFLOP at {s['working']}, {s['parameters']:,} parameters"
+            if "parameters" in s else "")
+    return f"widths {join(s['widths'])}, blocks {join(s['blocks'])}{cost}; trained {trained}"
 
 
 def untrained_variants(quick: bool) -> list[tuple[str, dict]]:
@@ -319,119 +468,105 @@ def half_precision(card: engine.ModelCard, folder: pathlib.Path) -> engine.Model
                     card.classes, card.data)
 
 
-def network_group(args, frames, folder: pathlib.Path, log) -> tuple[list[Row], dict]:
-    """Every shipped model at every working size (detail on), then for the first fp32 model:
-    detail off, int8 and other providers; then the untrained width/depth points."""
+def network_group(args, frames, folder: pathlib.Path, log, skipped) -> tuple[list[Row], dict]:
+    """Every shipped model at every working size (detail on); for the first fp32 model: detail
+    off, int8, fp16 and other providers; the trained width/depth points of --research; the
+    untrained width/depth points that have no trained one. All timed together, interleaved."""
     res = frames[0].x_full.shape[0]
     fullres = detail.FullRes(threads=args.threads)
-    cards = shipped_models(args.models)
+    cards = shipped_models(args.models, log=log)
     if not cards:
         log(f"no model in {args.models}: nothing trained to measure")
     if args.toy_fallback is not None:
         cards.append(args.toy_fallback)
     sizes = sorted({s for s in args.sizes if s < res} | {res})
-    rows, per_card = [], {}
-
-    def settings(card, ws, det, precision="fp32", prov=CPU):
-        return {"model": card.name, "preset": card.preset, "working": ws, "full": res,
-                "detail": det, "precision": precision, "provider": prov,
-                "threads": args.threads}
-
-    def name(card, ws, precision="fp32"):
-        return f"{card.preset} {precision} {ws if ws < res else 'full'}"
-
+    ctx = Context(args, res, sizes, folder, fullres, log)
+    variants, own = [], {}
     for card in cards:
         s = open_session(card, args.threads, CPU)
         precision = "int8" if "int8" in card.name else "fp32"
         note = "toy model of the tests (physics stand-in)" if card is args.toy_fallback else ""
-        own = min(card.working_size, res)
-        for ws in sorted(set(sizes) | {own}):
-            log(f"network {card.name} at {ws}")
-            r = measure_network(s, frames, ws, True, args.repeats, fullres)
-            rows.append(network_row("preset x resolution", name(card, ws, precision), r,
-                                    settings(card, ws, True, precision), note))
-            if ws == own and card is not args.toy_fallback:
-                per_card[card.name] = (card, r, settings(card, ws, True, precision))
+        for ws in sorted(set(sizes) | {min(card.working_size, res)}):
+            variants.append(Variant("preset x resolution", ctx.name(card, ws, precision), s, ws,
+                                    True, ctx.settings(card, ws, True, precision), note))
+            if ws == min(card.working_size, res) and card is not args.toy_fallback:
+                own[card.name] = (card, len(variants) - 1)
     primary = next((c for c in cards if "int8" not in c.name), None)
+    fixed = []
     if primary is not None:
-        rows += primary_knobs(args, primary, frames, sizes, folder, fullres, settings, name, log)
-    rows += untrained_rows(args, frames, folder, fullres, log)
+        more, fixed = primary_knobs(ctx, primary, cards, frames)
+        variants += more
+    research = research_variants(ctx, skipped)
+    trained = [config_of(c) for c in cards] + [v.settings["config"] for v in research]
+    variants += research + untrained(ctx, frames, [c for c in trained if c])
+    results = measure_variants(variants, frames, fullres, args, log)
+    rows = [network_row(v, r) for v, r in zip(variants, results)] + fixed
+    per_card = {n: (card, results[i], variants[i].settings) for n, (card, i) in own.items()}
     return rows, per_card
 
 
-def primary_knobs(args, card, frames, sizes, folder, fullres, settings, name, log) -> list[Row]:
-    """Detail transfer off, int8 and every non-CPU provider, for one model."""
+def primary_knobs(ctx: Context, card, cards, frames) -> tuple[list[Variant], list[Row]]:
+    """Detail transfer off, int8, fp16 and every non-CPU provider, for one model; (variants to
+    measure, rows that say why a knob could not be measured)."""
     import onnxruntime as ort
 
-    res = frames[0].x_full.shape[0]
-    s = open_session(card, args.threads, CPU)
-    rows = []
-    for ws in [x for x in sizes if x < res]:
-        log(f"detail off {card.name} at {ws}")
-        r = measure_network(s, frames, ws, False, args.repeats, fullres)
-        rows.append(network_row("detail transfer off", name(card, ws) + " no detail", r,
-                                settings(card, ws, False)))
-    ws = min(card.working_size, res)
-    q, why = quantised(s, frames, ws, fullres, folder)
+    threads = ctx.args.threads
+    s = open_session(card, threads, CPU)
+    out = [Variant("detail transfer off", ctx.name(card, ws) + " no detail", s, ws, False,
+                   ctx.settings(card, ws, False)) for ws in ctx.sizes if ws < ctx.res]
+    ws, fixed = min(card.working_size, ctx.res), []
+    q, why = quantised(s, frames, ws, ctx.fullres, ctx.folder)
     if q is None:
-        log(f"int8 not measured: {why}")
-        rows.append(Row("network", "precision", name(card, ws, "int8"), None, None,
-                        settings=settings(card, ws, True, "int8"), note=why))
-    elif "int8" not in " ".join(c.name for c in shipped_models(args.models)):
-        r = measure_network(open_session(q, args.threads, CPU), frames, ws, True, args.repeats,
-                            fullres)
-        rows.append(network_row("precision", name(card, ws, "int8"), r,
-                                settings(card, ws, True, "int8"),
-                                "int8 QDQ (convolutions) made here, calibrated on the test frames"))
-    log(f"fp16 {card.name} at {ws}")
-    r = measure_network(open_session(half_precision(card, folder), args.threads, CPU), frames,
-                        ws, True, args.repeats, fullres)
-    rows.append(network_row("precision", name(card, ws, "fp16"), r,
-                            settings(card, ws, True, "fp16"),
-                            "fp16 made here (onnxruntime.transformers.float16, fp32 I/O)"))
+        ctx.log(f"int8 not measured: {why}")
+        fixed.append(Row("network", "precision", ctx.name(card, ws, "int8"), None, None,
+                         settings=ctx.settings(card, ws, True, "int8"), note=why))
+    elif not any("int8" in c.name for c in cards):
+        out.append(Variant("precision", ctx.name(card, ws, "int8"),
+                           open_session(q, threads, CPU), ws, True,
+                           ctx.settings(card, ws, True, "int8"),
+                           "int8 QDQ (convolutions) made here, calibrated on the test frames"))
+    out.append(Variant("precision", ctx.name(card, ws, "fp16"),
+                       open_session(half_precision(card, ctx.folder), threads, CPU), ws, True,
+                       ctx.settings(card, ws, True, "fp16"),
+                       "fp16 made here (onnxruntime.transformers.float16, fp32 I/O)"))
     for prov in ort.get_available_providers():
-        if prov in (CPU, "AzureExecutionProvider"):
-            continue
-        log(f"provider {prov}")
-        r = measure_network(open_session(card, args.threads, prov), frames, ws, True,
-                            args.repeats, fullres)
-        rows.append(network_row("provider", f"{name(card, ws)} {prov}", r,
-                                settings(card, ws, True, "fp32", prov)))
-    return rows
+        if prov not in (CPU, "AzureExecutionProvider"):
+            out.append(Variant("provider", f"{ctx.name(card, ws)} {prov}",
+                               open_session(card, threads, prov), ws, True,
+                               ctx.settings(card, ws, True, "fp32", prov)))
+    return out, fixed
 
 
-def untrained_rows(args, frames, folder, fullres, log) -> list[Row]:
-    """Speed of the presets and extra width/depth points exported untrained (and int8 of the
-    first): time is what these measure; their error is not an accuracy and is not reported."""
+def untrained(ctx: Context, frames, trained_configs: list[dict]) -> list[Variant]:
+    """Speed of the presets and extra width/depth points exported untrained, for the configs
+    that no trained model measured here has (and int8 / fp16 of the first): time is what these
+    measure; their error is not an accuracy and is not reported."""
     from training import export, network
 
-    rows = []
-    ws = min(256, frames[0].x_full.shape[0])
-    for i, (label, kw) in enumerate([] if "untrained" in args.skip
-                                    else untrained_variants(args.quick)):
-        kw = dict(kw)
-        net = network.build(kw.pop("preset"), **kw).eval()
-        path = export.export_onnx(net, folder / f"untrained-{i}.onnx")
+    if "untrained" in ctx.args.skip:
+        return []
+    ws, out = min(256, ctx.res), []
+    nets = [(label, network.build(**kw).eval()) for label, kw in untrained_variants(ctx.args.quick)]
+    todo = [(label, net) for label, net in nets if net.cfg.to_dict() not in trained_configs]
+    for i, (label, net) in enumerate(todo):
+        path = export.export_onnx(net, ctx.folder / f"untrained-{i}.onnx")
         card = card_for(path, net.cfg.stride, ws, label, label, contract.PARSING_CLASSES,
                         {"relit_scale": export.RELIT_SCALE})
         variants = [("fp32", card)]
         if i == 0:
-            q, why = quantised(open_session(card, 1, CPU), frames, ws, fullres, folder)
+            q, _ = quantised(open_session(card, 1, CPU), frames, ws, ctx.fullres, ctx.folder)
             variants += [("int8", q)] if q is not None else []
-            variants.append(("fp16", half_precision(card, folder)))
+            variants.append(("fp16", half_precision(card, ctx.folder)))
+        extra = {"gflop_at_working": round(network.count_flops(net, ws, ws) / 1e9, 3),
+                 "parameters": network.parameter_count(net)}
         for precision, c in variants:
-            log(f"untrained {label} {precision} at {ws}")
-            r = measure_network(open_session(c, args.threads, CPU), frames, ws, True,
-                                args.repeats, fullres, accuracy=False)
-            rows.append(Row("network", "untrained width/depth (time only)",
-                            f"{label} {precision} {ws}", None, r["ms"], r["p10"], r["p90"],
-                            r["runs"], {"model": label, "working": ws, "detail": True,
-                                        "precision": precision, "provider": CPU,
-                                        "threads": args.threads, "config": net.cfg.to_dict()},
-                            {"gflop_at_working": round(network.count_flops(net, ws, ws) / 1e9, 3),
-                             "parameters": network.parameter_count(net)},
-                            "untrained export: time only, accuracy not measured"))
-    return rows
+            out.append(Variant(
+                "untrained width/depth (time only)", f"{label} {precision} {ws}",
+                open_session(c, ctx.args.threads, CPU), ws, True,
+                {"model": label, "working": ws, "detail": True, "precision": precision,
+                 "provider": CPU, "threads": ctx.args.threads, "config": net.cfg.to_dict()},
+                "untrained export: time only, accuracy not measured", False, dict(extra)))
+    return out
 
 
 def reference_rows(samples) -> list[Row]:
@@ -511,9 +646,10 @@ def conversion_group(args, folder: pathlib.Path, log) -> list[Row]:
         h, w = image.shape[:2]
         truth = (image.astype(np.float64) * hdri.pixel_row_solid_angles(h, w)[:, None, None]
                  ).sum((0, 1))
-        for width, r in results.items():
-            t = timed(lambda: hdri.downsample(image, yaw_degrees=-turn, max_width=width),
-                      args.repeats)
+        fns = [lambda _, w=width: hdri.downsample(image, yaw_degrees=-turn, max_width=w)
+               for width in results]
+        times = interleaved_times(fns, args.repeats, args.warmup)
+        for (width, r), t in zip(results.items(), times):
             power = lightvec.total_power(hdri.downsample(image, tilted, yaw_degrees=-turn,
                                                          max_width=width))
             rows.append(Row("lighting conversion", label, f"width {width}", r["error"], t["ms"],
@@ -592,8 +728,8 @@ def make_plot(path, rows: list[Row], info: dict) -> None:
     panels = []
     for group in ("network", "light stage", "lighting conversion"):
         pts = [{"ms": r.ms, "error": r.error, "kind": r.kind, "frontier": r.frontier,
-                "front": front_of(r), "label": r.label} for r in rows if r.group == group and r.error is not None
-               and r.ms]
+                "front": front_of(r), "label": r.label} for r in rows
+               if r.group == group and r.error is not None and r.ms]
         refs = [(r.error, r.label) for r in rows if r.group == "reference"
                 and group == "network"]
         if pts:
@@ -647,6 +783,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="tiny test set, few repeats")
     p.add_argument("--models", type=pathlib.Path, default=ROOT / "models")
+    p.add_argument("--research", type=pathlib.Path,
+                   help="trained width/depth points (ablation-full, width-narrow, width-deep "
+                        ".onnx + cards; default: MODELS/research)")
     p.add_argument("--out", type=pathlib.Path, default=ROOT / "bench" / "results")
     p.add_argument("--readme", type=pathlib.Path, help="update this README's frontier section")
     p.add_argument("--write-cards", action="store_true",
@@ -654,6 +793,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--resolution", type=int, help="test set size (default 640; quick 64)")
     p.add_argument("--samples", type=int, help="test samples (default 8; quick 2)")
     p.add_argument("--repeats", type=int, help="timed runs per setting (default 12; quick 3)")
+    p.add_argument("--warmup", type=int, default=3,
+                   help="untimed runs of every setting before timing starts")
     p.add_argument("--sizes", type=int, nargs="+",
                    help="working sizes below full (default 256 384 512; quick 16 32)")
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
@@ -664,8 +805,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--toy", action="store_true",
                    help="also measure the toy model of tests/onnx_fixtures.py (tests only)")
     p.add_argument("--skip", nargs="*", default=[],
-                   choices=["untrained", "lightstage", "conversion"])
+                   choices=["untrained", "research", "lightstage", "conversion"])
     a = p.parse_args(argv)
+    a.research = a.research or a.models / "research"
     a.resolution = a.resolution or (64 if a.quick else 640)
     a.samples = a.samples or (2 if a.quick else 8)
     a.repeats = a.repeats or (3 if a.quick else 12)
@@ -707,7 +849,7 @@ def main(argv=None) -> dict:
         samples, info["test_set"] = heldout_samples(
             args.resolution, args.samples, args.seed, folder if args.no_cache else args.cache)
         frames = frames_of(samples)
-        rows, per_card = network_group(args, frames, folder, log)
+        rows, per_card = network_group(args, frames, folder, log, skipped)
         rows += reference_rows(samples)
         if "lightstage" not in args.skip:
             rows += lightstage_group(args, log)

@@ -5,6 +5,7 @@ tests/blender/test_frontier_harness.py)."""
 import json
 import pathlib
 import struct
+import time
 import zlib
 
 import numpy as np
@@ -163,3 +164,99 @@ def test_quick_run_writes_table_plot_readme_and_card(quick_run):
     assert front["working_size"] == 64 and front["ms_per_frame"] > 0 and 0 < front["rmse"] < 1
     assert card["metrics"] == {} and "per_size" not in card["cost"]  # other keys untouched
     assert result["cards"] == [str(tmp / "models" / "toy.json")]
+
+
+def test_interleaved_timing_warms_up_then_goes_round_robin():
+    """Every setting is warmed up, then each round runs every setting once (order shuffled with
+    a fixed seed), so no setting pays the session's start-up cost alone."""
+    def settings_and_calls():
+        calls, started = [], set()
+
+        def setting(i):
+            def run(r):
+                calls.append((i, r))
+                if i not in started:  # the first call of each setting is slow (a cold start)
+                    started.add(i)
+                    time.sleep(0.05)
+            return run
+        return [setting(i) for i in range(3)], calls
+
+    fns, calls = settings_and_calls()
+    out = frontier.interleaved_times(fns, repeats=4, warmup=2, seed=7)
+    rounds = [calls[k:k + 3] for k in range(0, len(calls), 3)]
+    assert len(rounds) == 6
+    for n, rnd in enumerate(rounds):
+        assert sorted(i for i, _ in rnd) == [0, 1, 2] and {r for _, r in rnd} == {n - 2}
+    assert len({tuple(i for i, _ in rnd) for rnd in rounds}) > 1  # the order is shuffled
+    assert all(s["runs"] == 4 and s["p90"] < 40 for s in out)  # the cold start is not timed
+    fns, again = settings_and_calls()
+    frontier.interleaved_times(fns, repeats=4, warmup=2, seed=7)
+    assert again == calls  # the same seed, the same order
+
+
+def test_quick_run_without_a_research_folder_skips_the_trained_points(quick_run):
+    """tmp/models/research does not exist: the group is absent, the table says why, the run
+    goes on (and the untrained draft, which then has no trained point, is kept)."""
+    tmp, result = quick_run
+    assert not any(r.kind.startswith("width/depth (trained") for r in result["rows"])
+    md = (tmp / "results" / "frontier.md").read_text()
+    assert "not measured: trained width/depth point(s) ablation-full, width-narrow, width-deep" \
+        in md
+
+
+def _export_research_point(folder, name, steps, **overrides):
+    """A tiny untrained draft-family network exported as training/export.py would a trained one:
+    the ONNX file and a card from export.make_card, its recipe saying how it trained."""
+    from training import export, network
+
+    net = network.build("draft", **overrides).eval()
+    path = export.export_onnx(net, folder / f"{name}.onnx")
+    recipe = {"args": {"preset": "draft", "steps": steps, "ablation": "full"},
+              "net": net.cfg.to_dict(), "exported_checkpoint": {"file": "best.pt", "step": 15}}
+    export.write_card(export.make_card(name, "draft", path, net, {"recipe": recipe}, {}, {}, 32),
+                      path)
+    return net
+
+
+@pytest.fixture(scope="module")
+def research_run(shared_data, tmp_path_factory):
+    from training import network
+
+    tmp = tmp_path_factory.mktemp("frontier-research")
+    write_toy_model(tmp / "models")
+    nets = {"ablation-full": _export_research_point(tmp / "research", "ablation-full", 20),
+            "width-narrow": _export_research_point(tmp / "research", "width-narrow", 20,
+                                                   widths=(8, 12, 24, 32))}
+    result = frontier.main(["--quick", "--models", str(tmp / "models"), "--research",
+                            str(tmp / "research"), "--out", str(tmp / "results"), "--no-cache",
+                            "--threads", "1", "--skip", "lightstage", "conversion"])
+    params = {k: network.parameter_count(n) for k, n in nets.items()}
+    return tmp, result, params
+
+
+def test_research_points_are_measured_like_the_presets(research_run):
+    tmp, result, params = research_run
+    rows = {r.settings["model"]: r for r in result["rows"] if r.kind == frontier.TRAINED_KIND}
+    assert set(rows) == {"ablation-full", "width-narrow"}  # width-deep is absent: skipped
+    for name, r in rows.items():
+        assert 0 < r.error <= 1 and r.extra["psnr"] > 0  # held-out accuracy, not time only
+        assert 0 < r.p10 <= r.ms <= r.p90 and r.runs == 3
+        s = r.settings
+        assert s["working"] == 32 and s["full"] == 64 and s["precision"] == "fp32"
+        assert s["parameters"] == params[name] and s["gflop_at_working"] > 0
+        assert s["training"]["step_budget"] == 20 and s["training"]["checkpoint_step"] == 15
+        assert "trained 20 steps (best.pt at step 15)" in r.note
+    narrow, full = rows["width-narrow"], rows["ablation-full"]
+    assert narrow.settings["widths"] == [8, 12, 24, 32] and full.settings["blocks"] == [1, 1, 1, 1]
+    assert narrow.settings["gflop_at_working"] < full.settings["gflop_at_working"]
+    md = (tmp / "results" / "frontier.md").read_text()
+    assert f"| {frontier.TRAINED_KIND} | width-narrow fp32 32 |" in md
+    assert "width-deep (not in" in md
+
+
+def test_untrained_rows_only_for_configs_without_a_trained_point(research_run):
+    """The quick untrained point is the Draft config, which ablation-full trained: not repeated
+    as a time-only row."""
+    _, result, _ = research_run
+    assert not any(r.kind.startswith("untrained") for r in result["rows"])
+    assert {r.kind for r in result["rows"]} >= {"preset x resolution", frontier.TRAINED_KIND}
