@@ -389,7 +389,12 @@ def research_variants(ctx: Context, skipped: list) -> list[Variant]:
         log(f"research models missing in {args.research}: {', '.join(missing)}")
         skipped.append(f"trained width/depth point(s) {', '.join(missing)} "
                        f"(not in {args.research})")
-    cards = shipped_models(args.research, [n for n in RESEARCH_POINTS if n not in missing], log)
+    present = [n for n in RESEARCH_POINTS if n not in missing]
+    cards = shipped_models(args.research, present, log)
+    broken = [n for n in present if n not in {c.onnx_path.stem for c in cards}]
+    if broken:
+        skipped.append(f"trained width/depth point(s) {', '.join(broken)} (model or card "
+                       "unusable: see the log)")
     steps = [training_steps(c) for c in cards]
     budgets = {s["step_budget"] for s in steps}
     kind = TRAINED_KIND if len(budgets) == 1 and None not in budgets else "width/depth (trained)"

@@ -227,6 +227,7 @@ def research_run(shared_data, tmp_path_factory):
     nets = {"ablation-full": _export_research_point(tmp / "research", "ablation-full", 20),
             "width-narrow": _export_research_point(tmp / "research", "width-narrow", 20,
                                                    widths=(8, 12, 24, 32))}
+    (tmp / "research" / "width-deep.onnx").write_bytes(b"not a model")  # and no card
     result = frontier.main(["--quick", "--models", str(tmp / "models"), "--research",
                             str(tmp / "research"), "--out", str(tmp / "results"), "--no-cache",
                             "--threads", "1", "--skip", "lightstage", "conversion"])
@@ -237,7 +238,7 @@ def research_run(shared_data, tmp_path_factory):
 def test_research_points_are_measured_like_the_presets(research_run):
     tmp, result, params = research_run
     rows = {r.settings["model"]: r for r in result["rows"] if r.kind == frontier.TRAINED_KIND}
-    assert set(rows) == {"ablation-full", "width-narrow"}  # width-deep is absent: skipped
+    assert set(rows) == {"ablation-full", "width-narrow"}  # width-deep is unusable: skipped
     for name, r in rows.items():
         assert 0 < r.error <= 1 and r.extra["psnr"] > 0  # held-out accuracy, not time only
         assert 0 < r.p10 <= r.ms <= r.p90 and r.runs == 3
@@ -251,7 +252,7 @@ def test_research_points_are_measured_like_the_presets(research_run):
     assert narrow.settings["gflop_at_working"] < full.settings["gflop_at_working"]
     md = (tmp / "results" / "frontier.md").read_text()
     assert f"| {frontier.TRAINED_KIND} | width-narrow fp32 32 |" in md
-    assert "width-deep (not in" in md
+    assert "not measured: trained width/depth point(s) width-deep (model or card unusable" in md
 
 
 def test_untrained_rows_only_for_configs_without_a_trained_point(research_run):
