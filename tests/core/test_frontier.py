@@ -177,7 +177,7 @@ def test_interleaved_timing_warms_up_then_goes_round_robin():
                 calls.append((i, r))
                 if i not in started:  # the first call of each setting is slow (a cold start)
                     started.add(i)
-                    time.sleep(0.05)
+                    time.sleep(0.2)
             return run
         return [setting(i) for i in range(3)], calls
 
