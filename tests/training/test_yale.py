@@ -1,0 +1,239 @@
+"""CroppedYale real-data check (training/yale_eval.py): file names, directions, linear sums, the
+HDRI restriction, and the end-to-end evaluation with a tiny ONNX model. Data tests skip without
+../shared/data; nothing here writes pictures of the data outside tmp_path."""
+
+import json
+
+import numpy as np
+import pytest
+
+from addon import lightvec
+from addon.errors import InputError
+from training import yale_eval as ye
+
+
+@pytest.fixture(scope="module")
+def yale_root(shared_data):
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    return root
+
+
+@pytest.fixture(scope="module")
+def b01(yale_root):
+    return ye.load_subject(yale_root, "yaleB01")
+
+
+def index_of(subject, azimuth, elevation):
+    return next(k for k, a in enumerate(subject.angles) if tuple(a) == (azimuth, elevation))
+
+
+# ---- file names and files ------------------------------------------------------------------
+
+def test_parse_name_reads_direction_signs_and_the_ambient_image():
+    assert ye.parse_name("yaleB01_P00A-035E+40.pgm") == ye.YaleName(1, False, -35, 40)
+    assert ye.parse_name("yaleB39_P00A+130E+20.pgm") == ye.YaleName(39, False, 130, 20)
+    assert ye.parse_name("yaleB05_P00A+000E-35.pgm") == ye.YaleName(5, False, 0, -35)
+    assert ye.parse_name("yaleB12_P00_Ambient.pgm") == ye.YaleName(12, True)
+    for other in ("yaleB01_P00.info", "yaleB01_P00A+000E+00.pgm.bad", "README.md",
+                  "yaleB01_P01A+000E+00.pgm"):
+        assert ye.parse_name(other) is None
+
+
+def test_read_pgm_skips_header_comments_and_rejects_other_files(tmp_path):
+    pix = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    p = tmp_path / "a.pgm"
+    p.write_bytes(b"P5\n#@DOME@ xc75a yaleB20\n4 3\n255\n" + pix.tobytes())
+    codes, top = ye.read_pgm(p)
+    np.testing.assert_array_equal(codes, pix)
+    assert top == 255
+    bad = tmp_path / "b.pgm"
+    bad.write_bytes(b"P6\n4 3\n255\n" + bytes(36))
+    with pytest.raises(InputError, match="PGM"):
+        ye.read_pgm(bad)
+
+
+def test_failed_strobe_is_an_image_far_darker_than_its_neighbours():
+    dirs = ye.yale_direction([0, 10, -10, 20, 25], [0, 0, 0, 10, -10])
+    means = np.array([100.0, 90.0, 95.0, 5.0, 80.0])
+    np.testing.assert_array_equal(ye.failed_strobes(dirs, means),
+                                  [False, False, False, True, False])
+    means[3] = 15.0  # 15% of the neighbours' median: a dim but genuine image
+    assert not ye.failed_strobes(dirs, means).any()
+
+
+# ---- directions ---------------------------------------------------------------------------
+
+def test_yale_directions_land_on_the_documented_side_of_the_light_vector():
+    # Negative Yale azimuth lights the image's right half: camera +X, columns above 8.
+    right = lightvec.splat_direction(ye.yale_direction(-50, 0), 1.0)[..., 0]
+    rows, cols = np.nonzero(right)
+    assert cols.min() > lightvec.FRONT_COL and set(rows) <= {7, 8}
+    left = lightvec.splat_direction(ye.yale_direction(50, 0), 1.0)[..., 0]
+    assert np.nonzero(left)[1].max() < lightvec.FRONT_COL
+    mirror = right[:, (16 - np.arange(16)) % 16]  # column c <-> 16 - c about the camera axis
+    np.testing.assert_allclose(left, mirror, atol=1e-6)
+    up = lightvec.splat_direction(ye.yale_direction(0, 45), 1.0)[..., 0]
+    assert np.nonzero(up)[0].max() < 8 and set(np.nonzero(up)[1]) <= {7, 8}
+    np.testing.assert_allclose(ye.yale_direction(0, 0), [0.0, 0.0, 1.0], atol=1e-12)
+    # A lamp to the camera's right brightens normals facing +X, not -X.
+    e = lightvec.irradiance(right[..., None].repeat(3, 2), np.array([[1.0, 0, 0], [-1.0, 0, 0]]))
+    assert e[0, 0] > 0.5 and e[1, 0] == 0.0
+
+
+def test_azimuth_sign_matches_the_images(b01):
+    k = index_of(b01, -50, 0)  # camera +X under the convention above
+    w = b01.images.shape[2] // 2
+    assert b01.images[k][:, w:].mean() > 2 * b01.images[k][:, :w].mean()
+    check = ye.azimuth_sign_check([b01])
+    assert check["pairs"] >= 15 and check["agree"] == check["pairs"]
+
+
+# ---- linearity, ambient, saturation -------------------------------------------------------
+
+def test_weighted_sum_path_is_linear_and_matches_the_light_vector(b01):
+    k1, k2 = index_of(b01, 0, 0), index_of(b01, -50, 0)
+    w = np.zeros(len(b01.dirs))
+    w[[k1, k2]] = 1.0
+    np.testing.assert_allclose(ye.relit_sum(b01, w), b01.images[k1] + b01.images[k2], rtol=1e-6)
+    np.testing.assert_allclose(ye.relit_sum(b01, 0.25 * w), 0.25 * ye.relit_sum(b01, w),
+                               rtol=1e-6)
+    lv = ye.light_vector(b01.dirs, w)
+    single = [lightvec.splat_direction(b01.dirs[k], 1.0) for k in (k1, k2)]
+    np.testing.assert_allclose(lv, single[0] + single[1], rtol=1e-6)
+    np.testing.assert_allclose(lightvec.total_power(lv), [2.0] * 3, rtol=1e-5)
+
+
+def test_the_codes_are_linear_not_gamma_encoded(b01):
+    err = ye.gamma_check(b01, gammas=(1.0, 2.2))
+    assert err["1.0"] < 0.85 * err["2.2"]
+
+
+def test_ambient_is_subtracted_where_it_has_the_crops_size(yale_root, b01):
+    k = index_of(b01, 0, 0)
+    raw, _ = ye.read_pgm(yale_root / "yaleB01" / "yaleB01_P00A+000E+00.pgm")
+    amb, _ = ye.read_pgm(yale_root / "yaleB01" / "yaleB01_P00_Ambient.pgm")
+    expect = np.clip(raw.astype(np.float32) - amb, 0, None) / 255.0
+    np.testing.assert_allclose(b01.images[k], expect, atol=1e-7)
+    assert b01.ambient == "subtracted" and b01.images.min() >= 0.0
+    b11 = ye.load_subject(yale_root, "yaleB11")  # ships its ambient image uncropped
+    assert b11.ambient.startswith("none") and "640x480" in b11.ambient
+    assert len(b11.dirs) == 60  # four images the database itself omits
+
+
+def test_failed_strobes_are_dropped(yale_root):
+    b02 = ye.load_subject(yale_root, "yaleB02")
+    assert b02.dropped == (((95, 0), "failed strobe"),)
+    assert (95, 0) not in {tuple(a) for a in b02.angles} and len(b02.dirs) == 63
+
+
+def test_mask_leaves_out_pixels_that_owe_their_value_to_clipped_codes(b01):
+    k = int(np.argmax(b01.saturated.sum(axis=(1, 2))))
+    w = np.zeros(len(b01.dirs))
+    w[k] = 1.0
+    ellipse, mask = ye.face_mask(b01.images.shape[1:]), ye.face_mask(b01.images.shape[1:], b01, w)
+    clipped = b01.saturated[k] & ellipse
+    assert clipped.any() and not (mask & clipped).any()
+    assert mask.sum() == (ellipse & ~b01.saturated[k]).sum()
+
+
+# ---- lightings ------------------------------------------------------------------------------
+
+def test_restricting_a_light_vector_integrates_it_over_each_cell():
+    dirs = ye.yale_direction([0, 50, -50, 0], [0, 0, 0, 60])
+    omega = ye.cell_solid_angles(dirs)
+    # A cell is a cap of 20 degrees at most (solid angle 2 pi (1 - cos 20)), cut by its neighbours.
+    assert np.all(omega > 0) and np.all(omega <= 2 * np.pi * (1 - np.cos(np.radians(20))) * 1.01)
+    np.testing.assert_allclose(ye.restrict_light(lightvec.uniform(2.0), dirs), 2.0 * omega,
+                               rtol=1e-6)
+    one = lightvec.zeros()
+    row, col = lightvec.directions_to_cells(dirs[1])  # only the texel holding A+050E+00 is lit
+    one[row, col] = 1.0
+    w = ye.restrict_light(one, dirs)
+    assert w[1] > 0 and w[0] == w[2] == w[3] == 0.0
+
+
+def test_pairs_are_fixed_by_the_seed_and_lightings_sum_to_their_intensity(yale_root, b01):
+    bank = ye.HdriBank(yale_root.parents[1])
+    p1, p2 = (ye.draw_pairs(b01, 3, 7, bank) for _ in range(2))
+    assert [a.kind for a, _ in p1] == list(ye.KINDS)
+    for (a1, b1), (a2, b2) in zip(p1, p2):
+        assert a1.label == a2.label and b1.label == b2.label
+        np.testing.assert_array_equal(a1.weights, a2.weights)
+        for lt in (a1, b1):
+            intensity = float(lt.label.split(" x ")[0])
+            assert 0.5 <= lt.weights.sum() <= 2.0
+            assert abs(lt.weights.sum() - intensity) < 0.006
+    assert np.count_nonzero(p1[1][0].weights) == 1 and 2 <= np.count_nonzero(p1[2][0].weights) <= 3
+    assert np.count_nonzero(p1[0][0].weights) > 20  # an HDRI reaches most of the dome
+
+
+# ---- relighting and the evaluation ---------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    from tests.onnx_fixtures import write_toy_model
+
+    return write_toy_model(tmp_path_factory.mktemp("yale_toy"))
+
+
+def test_pipeline_relighter_follows_the_units_of_the_card(toy, b01):
+    from tests.onnx_fixtures import frontal_irradiance_weights
+
+    relight = ye.PipelineRelighter(toy)
+    img = b01.images[index_of(b01, 0, 0)]
+    light = ye.light_vector(b01.dirs[[3]], np.array([1.5]))
+    out = relight(img, light)
+    # The toy relights by E_front(target) / E_front(uniform 1) with the card's 's*k' units.
+    w = frontal_irradiance_weights()
+    gain = float((w * light[..., 0]).sum() / w.sum())
+    # Half-float output and the guided full-resolution transfer blur a few edge pixels slightly.
+    assert out.mean() == pytest.approx(img.mean() * gain, rel=1e-3)
+    rel = np.abs(out - img * gain) / np.maximum(img * gain, 1e-3)
+    assert np.percentile(rel, 99) < 0.01 and rel.max() < 0.15
+
+
+def test_one_subject_end_to_end_with_a_tiny_model(toy, yale_root, b01):
+    relighters = {"toy": ye.PipelineRelighter(toy)}
+    bank = ye.HdriBank(yale_root.parents[1])
+    pairs = ye.draw_pairs(b01, 3, 1, bank)
+    results = [ye.relight_pair(b01, a, b, relighters) for a, b in pairs]
+    gains = ye.fit_gains(results)
+    assert set(gains) == {"toy", *ye.BASELINES} and all(np.isfinite(list(gains.values())))
+    rows = [(r.kind, ye.score_pair(r, gains)) for r in results]
+    summary = ye.summarise(rows)
+    for view in ye.VIEWS:
+        for m in ("toy", *ye.BASELINES):
+            cell = summary[view][m]["all"]
+            assert cell["pairs"] == 3
+            assert all(np.isfinite(cell[k]) for k in ("rmse", "psnr", "ssim"))
+    for r, (a, b) in zip(results, pairs):
+        np.testing.assert_allclose(r.outputs["identity"], r.inputs, rtol=1e-6)
+        np.testing.assert_allclose(r.outputs["irradiance_ratio"],
+                                   r.inputs * b.weights.sum() / a.weights.sum(), rtol=1e-4)
+        np.testing.assert_allclose(r.gt, ye.relit_sum(b01, b.weights))
+    # Under gray light both baselines are the input times a number: equal once gain-aligned.
+    si = summary["scale_invariant"]
+    assert si["identity"]["all"]["rmse"] == pytest.approx(si["irradiance_ratio"]["all"]["rmse"],
+                                                          rel=1e-5)
+    assert "| toy |" in ye.markdown(summary, ["toy"])
+
+
+def test_identity_is_exact_when_the_light_does_not_change(toy, b01):
+    a = ye.Lighting("few", "same", np.where(np.arange(len(b01.dirs)) % 9 == 0, 0.1, 0.0))
+    r = ye.relight_pair(b01, a, a, {"toy": ye.PipelineRelighter(toy)})
+    for view in ye.score_pair(r, {}).values():
+        assert view["identity"]["rmse"] < 1e-6 and view["irradiance_ratio"]["rmse"] < 1e-6
+
+
+def test_command_line_quick_run_writes_the_table_and_sheet(toy, shared_data, yale_root,
+                                                           tmp_path, capsys):
+    out, sheet = tmp_path / "yale.json", tmp_path / "sheet.png"
+    assert ye.main(["--onnx", str(toy), "--quick", "--data", str(shared_data), "--json", str(out),
+                    "--sheet", str(sheet)]) == 0
+    res = json.loads(out.read_text())
+    assert res["split"] == {"tune": ["yaleB01"], "test": ["yaleB11", "yaleB12"]}
+    assert res["results"]["calibrated"]["toy"]["all"]["pairs"] == 6
+    assert set(res["beats_both_baselines"]["calibrated"]) == {"toy"}
+    assert sheet.stat().st_size > 1000 and "| identity |" in capsys.readouterr().out

@@ -1,0 +1,701 @@
+"""Real faces: relighting checked against CroppedYale, real one-light-at-a-time data (issue 4).
+
+    .venv/bin/python -m training.yale_eval --onnx models/relight-draft.onnx [--onnx ...]
+    .venv/bin/python -m training.yale_eval --onnx models/relight-draft.onnx --quick
+    .venv/bin/python -m training.yale_eval --check-data      # the data checks quoted below
+
+A subject's image under any lighting made of the 64 light directions is the weighted sum of its
+single-light images (light transport is linear), so every relighting here has real ground truth.
+The data (``../shared/data/yale/CroppedYale``) is for evaluation only: never commit or ship it,
+nor pictures made from it (the sheet goes to the git-ignored ``out/yale/``).
+
+Data decisions, each checked on the data (``--check-data`` prints the figures):
+* Linear 8-bit: code / 255 is taken as linear radiance. Check: a Lambertian fit to the near-frontal
+  lights (|azimuth| <= 50, |elevation| <= 40) predicts each left-out image best when the codes are
+  decoded with a gamma near 1; decoding with 2.2 (an sRGB-like camera) predicts worse for every
+  subject tried (leave-one-out RMS in code values: 12.7-19.3 at gamma 1.0 against 16.6-24.0 at
+  2.2 on yaleB01/03/05/20/30), as the database papers say (linear camera response).
+* Azimuth sign: a positive file-name azimuth lights the image's left half (the subject's right),
+  so Yale (A, E) is the camera-frame direction (-cos E sin A, sin E, cos E cos A) and lands at
+  light-vector azimuth -A (addon/lightvec.py: column 8 faces the camera, higher columns toward
+  the camera's right, +X). Check: over every subject and mirror pair (A, -A) with |A| >= 20, the
+  image lit from camera +X has the brighter right half.
+* Ambient: subtracted (then clipped at 0) where ``*_Ambient.pgm`` is the crop's size (subjects
+  01-10). From yaleB11 on the database ships it uncropped (640x480), which cannot be registered to
+  the crop; there the ambient is taken as 0 (in subjects 01-10 it averages 0.5-3.3 codes, under 3%
+  of a frontal image's mean).
+* Failed strobes: an image darker than 10% of the median of its neighbours within 35 degrees is a
+  strobe that did not fire (9 images, e.g. yaleB34-39 at A+095E+00, all at 0.3-3% of their
+  neighbours; the darkest genuine image is at 19%); it is dropped like the images the database
+  itself omits (a subject has 60-64 usable directions). Lightings use only a subject's usable
+  directions, for the ground truth and the network's light alike.
+* Saturation: 8-bit codes clip at 255. A pixel whose ground truth under B draws more than 10% of
+  its value from saturated images is left out of the comparison mask.
+
+Lightings (each a weight per usable direction; weight 1 = one strobe, i.e. one single-light image;
+every lighting's weights sum to a random intensity, log-uniform in [1/2, 2]):
+* ``hdri``: one of the 26 HDRIs in ``../shared/data/hdri`` at a random yaw, down-sampled to a light
+  vector by ``addon.hdri.downsample`` (front view), restricted to the 64 directions: every
+  direction's weight is the light vector's Rec.709 luminance integrated over its cell, the part of
+  the sphere nearer to it than to any other usable direction and within ``CELL_CAP_DEG`` of it
+  (the cells tile the dome without gaps; light from behind or below the dome is dropped).
+* ``single``: one direction; ``few``: two or three directions at weights uniform in [0.3, 1].
+  Both draw from the directions with |azimuth| <= 95: lights further back leave the crop nearly
+  black, and the white level would then measure sensor noise.
+The light vector fed to the network is the same weights splatted with ``lightvec.splat_direction``
+(equal RGB, irradiance = weight), so the network's light and the ground truth agree exactly. Both
+lightings of a pair are of the same kind; pairs take the kinds in turn.
+
+Relighting follows the shipped pipeline per frame (addon/pipeline.py: exposure scale s of the
+input, area shrink to the card's working size, stride padding, network fed light / k, guided
+full-resolution transfer, output times k as the card's relit_scale says). The grayscale image is
+replicated to three channels on the way in and the output turned back to gray by Rec.709
+luminance (normalise.luminance).
+
+Metrics: training/evaluate.py's image_metrics on the single gray channel (white level = the
+ground truth's 99th percentile, clipped, sRGB-encoded; RMSE, PSNR, SSIM), over a centred ellipse
+(semi-axes 0.40 W x 0.46 H: cheeks, forehead, chin; the crop's corners hold hair and background)
+minus saturated pixels. Two views, the same for every method:
+* ``calibrated``: each method's output times one gain fitted on the ``tune`` subjects (the median of
+  per-pair least-squares gains). The network cannot see absolute albedo or camera gain (the
+  engine normalises exposure away), so the Yale units are calibrated once per method, never per
+  pair. Both baselines get the same treatment (their gains come out near 1).
+* ``scale_invariant``: every output times its own least-squares gain against the ground truth,
+  pair by pair: only the shape of the shading counts. Under gray light both baselines are the
+  input times a number, so here they coincide (a check, not a bug).
+Baselines (as training/evaluate.py): ``identity`` (output = input) and ``irradiance_ratio`` (input
+times total power of B over that of A: an oracle on the lighting).
+
+Subjects 01-10 are ``tune`` (only the calibration gains come from them), the other 28 ``test``;
+tables and the verdict use ``test`` only. Pairs (A, B) are drawn per subject from a fixed seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import functools
+import json
+import math
+import pathlib
+import platform
+import re
+import sys
+import time
+
+import numpy as np
+
+from addon import colour, detail, engine, hdri, lightvec, normalise, pipeline
+from addon.errors import InputError
+
+from . import evaluate
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TUNE_SUBJECTS = tuple(range(1, 11))
+KINDS = ("hdri", "single", "few")
+VIEWS = ("calibrated", "scale_invariant")
+BASELINES = ("identity", "irradiance_ratio")
+CELL_CAP_DEG = 20.0      # the Yale dome's largest nearest-neighbour spacing is 26 degrees
+FRONT_AZIMUTH = 95       # single / few lights come from |azimuth| <= this
+NEIGHBOUR_DEG = 35.0     # failed-strobe test: neighbours within this angle
+FAILED_RATIO = 0.1       # ... an image darker than this share of its neighbours' median
+SATURATED_SHARE = 0.1    # mask out pixels whose ground truth owes more than this to clipped codes
+ELLIPSE = (0.40, 0.46)   # mask semi-axes as shares of width and height
+LINEAR = colour.lookup("Linear Rec.709")
+
+_LIGHT = re.compile(r"^yaleB(\d{2})_P00A([+-]\d{3})E([+-]\d{2})\.pgm$")
+_AMBIENT = re.compile(r"^yaleB(\d{2})_P00_Ambient\.pgm$")
+
+
+def default_root() -> pathlib.Path:
+    from .lightstage import assets
+
+    return assets.default_data_root() / "yale" / "CroppedYale"
+
+
+# --------------------------------------------------------------------------------- the files
+
+@dataclasses.dataclass(frozen=True)
+class YaleName:
+    subject: int
+    ambient: bool
+    azimuth: int = 0     # degrees; positive lights the image's left half (the subject's right)
+    elevation: int = 0   # degrees; positive is above the camera axis
+
+
+def parse_name(name: str) -> YaleName | None:
+    """A CroppedYale file name -> subject and light direction (or ambient); None for other files."""
+    m = _LIGHT.match(name)
+    if m:
+        return YaleName(int(m[1]), False, int(m[2]), int(m[3]))
+    m = _AMBIENT.match(name)
+    return YaleName(int(m[1]), True) if m else None
+
+
+def read_pgm(path) -> tuple[np.ndarray, int]:
+    """A binary PGM (P5; '#' comments allowed in the header) -> (H, W) codes and the maximum code."""
+    data = pathlib.Path(path).read_bytes()
+    fields, pos = [], 0
+    while len(fields) < 4 and pos < len(data):
+        if data[pos:pos + 1].isspace():
+            pos += 1
+        elif data[pos:pos + 1] == b"#":
+            end = data.find(b"\n", pos)
+            pos = len(data) if end < 0 else end + 1
+        else:
+            m = re.compile(rb"\S+").match(data, pos)
+            fields.append(m.group())
+            pos = m.end()
+    try:
+        if fields[0] != b"P5":
+            raise ValueError("not P5")
+        w, h, top = (int(f) for f in fields[1:4])
+        dtype = np.dtype(np.uint8 if top < 256 else ">u2")
+        pix = np.frombuffer(data, dtype, count=w * h, offset=pos + 1).reshape(h, w)
+    except (IndexError, ValueError) as err:
+        raise InputError(f"{path} is not a readable binary PGM ({err}); restore the file from "
+                         "the CroppedYale archive.") from err
+    return pix.astype(np.uint16 if top > 255 else np.uint8), top
+
+
+def yale_direction(azimuth, elevation) -> np.ndarray:
+    """Camera-frame unit direction(s) of Yale light(s): positive azimuth toward camera -X."""
+    a, e = np.radians(np.asarray(azimuth, np.float64)), np.radians(np.asarray(elevation, np.float64))
+    return np.stack([-np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)], axis=-1)
+
+
+def failed_strobes(dirs: np.ndarray, means: np.ndarray) -> np.ndarray:
+    """(K,) bool: images darker than FAILED_RATIO of the median of their neighbours' means."""
+    cos = np.clip(dirs @ dirs.T, -1.0, 1.0)
+    near = (cos >= math.cos(math.radians(NEIGHBOUR_DEG))) & ~np.eye(len(dirs), dtype=bool)
+    out = np.zeros(len(dirs), dtype=bool)
+    for i in range(len(dirs)):
+        if near[i].any():
+            out[i] = means[i] < FAILED_RATIO * float(np.median(means[near[i]]))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Subject:
+    name: str
+    number: int
+    angles: np.ndarray     # (K, 2) int: azimuth, elevation of each usable image
+    dirs: np.ndarray       # (K, 3) camera-frame unit directions
+    images: np.ndarray     # (K, H, W) float32 linear, ambient subtracted, >= 0
+    saturated: np.ndarray  # (K, H, W) bool: code at its maximum
+    ambient: str           # "subtracted" or why not
+    dropped: tuple         # ((azimuth, elevation), reason) of unusable images
+
+    @property
+    def split(self) -> str:
+        return "tune" if self.number in TUNE_SUBJECTS else "test"
+
+
+def subject_names(root) -> list[str]:
+    root = pathlib.Path(root)
+    if not root.is_dir():
+        raise InputError(f"CroppedYale is not at {root}; unpack it there (see "
+                         "../shared/data/README.md) or pass --data.")
+    return sorted(p.name for p in root.iterdir() if p.is_dir() and re.fullmatch(r"yaleB\d\d", p.name))
+
+
+def load_subject(root, name: str) -> Subject:
+    """Read one subject's usable single-light images (linear, ambient subtracted)."""
+    folder = pathlib.Path(root) / name
+    lights, ambient_file = [], None
+    for p in sorted(folder.glob("*.pgm")):
+        n = parse_name(p.name)
+        if n is None:
+            continue
+        if n.ambient:
+            ambient_file = p
+        else:
+            lights.append(((n.azimuth, n.elevation), read_pgm(p)))
+    if not lights:
+        raise InputError(f"{folder} holds no single-light images (yaleBxx_P00A+000E+00.pgm ...).")
+    angles = np.array([a for a, _ in lights], np.int64)
+    codes = np.stack([c for _, (c, _) in lights]).astype(np.float32)
+    top = float(max(t for _, (_, t) in lights))
+    dirs = yale_direction(angles[:, 0], angles[:, 1])
+    failed = failed_strobes(dirs, codes.mean(axis=(1, 2)))
+    ambient, how = _ambient(ambient_file, codes.shape[1:])
+    keep = ~failed
+    return Subject(name, int(name[5:]), angles[keep], dirs[keep],
+                   (np.clip(codes[keep] - ambient, 0.0, None) / top).astype(np.float32),
+                   codes[keep] >= top, how,
+                   tuple((tuple(int(v) for v in a), "failed strobe") for a in angles[failed]))
+
+
+def _ambient(path, shape) -> tuple[np.ndarray | float, str]:
+    if path is None:
+        return 0.0, "none: no ambient image"
+    codes, _ = read_pgm(path)
+    if codes.shape != tuple(shape):
+        return 0.0, f"none: the ambient image is {codes.shape[1]}x{codes.shape[0]}, not the crop"
+    return codes.astype(np.float32), "subtracted"
+
+
+# --------------------------------------------------------------------------------- lightings
+
+@functools.lru_cache(maxsize=1)
+def _sphere_grid(step_deg: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Directions (N, 3) and exact solid angles (N,) of a fine latitude-longitude grid."""
+    step = math.radians(step_deg)
+    edges = np.arange(0.0, math.pi + 1e-9, step)
+    theta = 0.5 * (edges[:-1] + edges[1:])
+    phi = -math.pi + (np.arange(round(2 * math.pi / step)) + 0.5) * step
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    omega = np.repeat(((np.cos(edges[:-1]) - np.cos(edges[1:])) * step)[:, None], len(phi), 1)
+    return lightvec.angles_to_directions(t, p).reshape(-1, 3), omega.reshape(-1)
+
+
+@functools.lru_cache(maxsize=1)
+def _grid_cells() -> tuple[np.ndarray, np.ndarray]:
+    """Light-vector row and column of every fine-grid direction."""
+    return lightvec.directions_to_cells(_sphere_grid()[0])
+
+
+@functools.lru_cache(maxsize=64)
+def _cell_index(dirs_bytes: bytes) -> np.ndarray:
+    grid, _ = _sphere_grid()
+    cos = grid @ np.frombuffer(dirs_bytes, np.float64).reshape(-1, 3).T
+    best = np.argmax(cos, axis=1)
+    inside = cos[np.arange(len(grid)), best] >= math.cos(math.radians(CELL_CAP_DEG))
+    return np.where(inside, best, -1)
+
+
+def cell_index(dirs: np.ndarray) -> np.ndarray:
+    """For every fine-grid direction, the nearest of ``dirs`` within CELL_CAP_DEG, else -1."""
+    return _cell_index(np.ascontiguousarray(dirs, np.float64).tobytes())
+
+
+def cell_solid_angles(dirs: np.ndarray) -> np.ndarray:
+    """(K,) solid angle of each direction's cell."""
+    idx = cell_index(dirs)
+    _, omega = _sphere_grid()
+    return np.bincount(idx[idx >= 0], weights=omega[idx >= 0], minlength=len(dirs))
+
+
+def restrict_light(light: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(K,) weights: the light vector's luminance integrated over each direction's cell."""
+    _, omega = _sphere_grid()
+    row, col = _grid_cells()
+    radiance = normalise.luminance(lightvec.validate(light))[row, col].astype(np.float64)
+    idx = cell_index(dirs)
+    ok = idx >= 0
+    return np.bincount(idx[ok], weights=(radiance * omega)[ok], minlength=len(dirs))
+
+
+def light_vector(dirs: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The network's light: every direction's weight splatted as gray irradiance."""
+    out = np.zeros(lightvec.SHAPE, np.float64)
+    for d, w in zip(dirs, weights):
+        if w > 0:
+            out += lightvec.splat_direction(d, (w, w, w))
+    return out.astype(np.float32)
+
+
+class HdriBank:
+    """The shared HDRIs, read on first use and down-sampled to light vectors at a given yaw."""
+
+    def __init__(self, data_root):
+        from .lighting_sampling import hdri_paths
+
+        self.paths = hdri_paths(data_root)
+        self.names = [f"{p.parent.name}/{p.stem}" for p in self.paths]
+        self._images: dict[int, np.ndarray] = {}
+
+    def light(self, index: int, yaw_degrees: float) -> np.ndarray:
+        if index not in self._images:
+            from addon.hdri_io import read_hdri
+            self._images[index] = read_hdri(self.paths[index])
+        return hdri.downsample(self._images[index], yaw_degrees=yaw_degrees, max_width=256,
+                               repair=True)  # a few CC0 maps hold tiny negative pixels
+
+
+@dataclasses.dataclass(frozen=True)
+class Lighting:
+    kind: str
+    label: str
+    weights: np.ndarray  # (K,) per usable direction of the subject, >= 0
+
+
+def draw_lighting(kind: str, subject: Subject, rng: np.random.Generator,
+                  bank: HdriBank | None) -> Lighting:
+    """A lighting of the given kind whose weights sum to a random intensity (log-uniform in
+    [1/2, 2], so that output = input is wrong in level, as in the light stage's test set)."""
+    if kind == "hdri":
+        i, yaw = int(rng.integers(len(bank.paths))), float(rng.integers(360))
+        w = restrict_light(bank.light(i, yaw), subject.dirs)
+        label = f"{bank.names[i]} yaw {yaw:.0f}"
+    else:
+        front = np.flatnonzero(np.abs(subject.angles[:, 0]) <= FRONT_AZIMUTH)
+        n = 1 if kind == "single" else int(rng.integers(2, 4))
+        pick = rng.choice(front, size=n, replace=False)
+        w = np.zeros(len(subject.dirs))
+        w[pick] = 1.0 if n == 1 else rng.uniform(0.3, 1.0, size=n)
+        label = " + ".join(f"{w[k] / w.sum():.2f} A{subject.angles[k, 0]:+d}E{subject.angles[k, 1]:+d}"
+                           for k in pick)
+    intensity = float(np.exp(rng.uniform(math.log(0.5), math.log(2.0))))
+    if w.sum() <= 0:
+        raise InputError(f"{subject.name}: the lighting {label} misses every usable direction.")
+    return Lighting(kind, f"{intensity:.2f} x ({label})", w * (intensity / w.sum()))
+
+
+def draw_pairs(subject: Subject, n: int, seed: int, bank: HdriBank | None) -> list:
+    """n fixed (A, B) pairs for a subject, lighting kinds in turn (hdri, single, few, ...)."""
+    rng = np.random.default_rng([seed, subject.number])
+    pairs = []
+    for i in range(n):
+        kind = KINDS[i % len(KINDS)]
+        a = draw_lighting(kind, subject, rng, bank)
+        b = draw_lighting(kind, subject, rng, bank)
+        while np.allclose(a.weights, b.weights):  # a pair must change the light
+            b = draw_lighting(kind, subject, rng, bank)
+        pairs.append((a, b))
+    return pairs
+
+
+def relit_sum(subject: Subject, weights: np.ndarray) -> np.ndarray:
+    """The subject's real image under a lighting: the weighted sum of its single-light images."""
+    return np.tensordot(np.asarray(weights, np.float32), subject.images, axes=1)
+
+
+def saturated_share(subject: Subject, weights: np.ndarray) -> np.ndarray:
+    """(H, W) share of relit_sum that comes from clipped codes."""
+    w = np.asarray(weights, np.float32)[:, None, None]
+    clipped = (w * subject.images * subject.saturated).sum(axis=0)
+    return clipped / np.maximum(relit_sum(subject, weights), 1e-12)
+
+
+def face_mask(shape, subject: Subject | None = None, weights=None) -> np.ndarray:
+    """The centred ellipse, minus pixels whose ground truth owes too much to clipped codes."""
+    h, w = shape
+    y, x = np.mgrid[:h, :w]
+    ax, ay = ELLIPSE
+    mask = ((x + 0.5 - w / 2) / (ax * w)) ** 2 + ((y + 0.5 - h / 2) / (ay * h)) ** 2 <= 1.0
+    if subject is not None:
+        mask &= saturated_share(subject, weights) <= SATURATED_SHARE
+    return mask
+
+
+# --------------------------------------------------------------------------------- relighting
+
+class PipelineRelighter:
+    """A shipped model run through the pipeline's per-frame stages on a gray image."""
+
+    def __init__(self, onnx_path, threads: int = 1):
+        self.session = engine.new_session(onnx_path, providers=["CPUExecutionProvider"],
+                                          threads=threads, spin=False)
+        self.fullres = detail.FullRes(threads)
+        self.card = self.session.card
+        self.name = self.card.name
+
+    def __call__(self, gray: np.ndarray, light: np.ndarray) -> np.ndarray:
+        """(H, W) linear gray under some light -> (H, W) linear gray under ``light``."""
+        rgb = np.repeat(np.asarray(gray, np.float32)[..., None], 3, axis=2)
+        s = normalise.exposure_scale([rgb])
+        x = np.ascontiguousarray(rgb / np.float32(s))
+        h, w = gray.shape
+        plan = pipeline.Plan(LINEAR, s, (w, h),
+                             detail.working_shape(h, w, self.card.working_size), True, False,
+                             "none", relit_times_s=pipeline.relit_times_s(self.card))
+        x_low = pipeline.shrink(x, plan, self.fullres)
+        relit_low, _, _, k = pipeline.infer(self.session, x_low, light)
+        ab = pipeline.coefficients(x_low, relit_low, k, plan, self.fullres)
+        y = pipeline.finish(x, ab, float(x.max()), self.fullres)[0]
+        return normalise.luminance(y.astype(np.float32))
+
+
+def baselines(gray_a: np.ndarray, light_a: np.ndarray, light_b: np.ndarray) -> dict:
+    """training/evaluate.py's two baselines on the gray image (replicated, then luminance)."""
+    sample = {"img_t_i": np.repeat(np.asarray(gray_a, np.float32)[None], 3, axis=0),
+              "light_i": light_a, "light_k": light_b}
+    return {"identity": normalise.luminance(evaluate.baseline_identity(sample).transpose(1, 2, 0)),
+            "irradiance_ratio": normalise.luminance(
+                evaluate.baseline_irradiance_ratio(sample).transpose(1, 2, 0))}
+
+
+def ls_gain(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """The gain g minimising |g pred - gt|^2 over the mask (1 where pred is black there)."""
+    p, t = pred[mask].astype(np.float64), gt[mask].astype(np.float64)
+    pp = float(p @ p)
+    return float(p @ t) / pp if pp > 0 and np.isfinite(pp) else 1.0
+
+
+def metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
+    return evaluate.image_metrics(pred[None], gt[None], mask)
+
+
+@dataclasses.dataclass
+class PairResult:
+    subject: str
+    kind: str
+    a: str
+    b: str
+    gt: np.ndarray
+    mask: np.ndarray
+    inputs: np.ndarray     # (H, W) the real image under A
+    light_b: np.ndarray    # (16, 16, 3) the network's target light
+    outputs: dict          # method -> (H, W) linear gray, absolute
+
+
+def relight_pair(subject: Subject, a: Lighting, b: Lighting, relighters: dict) -> PairResult:
+    """Ground truth, mask and every method's output for one (A, B) pair."""
+    img_a, gt = relit_sum(subject, a.weights), relit_sum(subject, b.weights)
+    light_a = light_vector(subject.dirs, a.weights)
+    light_b = light_vector(subject.dirs, b.weights)
+    outs = {name: fn(img_a, light_b) for name, fn in relighters.items()}
+    outs.update(baselines(img_a, light_a, light_b))
+    return PairResult(subject.name, a.kind, a.label, b.label, gt,
+                      face_mask(gt.shape, subject, b.weights), img_a, light_b, outs)
+
+
+def iter_pairs(subjects, relighters: dict, n_pairs: int, seed: int, bank):
+    for subject in subjects:
+        for a, b in draw_pairs(subject, n_pairs, seed, bank):
+            yield relight_pair(subject, a, b, relighters)
+
+
+def fit_gains(results) -> dict:
+    """One gain per method: the median of its per-pair least-squares gains."""
+    gains: dict[str, list] = {}
+    for r in results:
+        for name, y in r.outputs.items():
+            gains.setdefault(name, []).append(ls_gain(y, r.gt, r.mask))
+    return {name: float(np.median(g)) for name, g in gains.items()}
+
+
+def score_pair(r: PairResult, gains: dict) -> dict:
+    """{view: {method: metrics}} for one pair."""
+    out = {v: {} for v in VIEWS}
+    for name, y in r.outputs.items():
+        out["calibrated"][name] = metrics(gains.get(name, 1.0) * y, r.gt, r.mask)
+        out["scale_invariant"][name] = metrics(ls_gain(y, r.gt, r.mask) * y, r.gt, r.mask)
+    return out
+
+
+def summarise(rows: list[tuple[str, dict]]) -> dict:
+    """rows of (kind, score_pair) -> {view: {method: {kind|'all': mean metrics + pairs}}}."""
+    out: dict = {}
+    for view in VIEWS:
+        methods = list(rows[0][1][view]) if rows else []
+        out[view] = {}
+        for m in methods:
+            out[view][m] = {}
+            for kind in (*KINDS, "all"):
+                sel = [s[view][m] for k, s in rows if kind in ("all", k)]
+                if sel:
+                    out[view][m][kind] = {**evaluate.mean_metrics(sel), "pairs": len(sel)}
+    return out
+
+
+# --------------------------------------------------------------------------------- reporting
+
+def markdown(summary: dict, models: list[str]) -> str:
+    lines = []
+    for view in VIEWS:
+        table = summary[view]
+        kinds = [k for k in (*KINDS, "all") if any(k in table[m] for m in table)]
+        lines += [f"**{view}** (RMSE / PSNR dB / SSIM on the face ellipse, test subjects)", "",
+                  "| method | " + " | ".join(kinds) + " |",
+                  "| --- |" + " --- |" * len(kinds)]
+        for m in [*models, *BASELINES]:
+            cells = [("{rmse:.4f} / {psnr:.2f} / {ssim:.4f}".format(**table[m][k])
+                      if k in table[m] else "-") for k in kinds]
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def verdict(summary: dict, models: list[str]) -> dict:
+    """Per model and view: whether its overall RMSE beats both baselines'."""
+    out = {}
+    for view in VIEWS:
+        t = summary[view]
+        out[view] = {m: bool(all(t[m]["all"]["rmse"] < t[b]["all"]["rmse"] for b in BASELINES))
+                     for m in models if "all" in t.get(m, {})}
+    return out
+
+
+def sheet_row(r: PairResult, gains: dict, order: list[str]) -> np.ndarray:
+    """input | each method (calibrated) | ground truth | B's light map, display-normalised."""
+    white = evaluate.white_level(r.gt[None], r.mask)
+    tiles = [r.inputs * (white / max(evaluate.white_level(r.inputs[None], r.mask), 1e-12))]
+    tiles += [gains.get(m, 1.0) * r.outputs[m] for m in order] + [r.gt]
+    gray = [evaluate.to_unit(t, white) for t in tiles]
+    h, w = r.gt.shape
+    preview = np.kron(lightvec.to_preview(r.light_b), np.ones((w // 16, w // 16, 1)))
+    pad = np.zeros((h, w, 3))
+    pad[(h - preview.shape[0]) // 2:][:preview.shape[0], :preview.shape[1]] = preview
+    return np.concatenate([np.repeat(g[..., None], 3, axis=2) for g in gray] + [pad], axis=1)
+
+
+def write_sheet(path, rows: list[np.ndarray]) -> None:
+    from .lightstage.png import write_png
+
+    img = np.concatenate(rows, axis=0)
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_png(path, (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
+
+
+# --------------------------------------------------------------------------------- data checks
+
+def azimuth_sign_check(subjects) -> dict:
+    """Mirror pairs (A, -A), 20 <= |A| <= FRONT_AZIMUTH (lights further back barely reach the
+    face): is the image lit from camera +X the brighter one on the image's right half?"""
+    agree = total = 0
+    for s in subjects:
+        index = {tuple(a): k for k, a in enumerate(s.angles)}
+        for (az, el), k in index.items():
+            j = index.get((-az, el))
+            if not 20 <= az <= FRONT_AZIMUTH or j is None:
+                continue
+            plus_x = j if s.dirs[j, 0] > 0 else k  # the image whose light is at camera +X
+            other = k if plus_x == j else j
+            w = s.images.shape[2] // 2
+            right = s.images[plus_x][:, w:].mean() - s.images[other][:, w:].mean()
+            agree += bool(right > 0)
+            total += 1
+    return {"pairs": total, "agree": agree}
+
+
+def gamma_check(subject: Subject, gammas=(0.8, 1.0, 1.2, 1.8, 2.2)) -> dict:
+    """Leave-one-out Lambertian prediction error (RMS, codes) of the near-frontal images for each
+    decoding gamma, on pixels lit and unclipped in all of them: the truest decoding predicts best."""
+    sel = np.flatnonzero((np.abs(subject.angles[:, 0]) <= 50) & (np.abs(subject.angles[:, 1]) <= 40))
+    codes = subject.images[sel].reshape(len(sel), -1) * 255.0
+    ok = np.all((codes > 15) & (codes < 250), axis=0)
+    lights, x = subject.dirs[sel], codes[:, ok]
+    out = {}
+    for g in gammas:
+        y = (x / 255.0) ** g
+        err = []
+        for k in range(len(sel)):
+            rest = np.arange(len(sel)) != k
+            b = np.linalg.lstsq(lights[rest], y[rest], rcond=None)[0]
+            pred = 255.0 * np.clip(lights[k] @ b, 0.0, None) ** (1.0 / g)
+            err.append(np.mean((pred - x[k]) ** 2))
+        out[f"{g:.1f}"] = float(np.sqrt(np.mean(err)))
+    return out
+
+
+def check_data(root, names) -> None:
+    subjects = [load_subject(root, n) for n in names]
+    print("ambient:", {s.name: s.ambient for s in subjects})
+    print("dropped:", {s.name: s.dropped for s in subjects if s.dropped})
+    print("usable directions per subject:", sorted({len(s.dirs) for s in subjects}))
+    print("azimuth sign (camera +X lights the right half):", azimuth_sign_check(subjects))
+    for s in subjects[:: max(1, len(subjects) // 5)]:
+        print(f"{s.name} leave-one-out RMS (codes) by decoding gamma:", gamma_check(s))
+
+
+# --------------------------------------------------------------------------------- main
+
+def select_subjects(names: list[str], quick: bool) -> tuple[list[str], list[str]]:
+    tune = [n for n in names if int(n[5:]) in TUNE_SUBJECTS]
+    test = [n for n in names if int(n[5:]) not in TUNE_SUBJECTS]
+    return (tune[:1], test[:2]) if quick else (tune, test)
+
+
+def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 2021,
+        quick: bool = False, threads: int = 1, sheet_path=None, sheet_rows: int = 6,
+        progress=print) -> dict:
+    """Evaluate the models; returns the JSON-able result (tables on the test subjects)."""
+    data_root = pathlib.Path(data_root) if data_root else default_root().parents[1]
+    root = pathlib.Path(root) if root else data_root / "yale" / "CroppedYale"
+    tune_names, test_names = select_subjects(subject_names(root), quick)
+    if quick:
+        n_pairs = min(n_pairs, len(KINDS))
+    relighters = {}
+    for p in onnx_paths:
+        r = PipelineRelighter(p, threads)
+        relighters[r.name] = r
+    models = list(relighters)
+    bank = HdriBank(data_root)
+    t0 = time.perf_counter()
+    tune = [load_subject(root, n) for n in tune_names]
+    gains = fit_gains(iter_pairs(tune, relighters, n_pairs, seed, bank))
+    progress(f"gains from {len(tune)} tune subjects: "
+             + ", ".join(f"{k} {v:.3f}" for k, v in gains.items()))
+    rows, sheet, dropped, ambient = [], [], {}, {}
+    for name in test_names:
+        s = load_subject(root, name)
+        dropped[name] = [list(a) for a, _ in s.dropped]
+        ambient[name] = s.ambient
+        for r in iter_pairs([s], relighters, n_pairs, seed, bank):
+            rows.append((r.kind, score_pair(r, gains)))
+            if sheet_path and len(sheet) < sheet_rows and r.kind == KINDS[len(sheet) % 3]:
+                sheet.append(r)  # one pair of each kind in turn, from the first subjects
+        progress(f"{name}: {len(rows)} pairs so far, {time.perf_counter() - t0:.0f} s")
+    summary = summarise(rows)
+    if sheet_path and sheet:
+        write_sheet(sheet_path, [sheet_row(r, gains, [*models, *BASELINES]) for r in sheet])
+    return {
+        "what": "CroppedYale real-data relighting check (training/yale_eval.py)",
+        "models": {m: {"onnx": str(relighters[m].card.onnx_path.relative_to(ROOT))
+                       if relighters[m].card.onnx_path.is_relative_to(ROOT)
+                       else str(relighters[m].card.onnx_path),
+                       "sha256": relighters[m].card.sha256,
+                       "working_size": relighters[m].card.working_size} for m in models},
+        "split": {"tune": tune_names, "test": test_names},
+        "pairs_per_subject": n_pairs, "seed": seed, "quick": quick,
+        "gains": gains, "results": summary, "beats_both_baselines": verdict(summary, models),
+        "data": {"dropped_failed_strobes": {k: v for k, v in dropped.items() if v},
+                 "ambient": ambient},
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def machine() -> str:
+    import os
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (f"{platform.machine()} {os.cpu_count()}-core CPU, {platform.platform()}; load average "
+            f"{load:.2f} at the start")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="relighting checked against CroppedYale real faces")
+    p.add_argument("--onnx", action="append", default=[], help="a model (.onnx beside its card); "
+                   "repeat for several")
+    p.add_argument("--data", help="the shared data folder (default ../shared/data)")
+    p.add_argument("--pairs", type=int, default=12, help="(A, B) pairs per subject (kinds in turn)")
+    p.add_argument("--seed", type=int, default=2021)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--quick", action="store_true", help="1 tune and 2 test subjects, 3 pairs each")
+    p.add_argument("--json", default=str(ROOT / "bench" / "results" / "yale.json"))
+    p.add_argument("--sheet", default=str(ROOT / "out" / "yale" / "yale_sheet.png"),
+                   help="PNG sheet (git-ignored out/: never commit pictures of this data)")
+    p.add_argument("--check-data", action="store_true", help="print the data checks and exit")
+    a = p.parse_args(argv)
+    data_root = pathlib.Path(a.data) if a.data else default_root().parents[1]
+    root = data_root / "yale" / "CroppedYale"
+    if a.check_data:
+        check_data(root, subject_names(root))
+        return 0
+    if not a.onnx:
+        p.error("give at least one --onnx model (or --check-data)")
+    started = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    m = machine()
+    res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
+              progress=lambda msg: print(msg, file=sys.stderr))
+    models = list(res["models"])
+    table = markdown(res["results"], models)
+    res.update({"table_markdown": table, "date": started, "machine": m,
+                "command": "python -m training.yale_eval " + " ".join(argv if argv is not None
+                                                                     else sys.argv[1:])})
+    print(table)
+    print("beats both baselines (overall RMSE, test subjects):", res["beats_both_baselines"])
+    print(f"{res['seconds']} s; gains {res['gains']}")
+    out = pathlib.Path(a.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")
+    print(f"wrote {out}" + (f" and {a.sheet}" if a.sheet else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
