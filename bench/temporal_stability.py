@@ -41,9 +41,11 @@ per --onnx, in order.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import pathlib
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -97,15 +99,19 @@ class Stage:
     mask: np.ndarray   # (H, W) bool: the portrait region (coverage > 0.5)
     info: dict = field(default_factory=dict)
 
+    @functools.cached_property
+    def _planes(self) -> np.ndarray:
+        """(3, 114, H*W): the OLAT images channel by channel, contiguous for the products."""
+        return np.ascontiguousarray(self.olat.transpose(1, 0, 2, 3).reshape(
+            self.olat.shape[1], self.olat.shape[0], -1))
+
     def render(self, lights: np.ndarray) -> np.ndarray:
         """(N, 3, H, W) float32 absolute radiance under light vectors (N, 16, 16, 3)."""
         w = np.stack([layout.weights(lv) for lv in lights]).astype(np.float32)  # (N, 114, 3)
-        n, (_, c, h, wd) = len(w), self.olat.shape
-        out = np.empty((n, c, h, wd), np.float32)
-        for ch in range(c):  # one matrix product per channel
-            out[:, ch] = (w[:, :, ch] @ self.olat[:, ch].reshape(len(self.olat), -1)).reshape(
-                n, h, wd)
-        return out
+        # contiguous (3, N, 114): numpy's matmul leaves BLAS (30x slower) on strided operands
+        w = np.ascontiguousarray(w.transpose(2, 0, 1))
+        out = np.stack([w[ch] @ self._planes[ch] for ch in range(3)], axis=1)
+        return out.reshape(len(lights), 3, *self.olat.shape[2:])
 
 
 def build_stage(resolution: int = 128, sample: int = 0, data_root=None) -> Stage:
@@ -133,7 +139,11 @@ def build_stage(resolution: int = 128, sample: int = 0, data_root=None) -> Stage
 def adjacent_rmse(frames: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """RMSE between frames i and i+1 over the mask's pixels, one per adjacent pair: frames
     (N, 3, H, W) -> (N - 1,)."""
-    px = np.asarray(frames, np.float64)[:, :, mask]
+    return _pair_rmse(np.asarray(frames, np.float64)[:, :, mask])
+
+
+def _pair_rmse(px: np.ndarray) -> np.ndarray:
+    """(N, 3, M) pixels -> (N - 1,) RMSE between consecutive frames."""
     return np.sqrt(np.mean((px[1:] - px[:-1]) ** 2, axis=(1, 2)))
 
 
@@ -144,20 +154,20 @@ def to_unit(frames: np.ndarray, white: float) -> np.ndarray:
 
 
 class Tracker:
-    """Adjacent-frame RMSE and RMSE to the ground truth over a clip fed in batches."""
+    """Adjacent-frame RMSE and RMSE to the ground truth over a clip fed in batches of the
+    portrait region's pixels ((B, 3, M), in [0, 1] units; the ground truth (3, M))."""
 
-    def __init__(self, mask: np.ndarray, gt_unit: np.ndarray):
-        self.mask, self.gt = mask, gt_unit[:, mask]
+    def __init__(self, gt_px: np.ndarray):
+        self.gt = gt_px
         self.prev = None
         self.adjacent: list[float] = []
         self.to_gt: list[float] = []
 
-    def add(self, unit: np.ndarray) -> None:
-        seq = unit if self.prev is None else np.concatenate([self.prev[None], unit])
-        self.adjacent.extend(adjacent_rmse(seq, self.mask).tolist())
-        d = unit[:, :, self.mask] - self.gt[None]
-        self.to_gt.extend(np.sqrt(np.mean(d ** 2, axis=(1, 2))).tolist())
-        self.prev = unit[-1]
+    def add(self, px: np.ndarray) -> None:
+        seq = px if self.prev is None else np.concatenate([self.prev[None], px])
+        self.adjacent.extend(_pair_rmse(seq).tolist())
+        self.to_gt.extend(np.sqrt(np.mean((px - self.gt[None]) ** 2, axis=(1, 2))).tolist())
+        self.prev = px[-1]
 
     def result(self) -> dict:
         return {"adjacent_rmse": float(np.mean(self.adjacent)),
@@ -250,14 +260,14 @@ def clip_exposure(stage: Stage, lights: np.ndarray) -> float:
 def measure_clip(stage: Stage, lights: np.ndarray, predictors: dict, gt: np.ndarray,
                  batch: int = 10) -> dict:
     """Per predictor (label -> predict(frames_abs, s)) the Tracker result over one clip."""
-    white = evaluate.white_level(gt, stage.mask)
-    gt_unit = to_unit(gt, white)
+    mask = stage.mask
+    white = evaluate.white_level(gt, mask)
     s = clip_exposure(stage, lights)
-    trackers = {name: Tracker(stage.mask, gt_unit) for name in predictors}
+    trackers = {name: Tracker(to_unit(gt[:, mask], white)) for name in predictors}
     for start in range(0, len(lights), batch):
         frames = stage.render(lights[start:start + batch])
-        for name, predict in predictors.items():
-            trackers[name].add(to_unit(predict(frames, s), white))
+        for name, predict in predictors.items():  # only the portrait region is measured
+            trackers[name].add(to_unit(predict(frames, s)[:, :, mask], white))
     return {name: {**tr.result(), "exposure_scale": s} for name, tr in trackers.items()}
 
 
@@ -429,7 +439,8 @@ def main(argv=None) -> dict:
     print(table)
     wall = time.perf_counter() - t0
     report = {
-        "command": "python -m bench.temporal_stability " + " ".join(argv or []),
+        "command": "python -m bench.temporal_stability " + " ".join(
+            sys.argv[1:] if argv is None else argv),
         "protocol": {
             "performer": stage.info, "mask_pixels": int(stage.mask.sum()),
             "frames": a.frames, "speedups": [int(f) for f in a.speedups], "period": a.period,

@@ -90,9 +90,9 @@ def test_tracker_in_batches_equals_the_whole_sequence():
     frames = rng.uniform(0, 1, (23, 3, 6, 6))
     gt = rng.uniform(0, 1, (3, 6, 6))
     mask = rng.uniform(size=(6, 6)) > 0.5
-    tr = ts.Tracker(mask, gt)
+    tr = ts.Tracker(gt[:, mask])
     for start in range(0, 23, 5):
-        tr.add(frames[start:start + 5])
+        tr.add(frames[start:start + 5, :, mask])
     res = tr.result()
     assert res["adjacent_rmse"] == pytest.approx(ts.adjacent_rmse(frames, mask).mean())
     to_gt = np.sqrt(((frames[:, :, mask] - gt[:, mask]) ** 2).mean(axis=(1, 2)))
