@@ -56,15 +56,19 @@ Metrics: training/evaluate.py's image_metrics on the single gray channel (white 
 ground truth's 99th percentile, clipped, sRGB-encoded; RMSE, PSNR, SSIM), over a centred ellipse
 (semi-axes 0.40 W x 0.46 H: cheeks, forehead, chin; the crop's corners hold hair and background)
 minus saturated pixels. Two views, the same for every method:
-* ``calibrated``: each method's output times one gain fitted on the ``tune`` subjects (the median of
-  per-pair least-squares gains). The network cannot see absolute albedo or camera gain (the
-  engine normalises exposure away), so the Yale units are calibrated once per method, never per
-  pair. Both baselines get the same treatment (their gains come out near 1).
-* ``scale_invariant``: every output times its own least-squares gain against the ground truth,
-  pair by pair: only the shape of the shading counts. Under gray light both baselines are the
-  input times a number, so here they coincide (a check, not a bug).
+* ``calibrated``: each method's output times one gain, the one that minimises its mean RMSE over
+  the ``tune`` subjects' pairs. The network cannot see absolute albedo or camera gain (the engine
+  normalises exposure away), and a unit of Yale weight is one strobe of unknown irradiance, so
+  the units are calibrated once per method, never per pair. The baselines get the same
+  treatment (the search includes gain 1, their units' own).
+* ``scale_invariant``: every output times its own least-squares gain (linear, over the mask)
+  against the ground truth, pair by pair: only the shape of the shading counts. Under gray light
+  both baselines are the input times a number, so here they coincide (a check, not a bug).
 Baselines (as training/evaluate.py): ``identity`` (output = input) and ``irradiance_ratio`` (input
-times total power of B over that of A: an oracle on the lighting).
+times total power of B over that of A: an oracle on the lighting). A third, light-blind
+reference, ``flattened_ratio`` = ratio * sqrt(input * mean(input)), halves the input's contrast
+(in log terms) without knowing where B's light comes from: a model that beats the baselines only
+by flattening the shading scores about as well as it.
 
 Subjects 01-10 are ``tune`` (only the calibration gains come from them), the other 28 ``test``;
 tables and the verdict use ``test`` only. Pairs (A, B) are drawn per subject from a fixed seed.
@@ -96,6 +100,12 @@ TUNE_SUBJECTS = tuple(range(1, 11))
 KINDS = ("hdri", "single", "few")
 VIEWS = ("calibrated", "scale_invariant")
 BASELINES = ("identity", "irradiance_ratio")
+# A light-blind reference (not one of the issue's baselines): the irradiance-ratio output with
+# its contrast halved in log terms. It knows B's power but not where the light comes from, so a
+# model that only flattens the input's shading scores about the same.
+FLATTENED = "flattened_ratio"
+REFERENCES = (*BASELINES, FLATTENED)
+GAIN_SEARCH_STRIDE = 4   # every 4th mask pixel is plenty to place one gain per method
 CELL_CAP_DEG = 20.0      # the Yale dome's largest nearest-neighbour spacing is 26 degrees
 FRONT_AZIMUTH = 95       # single / few lights come from |azimuth| <= this
 NEIGHBOUR_DEG = 35.0     # failed-strobe test: neighbours within this angle
@@ -106,6 +116,7 @@ LINEAR = colour.lookup("Linear Rec.709")
 
 _LIGHT = re.compile(r"^yaleB(\d{2})_P00A([+-]\d{3})E([+-]\d{2})\.pgm$")
 _AMBIENT = re.compile(r"^yaleB(\d{2})_P00_Ambient\.pgm$")
+_TOKEN = re.compile(rb"\S+")
 
 
 def default_root() -> pathlib.Path:
@@ -134,7 +145,7 @@ def parse_name(name: str) -> YaleName | None:
 
 
 def read_pgm(path) -> tuple[np.ndarray, int]:
-    """A binary PGM (P5; '#' comments allowed in the header) -> (H, W) codes and the maximum code."""
+    """A binary PGM (P5; '#' comments allowed in its header) -> (H, W) codes, maximum code."""
     data = pathlib.Path(path).read_bytes()
     fields, pos = [], 0
     while len(fields) < 4 and pos < len(data):
@@ -144,7 +155,7 @@ def read_pgm(path) -> tuple[np.ndarray, int]:
             end = data.find(b"\n", pos)
             pos = len(data) if end < 0 else end + 1
         else:
-            m = re.compile(rb"\S+").match(data, pos)
+            m = _TOKEN.match(data, pos)
             fields.append(m.group())
             pos = m.end()
     try:
@@ -161,7 +172,8 @@ def read_pgm(path) -> tuple[np.ndarray, int]:
 
 def yale_direction(azimuth, elevation) -> np.ndarray:
     """Camera-frame unit direction(s) of Yale light(s): positive azimuth toward camera -X."""
-    a, e = np.radians(np.asarray(azimuth, np.float64)), np.radians(np.asarray(elevation, np.float64))
+    a = np.radians(np.asarray(azimuth, np.float64))
+    e = np.radians(np.asarray(elevation, np.float64))
     return np.stack([-np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)], axis=-1)
 
 
@@ -187,17 +199,14 @@ class Subject:
     ambient: str           # "subtracted" or why not
     dropped: tuple         # ((azimuth, elevation), reason) of unusable images
 
-    @property
-    def split(self) -> str:
-        return "tune" if self.number in TUNE_SUBJECTS else "test"
-
 
 def subject_names(root) -> list[str]:
     root = pathlib.Path(root)
     if not root.is_dir():
         raise InputError(f"CroppedYale is not at {root}; unpack it there (see "
                          "../shared/data/README.md) or pass --data.")
-    return sorted(p.name for p in root.iterdir() if p.is_dir() and re.fullmatch(r"yaleB\d\d", p.name))
+    return sorted(p.name for p in root.iterdir()
+                  if p.is_dir() and re.fullmatch(r"yaleB\d\d", p.name))
 
 
 def load_subject(root, name: str) -> Subject:
@@ -214,6 +223,9 @@ def load_subject(root, name: str) -> Subject:
             lights.append(((n.azimuth, n.elevation), read_pgm(p)))
     if not lights:
         raise InputError(f"{folder} holds no single-light images (yaleBxx_P00A+000E+00.pgm ...).")
+    if len({c.shape for _, (c, _) in lights}) > 1:
+        raise InputError(f"The images in {folder} differ in size; restore the subject from the "
+                         "CroppedYale archive.")
     angles = np.array([a for a, _ in lights], np.int64)
     codes = np.stack([c for _, (c, _) in lights]).astype(np.float32)
     top = float(max(t for _, (_, t) in lights))
@@ -324,7 +336,7 @@ class Lighting:
 def draw_lighting(kind: str, subject: Subject, rng: np.random.Generator,
                   bank: HdriBank | None) -> Lighting:
     """A lighting of the given kind whose weights sum to a random intensity (log-uniform in
-    [1/2, 2], so that output = input is wrong in level, as in the light stage's test set)."""
+    [1/2, 2], so that output = input gets the level wrong)."""
     if kind == "hdri":
         i, yaw = int(rng.integers(len(bank.paths))), float(rng.integers(360))
         w = restrict_light(bank.light(i, yaw), subject.dirs)
@@ -335,8 +347,8 @@ def draw_lighting(kind: str, subject: Subject, rng: np.random.Generator,
         pick = rng.choice(front, size=n, replace=False)
         w = np.zeros(len(subject.dirs))
         w[pick] = 1.0 if n == 1 else rng.uniform(0.3, 1.0, size=n)
-        label = " + ".join(f"{w[k] / w.sum():.2f} A{subject.angles[k, 0]:+d}E{subject.angles[k, 1]:+d}"
-                           for k in pick)
+        label = " + ".join(f"{w[k] / w.sum():.2f} A{a:+d}E{e:+d}"
+                           for k, (a, e) in zip(pick, subject.angles[pick]))
     intensity = float(np.exp(rng.uniform(math.log(0.5), math.log(2.0))))
     if w.sum() <= 0:
         raise InputError(f"{subject.name}: the lighting {label} misses every usable direction.")
@@ -409,12 +421,18 @@ class PipelineRelighter:
 
 
 def baselines(gray_a: np.ndarray, light_a: np.ndarray, light_b: np.ndarray) -> dict:
-    """training/evaluate.py's two baselines on the gray image (replicated, then luminance)."""
+    """training/evaluate.py's two baselines on the gray image (replicated, then luminance), and
+    the light-blind FLATTENED reference: ratio * sqrt(input * mean(input))."""
     sample = {"img_t_i": np.repeat(np.asarray(gray_a, np.float32)[None], 3, axis=0),
               "light_i": light_a, "light_k": light_b}
+    gray = np.asarray(gray_a, np.float32)
+    power_a, power_b = (float(normalise.luminance(lightvec.total_power(x).astype(np.float32)))
+                        for x in (light_a, light_b))
+    ratio = power_b / power_a if power_a > 0 else 0.0
     return {"identity": normalise.luminance(evaluate.baseline_identity(sample).transpose(1, 2, 0)),
             "irradiance_ratio": normalise.luminance(
-                evaluate.baseline_irradiance_ratio(sample).transpose(1, 2, 0))}
+                evaluate.baseline_irradiance_ratio(sample).transpose(1, 2, 0)),
+            FLATTENED: np.float32(ratio) * np.sqrt(gray * np.float32(gray.mean()))}
 
 
 def ls_gain(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
@@ -459,12 +477,28 @@ def iter_pairs(subjects, relighters: dict, n_pairs: int, seed: int, bank):
 
 
 def fit_gains(results) -> dict:
-    """One gain per method: the median of its per-pair least-squares gains."""
-    gains: dict[str, list] = {}
+    """One gain per method: the one that minimises its mean RMSE (the reported metric, on a
+    subset of each mask) over the given pairs (the tune subjects')."""
+    store: dict[str, list] = {}
     for r in results:
+        white = evaluate.white_level(r.gt[None], r.mask)
+        target = evaluate.to_unit(r.gt[r.mask][::GAIN_SEARCH_STRIDE], white)
         for name, y in r.outputs.items():
-            gains.setdefault(name, []).append(ls_gain(y, r.gt, r.mask))
-    return {name: float(np.median(g)) for name, g in gains.items()}
+            store.setdefault(name, []).append((y[r.mask][::GAIN_SEARCH_STRIDE] / white, target))
+    return {name: best_gain(pairs) for name, pairs in store.items()}
+
+
+def mean_rmse(pairs, gain: float) -> float:
+    return float(np.mean([np.sqrt(np.mean((evaluate.srgb_encode(gain * p) - t) ** 2))
+                          for p, t in pairs]))
+
+
+def best_gain(pairs) -> float:
+    """Grid search in log2 gain over [1/256, 256] by quarter steps, then refined by 1/64 steps."""
+    coarse = 2.0 ** np.arange(-8.0, 8.01, 0.25)
+    g = min(coarse, key=lambda c: mean_rmse(pairs, c))
+    fine = g * 2.0 ** np.arange(-0.25, 0.2501, 1.0 / 64)
+    return float(min(fine, key=lambda c: mean_rmse(pairs, c)))
 
 
 def score_pair(r: PairResult, gains: dict) -> dict:
@@ -493,7 +527,7 @@ def summarise(rows: list[tuple[str, dict]]) -> dict:
 
 # --------------------------------------------------------------------------------- reporting
 
-def markdown(summary: dict, models: list[str]) -> str:
+def markdown(summary: dict, models: list[str], rates: dict | None = None) -> str:
     lines = []
     for view in VIEWS:
         table = summary[view]
@@ -501,20 +535,34 @@ def markdown(summary: dict, models: list[str]) -> str:
         lines += [f"**{view}** (RMSE / PSNR dB / SSIM on the face ellipse, test subjects)", "",
                   "| method | " + " | ".join(kinds) + " |",
                   "| --- |" + " --- |" * len(kinds)]
-        for m in [*models, *BASELINES]:
+        for m in [*models, *REFERENCES]:
             cells = [("{rmse:.4f} / {psnr:.2f} / {ssim:.4f}".format(**table[m][k])
                       if k in table[m] else "-") for k in kinds]
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
         lines.append("")
+    if rates:
+        lines += ["Share of test pairs where the model's RMSE is the lower", "",
+                  "| model, view | " + " | ".join(REFERENCES) + " |",
+                  "| --- |" + " --- |" * len(REFERENCES)]
+        lines += [f"| {m}, {view} | " + " | ".join(f"{rates[view][m][r]:.2f}" for r in REFERENCES)
+                  + " |" for m in models for view in VIEWS]
+        lines.append("")
     return "\n".join(lines)
 
 
-def verdict(summary: dict, models: list[str]) -> dict:
-    """Per model and view: whether its overall RMSE beats both baselines'."""
+def win_rates(rows: list[tuple[str, dict]], models: list[str]) -> dict:
+    """{view: {model: {reference: share of pairs where the model's RMSE is the lower}}}."""
+    return {view: {m: {ref: float(np.mean([s[view][m]["rmse"] < s[view][ref]["rmse"]
+                                           for _, s in rows]))
+                       for ref in REFERENCES} for m in models} for view in VIEWS} if rows else {}
+
+
+def verdict(summary: dict, models: list[str], against=BASELINES) -> dict:
+    """Per view and model: whether its overall RMSE is below that of every method in ``against``."""
     out = {}
     for view in VIEWS:
         t = summary[view]
-        out[view] = {m: bool(all(t[m]["all"]["rmse"] < t[b]["all"]["rmse"] for b in BASELINES))
+        out[view] = {m: bool(all(t[m]["all"]["rmse"] < t[b]["all"]["rmse"] for b in against))
                      for m in models if "all" in t.get(m, {})}
     return out
 
@@ -564,8 +612,9 @@ def azimuth_sign_check(subjects) -> dict:
 
 def gamma_check(subject: Subject, gammas=(0.8, 1.0, 1.2, 1.8, 2.2)) -> dict:
     """Leave-one-out Lambertian prediction error (RMS, codes) of the near-frontal images for each
-    decoding gamma, on pixels lit and unclipped in all of them: the truest decoding predicts best."""
-    sel = np.flatnonzero((np.abs(subject.angles[:, 0]) <= 50) & (np.abs(subject.angles[:, 1]) <= 40))
+    decoding gamma, on pixels lit and unclipped in all of them: the true decoding predicts best."""
+    az, el = np.abs(subject.angles).T
+    sel = np.flatnonzero((az <= 50) & (el <= 40))
     codes = subject.images[sel].reshape(len(sel), -1) * 255.0
     ok = np.all((codes > 15) & (codes < 250), axis=0)
     lights, x = subject.dirs[sel], codes[:, ok]
@@ -612,6 +661,9 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
     relighters = {}
     for p in onnx_paths:
         r = PipelineRelighter(p, threads)
+        if r.name in relighters or r.name in REFERENCES:
+            raise InputError(f"Two models are named {r.name} (or a model is named like a "
+                             "baseline); give each --onnx model a card with its own name.")
         relighters[r.name] = r
     models = list(relighters)
     bank = HdriBank(data_root)
@@ -632,7 +684,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         progress(f"{name}: {len(rows)} pairs so far, {time.perf_counter() - t0:.0f} s")
     summary = summarise(rows)
     if sheet_path and sheet:
-        write_sheet(sheet_path, [sheet_row(r, gains, [*models, *BASELINES]) for r in sheet])
+        write_sheet(sheet_path, [sheet_row(r, gains, [*models, *REFERENCES]) for r in sheet])
     return {
         "what": "CroppedYale real-data relighting check (training/yale_eval.py)",
         "models": {m: {"onnx": str(relighters[m].card.onnx_path.relative_to(ROOT))
@@ -643,6 +695,8 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         "split": {"tune": tune_names, "test": test_names},
         "pairs_per_subject": n_pairs, "seed": seed, "quick": quick,
         "gains": gains, "results": summary, "beats_both_baselines": verdict(summary, models),
+        "beats_flattened_ratio": verdict(summary, models, (FLATTENED,)),
+        "pair_win_rates": win_rates(rows, models),
         "data": {"dropped_failed_strobes": {k: v for k, v in dropped.items() if v},
                  "ambient": ambient},
         "seconds": round(time.perf_counter() - t0, 1),
@@ -683,12 +737,13 @@ def main(argv=None) -> int:
     res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
               progress=lambda msg: print(msg, file=sys.stderr))
     models = list(res["models"])
-    table = markdown(res["results"], models)
+    table = markdown(res["results"], models, res["pair_win_rates"])
     res.update({"table_markdown": table, "date": started, "machine": m,
                 "command": "python -m training.yale_eval " + " ".join(argv if argv is not None
                                                                      else sys.argv[1:])})
     print(table)
     print("beats both baselines (overall RMSE, test subjects):", res["beats_both_baselines"])
+    print("beats the light-blind flattened_ratio:", res["beats_flattened_ratio"])
     print(f"{res['seconds']} s; gains {res['gains']}")
     out = pathlib.Path(a.json)
     out.parent.mkdir(parents=True, exist_ok=True)

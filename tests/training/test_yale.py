@@ -200,11 +200,11 @@ def test_one_subject_end_to_end_with_a_tiny_model(toy, yale_root, b01):
     pairs = ye.draw_pairs(b01, 3, 1, bank)
     results = [ye.relight_pair(b01, a, b, relighters) for a, b in pairs]
     gains = ye.fit_gains(results)
-    assert set(gains) == {"toy", *ye.BASELINES} and all(np.isfinite(list(gains.values())))
+    assert set(gains) == {"toy", *ye.REFERENCES} and all(np.isfinite(list(gains.values())))
     rows = [(r.kind, ye.score_pair(r, gains)) for r in results]
     summary = ye.summarise(rows)
     for view in ye.VIEWS:
-        for m in ("toy", *ye.BASELINES):
+        for m in ("toy", *ye.REFERENCES):
             cell = summary[view][m]["all"]
             assert cell["pairs"] == 3
             assert all(np.isfinite(cell[k]) for k in ("rmse", "psnr", "ssim"))
@@ -213,11 +213,25 @@ def test_one_subject_end_to_end_with_a_tiny_model(toy, yale_root, b01):
         np.testing.assert_allclose(r.outputs["irradiance_ratio"],
                                    r.inputs * b.weights.sum() / a.weights.sum(), rtol=1e-4)
         np.testing.assert_allclose(r.gt, ye.relit_sum(b01, b.weights))
+        flat = np.sqrt(r.inputs * r.inputs.mean()) * b.weights.sum() / a.weights.sum()
+        np.testing.assert_allclose(r.outputs[ye.FLATTENED], flat, rtol=1e-4)
     # Under gray light both baselines are the input times a number: equal once gain-aligned.
     si = summary["scale_invariant"]
     assert si["identity"]["all"]["rmse"] == pytest.approx(si["irradiance_ratio"]["all"]["rmse"],
                                                           rel=1e-5)
     assert "| toy |" in ye.markdown(summary, ["toy"])
+
+
+def test_calibration_finds_the_gain_that_minimises_the_reported_rmse(b01):
+    gt = b01.images[:4]
+    mask = ye.face_mask(gt.shape[1:])
+    results = [ye.PairResult("s", "single", "a", "b", g, mask, g, lightvec.zeros(),
+                             {"dim": g / 3.0, "right": g.copy()}) for g in gt]
+    gains = ye.fit_gains(results)
+    assert gains["dim"] == pytest.approx(3.0, rel=0.012)  # 1/64-octave grid
+    assert gains["right"] == pytest.approx(1.0, rel=0.012)
+    scored = ye.score_pair(results[0], gains)["calibrated"]
+    assert scored["dim"]["rmse"] < 0.01 and scored["right"]["rmse"] < 0.01
 
 
 def test_identity_is_exact_when_the_light_does_not_change(toy, b01):
@@ -236,4 +250,6 @@ def test_command_line_quick_run_writes_the_table_and_sheet(toy, shared_data, yal
     assert res["split"] == {"tune": ["yaleB01"], "test": ["yaleB11", "yaleB12"]}
     assert res["results"]["calibrated"]["toy"]["all"]["pairs"] == 6
     assert set(res["beats_both_baselines"]["calibrated"]) == {"toy"}
+    rates = res["pair_win_rates"]["scale_invariant"]["toy"]
+    assert set(rates) == set(ye.REFERENCES) and all(0.0 <= v <= 1.0 for v in rates.values())
     assert sheet.stat().st_size > 1000 and "| identity |" in capsys.readouterr().out
