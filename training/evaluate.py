@@ -9,6 +9,11 @@ channel value inside the portrait mask, clipped to [0, 1] and sRGB-encoded. RMSE
 over the mask's pixels only (SSIM: 11x11 Gaussian window, sigma 1.5, per channel, the map averaged
 over the mask); PSNR = 20 log10(1 / RMSE). Each figure is the mean over the held-out samples.
 
+``shading_corr`` asks whether the light acts where it should: the Pearson correlation, over the
+portrait region, between the predicted and the true change of log luminance from the input to the
+relit frame, each with its mean over the region removed (so a global change of level or colour
+scores 0, the right spatial pattern of light and shadow scores 1, the opposite -1).
+
 Baselines: ``identity`` outputs the input unchanged; ``irradiance_ratio`` scales the input per
 channel by total_power(L^k) / total_power(L^i) with the true source light (an oracle on lighting).
 """
@@ -81,6 +86,18 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
     return {"rmse": rmse, "psnr": psnr, "ssim": ssim}
 
 
+def shading_correlation(pred: np.ndarray, inp: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """Correlation of the predicted and true spatial change of log luminance (see module doc)."""
+    w = np.array([0.2126, 0.7152, 0.0722])[:, None]
+    lum = lambda x: (w * np.asarray(x, np.float64)[:, mask]).sum(0)  # noqa: E731
+    li, floor = lum(inp), 1e-3 * white_level(gt, mask)
+    a = np.log((np.maximum(lum(pred), 0) + floor) / (li + floor))
+    b = np.log((lum(gt) + floor) / (li + floor))
+    a, b = a - a.mean(), b - b.mean()
+    den = math.sqrt(float((a * a).sum() * (b * b).sum()))
+    return float((a * b).sum() / den) if den > 1e-12 else 0.0
+
+
 def baseline_identity(sample: dict) -> np.ndarray:
     return np.asarray(sample["img_t_i"], np.float32)
 
@@ -108,7 +125,8 @@ def evaluate(predict, dataset, n: int | None = None, baselines: bool = True,
         mask = np.asarray(s["mask_t"])[0] > 0.5
         gt = np.asarray(s["gt_t_k"], np.float32)
         pred, extras = predict(s)
-        rows["model"].append(image_metrics(pred, gt, mask))
+        rows["model"].append({**image_metrics(pred, gt, mask),
+                              "shading_corr": shading_correlation(pred, s["img_t_i"], gt, mask)})
         if "foreground" in extras:
             fg = extras["foreground"] > 0.5
             fg_iou.append(float((fg & mask).sum() / max((fg | mask).sum(), 1)))

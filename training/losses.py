@@ -133,12 +133,14 @@ def make_critic_optimizer(critic: Critic, lr: float = 5e-5) -> torch.optim.Optim
 
 # ------------------------------------------------------------------------------- whole objective
 
-def _decode_many(net: RelightNet, image, skips, code, lights, scales):
+def _decode_many(net: RelightNet, image, skips, code, source, lights, scales):
     """Decode one frame under several lights in one batched pass. ``lights`` are unit-power;
-    each output is multiplied by its scale (1 for a target light, k for an estimated one)."""
+    each output is multiplied by its scale (1 for a target light, k for an estimated one).
+    ``source`` is the frame's estimated own light (the ratio head's denominator)."""
     n = len(lights)
     rep = lambda t: t.repeat(n, *([1] * (t.dim() - 1)))  # noqa: E731
-    relit, logits = net.decode(rep(image), torch.cat(lights, 0), [rep(s) for s in skips], rep(code))
+    relit, logits = net.decode(rep(image), torch.cat(lights, 0), [rep(s) for s in skips], rep(code),
+                               rep(source))
     scales = torch.cat(scales, 0)[:, None, None, None]
     return list((relit * scales).chunk(n, 0)), logits.chunk(n, 0)[0]
 
@@ -164,8 +166,9 @@ def generator_objective(net: RelightNet, b: dict, sw: Switches, critic: Critic |
     else:
         lights_t, scales_t = [target, unit_i], [ones, k_i]
         lights_t1, scales_t1 = [target, unit_j], [ones, k_j]
-    out_t, logits_t = _decode_many(net, b["img_t"], skips_t, code_t, lights_t, scales_t)
-    out_t1, logits_t1 = _decode_many(net, b["img_t1"], skips_t1, code_t1, lights_t1, scales_t1)
+    out_t, logits_t = _decode_many(net, b["img_t"], skips_t, code_t, light_t, lights_t, scales_t)
+    out_t1, logits_t1 = _decode_many(net, b["img_t1"], skips_t1, code_t1, light_t1, lights_t1,
+                                     scales_t1)
 
     parts = {}
     m_t, m_t1 = b["mask_t"], b["mask_t1"]

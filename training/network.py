@@ -29,6 +29,9 @@ STEM = 4  # the image is folded to 1/STEM resolution by pixel unshuffle before a
 LIGHT_SHAPE = (3, lightvec.ROWS, lightvec.COLS)  # channels-first light vector, as in the contract
 LIGHT_SIZE = 3 * lightvec.ROWS * lightvec.COLS
 INPUT_CEILING = 1e4  # normalised radiance above this is clipped: keeps fp16/exp paths finite
+SOFTPLUS_BETA = 20.0  # irradiance floor softplus(0) = ln 2 / 20 ~ 0.035 (unit lights: E ~ 1)
+IRRADIANCE_EPS = 1e-3
+RATIO_MAX = 50.0  # a shading ratio above this is clipped (a lit pixel from a near-black one)
 
 
 @dataclass(frozen=True)
@@ -45,6 +48,12 @@ class NetConfig:
     # detail can only come from gain * image. "shuffle" (the first Draft's; checkpoints without
     # this key): 4x4 pixel-shuffled residual, which trained into a blurred, gridded image.
     residual: str = "shuffle"
+    # "ratio": the gain also carries a per-pixel irradiance ratio E(T, L_target) / E(T, L_source),
+    # with a predicted 9-coefficient (order-2 spherical harmonics) transport T per pixel and the
+    # encoder's own source estimate, so the light's direction acts on the image through physics
+    # rather than only through FiLM (the "gain" decoders learnt colour and level but not direction).
+    # "gain" (checkpoints without this key): gain and residual from FiLM features only.
+    relight: str = "gain"
 
     @property
     def stride(self) -> int:
@@ -57,13 +66,13 @@ class NetConfig:
 
 PRESETS = {
     "draft": NetConfig(widths=(16, 24, 48, 64), blocks=(1, 1, 1, 1), expand=2, code=32,
-                       light_embed=48, residual="smooth"),
+                       light_embed=48, residual="smooth", relight="ratio"),
     "standard": NetConfig(widths=(32, 48, 96, 128), blocks=(1, 2, 2, 2), expand=2, code=64,
-                          light_embed=64, residual="smooth"),
+                          light_embed=64, residual="smooth", relight="ratio"),
     # Wide at low resolution, narrow at 1/4: 48 x 3 expanded channels at 1/4 resolution ran 4x
     # slower than this on the 2-core CPU for about the same FLOPs (memory-bound).
     "final": NetConfig(widths=(32, 64, 128, 192), blocks=(1, 3, 4, 3), expand=3, code=128,
-                       light_embed=128, residual="smooth"),
+                       light_embed=128, residual="smooth", relight="ratio"),
 }
 
 
@@ -189,12 +198,20 @@ class Decoder(nn.Module):
         self.shuffle = cfg.residual == "shuffle"
         self.residual = nn.Conv2d(w[0], 3 * STEM * STEM if self.shuffle else 3, 1)
         self.parsing = nn.Conv2d(w[0], cfg.classes, 1)
+        if cfg.relight not in ("gain", "ratio"):
+            raise ValueError(f"unknown relight head {cfg.relight!r}; use 'ratio' or 'gain'")
+        self.ratio = cfg.relight == "ratio"
+        if self.ratio:
+            self.transport = nn.Conv2d(w[0], 9, 1)
+            nn.init.zeros_(self.transport.weight)  # E = floor for every light: ratio 1 at start
+            nn.init.zeros_(self.transport.bias)
+            self.register_buffer("sh_basis", _sh_projection(), persistent=False)
         for m in (self.gain, self.residual):
             nn.init.zeros_(m.weight)
             nn.init.zeros_(m.bias)
         nn.init.constant_(self.gain.bias, 1.0)  # start as relit = image
 
-    def forward(self, image, light, skips, code):
+    def forward(self, image, light, skips, code, source=None):
         films = self.light(light)
         x = self.bottleneck(torch.cat([skips[-1], code], dim=1))
         for j, block in enumerate(self.blocks):
@@ -206,7 +223,13 @@ class Decoder(nn.Module):
                 x = self.merge[j - 1](torch.cat([x, skip], dim=1))
             x = block(film(x, films[j]))
         size = image.shape[-2:]
-        gain = F.interpolate(self.gain(x), size=size, mode="bilinear", align_corners=False)
+        g = self.gain(x)
+        if self.ratio:
+            if source is None:
+                raise ValueError("the ratio head needs the source light (the encoder's estimate)")
+            t = self.transport(x)
+            g = g * (self._irradiance(t, light) / self._irradiance(t, source)).clamp(max=RATIO_MAX)
+        gain = F.interpolate(g, size=size, mode="bilinear", align_corners=False)
         if self.shuffle:
             residual = F.pixel_shuffle(self.residual(x), STEM)
         else:
@@ -215,6 +238,15 @@ class Decoder(nn.Module):
         relit = gain * image.clamp(0.0, INPUT_CEILING) + residual
         parsing = F.interpolate(self.parsing(x), size=size, mode="bilinear", align_corners=False)
         return relit, parsing  # parsing as logits: the BCE loss is stabler on logits
+
+    def _irradiance(self, transport, light):
+        """E_c(x) = softplus(sum_j T_j(x) L_cj): (N,9,h,w) transport, (N,3,16,16) light ->
+        (N,3,h,w). The softplus keeps E positive with a soft floor of ~0.035 (unit-power lights
+        give E of order 1), so the ratio stays finite in the dark."""
+        coeff = light.flatten(2) @ self.sh_basis  # (N, 3, 9) SH coefficients of the light
+        e = (transport[:, None] * coeff[:, :, :, None, None]).sum(dim=2)
+        # + a hard floor: softplus of a very negative value underflows to 0 in float32
+        return F.softplus(e, beta=SOFTPLUS_BETA) + IRRADIANCE_EPS
 
 
 class RelightNet(nn.Module):
@@ -229,23 +261,24 @@ class RelightNet(nn.Module):
     def encode(self, image):
         return self.encoder(image)
 
-    def decode(self, image, light, skips, code):
+    def decode(self, image, light, skips, code, source=None):
         """Relit image (same units as ``image / k(light)``; may be slightly negative while
-        training) and parsing logits, for a light of any power (normalised here)."""
-        return self.decoder(image, light, skips, code)
+        training) and parsing logits, for a unit-power light; ``source`` is the encoder's
+        estimate of the image's own light (needed by the ratio head)."""
+        return self.decoder(image, light, skips, code, source)
 
-    def relight_by(self, image, light, skips, code):
+    def relight_by(self, image, light, skips, code, source=None):
         """Relit image under a light given in the normalised image's units (e.g. the estimated
         source light): scaled to unit power for the decoder, the output scaled back."""
         k = light_power(light).clamp(min=1e-6)
-        relit, logits = self.decoder(image, light / k[:, None, None, None], skips, code)
+        relit, logits = self.decoder(image, light / k[:, None, None, None], skips, code, source)
         return relit * k[:, None, None, None], logits
 
     def forward(self, image, target_light):
         """The ONNX contract: image [N,3,H,W] (normalised), target_light [N,3,16,16] (unit power)
         -> relit [N,3,H,W], source_light [N,3,16,16], parsing [N,K,H,W] in [0,1]."""
         source, skips, code = self.encoder(image)
-        relit, logits = self.decoder(image, target_light, skips, code)
+        relit, logits = self.decoder(image, target_light, skips, code, source)
         return relit.clamp(min=0.0), source, torch.sigmoid(logits)
 
 
@@ -253,6 +286,16 @@ class RelightNet(nn.Module):
 
 def _solid_angles() -> torch.Tensor:
     return torch.from_numpy(lightvec.solid_angles().astype(np.float32))
+
+
+def _sh_projection() -> torch.Tensor:
+    """(256, 9): a light vector's order-2 SH coefficients are ``light.flatten(2) @ this``
+    (each cell's basis value at its centre direction times its solid angle)."""
+    from .lightstage.shading import _sh9
+
+    d = torch.from_numpy(lightvec.directions().reshape(-1, 3).astype(np.float32))
+    omega = _solid_angles().reshape(-1, 1)
+    return (_sh9(d) * omega).contiguous()
 
 
 def light_power(light: torch.Tensor) -> torch.Tensor:

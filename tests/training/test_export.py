@@ -131,3 +131,18 @@ def test_every_resize_in_the_graph_is_bilinear(onnx_path):
     modes = [a.s for n in onnx.load(str(onnx_path)).graph.node if n.op_type == "Resize"
              for a in n.attribute if a.name == "mode"]
     assert modes and all(m == b"linear" for m in modes)
+
+
+def test_shading_correlation_scores_the_spatial_pattern_of_the_change():
+    s = standin.sample(32, seed=3)
+    mask = s["mask_t"][0] > 0.5
+    inp = s["img_t_i"]
+    yy, xx = np.mgrid[0:32, 0:32] / 32.0
+    shade = (0.3 + xx)[None].astype(np.float32)           # light from the right
+    gt = inp * shade
+    assert evaluate.shading_correlation(gt * 1.7, inp, gt, mask) == pytest.approx(1.0)   # level free
+    assert evaluate.shading_correlation(inp / shade, inp, gt, mask) == pytest.approx(-1.0, abs=0.02)
+    # a global change earns (almost) nothing: only the dark-pixel floor bends log(2x) - log(x)
+    assert abs(evaluate.shading_correlation(inp * 2.0, inp, gt, mask)) < 0.1
+    other = inp * (0.3 + yy)[None].astype(np.float32)     # light from below: unrelated pattern
+    assert abs(evaluate.shading_correlation(other, inp, gt, mask)) < 0.3

@@ -105,3 +105,68 @@ def test_hdr_and_black_inputs_stay_finite(net):
     assert all(torch.isfinite(o).all() for o in out)
     out = net(torch.zeros(1, 3, 32, 32), torch.zeros(1, 3, 16, 16))
     assert all(torch.isfinite(o).all() for o in out)
+
+
+# ---- the ratio head: E(T, L_target) / E(T, L_source) with a per-pixel SH transport T
+
+RATIO = network.NetConfig(**{**TINY.to_dict(), "widths": (8, 8, 16, 16),
+                             "blocks": (1, 1, 1, 1), "relight": "ratio"})
+
+
+def test_presets_use_the_ratio_head_and_old_checkpoints_keep_theirs():
+    assert all(network.PRESETS[p].relight == "ratio" for p in ("draft", "standard", "final"))
+    assert network.NetConfig().relight == "gain"  # configs saved before the key existed
+
+
+def test_sh_projection_gives_a_lights_spherical_harmonics():
+    # a uniform light of radiance 1 has only the constant band: 4 pi * Y00
+    basis = network._sh_projection()
+    coeff = torch.ones(1, 3, 256) @ basis
+    assert float(coeff[0, 0, 0]) == pytest.approx(4 * np.pi * 0.282095, rel=1e-3)
+    assert float(coeff[0, 0, 1:].abs().max()) < 1e-3 * 4 * np.pi
+    # a light from the camera's right (+x) gives a positive x band (index 3)
+    light = np.zeros(lightvec.SHAPE, np.float32)
+    light[8, 12] = 1.0
+    c = torch.from_numpy(network.to_channels_first(light)).flatten(1) @ basis
+    assert float(c[0, 3]) > 0 and abs(float(c[0, 3])) > abs(float(c[0, 1]))
+
+
+def test_ratio_head_starts_as_the_identity_and_turns_light_direction_into_shading():
+    torch.manual_seed(5)
+    net = network.RelightNet(RATIO).eval()
+    img = torch.rand(1, 3, 32, 32) + 0.5
+    relit, _, _ = net(img, _light())
+    assert torch.allclose(relit, img, atol=1e-6)
+    # a transport of "normal facing +x on the left half, -x on the right half" (band 3 = x)
+    with torch.no_grad():
+        net.decoder.transport.bias.zero_()
+    left, right = np.zeros(lightvec.SHAPE, np.float32), np.zeros(lightvec.SHAPE, np.float32)
+    left[8, 4], right[8, 12] = 1.0, 1.0  # from the camera's left / right
+    tl, tr = (torch.from_numpy(network.to_channels_first(x))[None] for x in (left, right))
+    with torch.no_grad():
+        source, skips, code = net.encode(img)
+        h, w = skips[0].shape[-2:]
+        t = torch.zeros(1, 9, h, w)
+        t[:, 0], t[:, 3, :, : w // 2], t[:, 3, :, w // 2:] = 1.0, -2.0, 2.0
+        e_r = net.decoder._irradiance(t, tr)
+        e_l = net.decoder._irradiance(t, tl)
+    assert float(e_r[..., w // 2:].mean()) > 2 * float(e_r[..., : w // 2].mean())
+    assert float(e_l[..., : w // 2].mean()) > 2 * float(e_l[..., w // 2:].mean())
+    assert torch.all(e_r > 0) and torch.all(e_l > 0)  # the softplus floor: never a zero divisor
+
+
+def test_ratio_head_stays_finite_for_a_black_source_and_extreme_lights():
+    torch.manual_seed(6)
+    net = network.RelightNet(RATIO)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.2 * torch.randn_like(p))
+    net.eval()
+    img = torch.rand(1, 3, 32, 32)
+    spike = torch.zeros(1, 3, 16, 16)
+    spike[0, :, 3, 5] = 1e5
+    for image, light in [(torch.zeros_like(img), _light()), (img, spike), (img, 0 * spike),
+                         (img * 1e4, _light())]:
+        with torch.no_grad():
+            relit, source, parsing = net(image, light)
+        assert torch.isfinite(relit).all() and torch.isfinite(source).all()
