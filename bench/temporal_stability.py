@@ -35,7 +35,7 @@ Protocol (every choice is an option; the defaults are recorded in the JSON):
 Writes temporal_stability.json and .png into ``--out`` (bench/results) and prints a markdown
 table. Models: any contract ONNX with its card beside it (label = card name unless --label), or
 a bare ONNX with a --label (stride ``--stride``, relit scale "k"). Give either no --label or one
-per --onnx, in order.
+per --onnx, in order (an empty one, --label "", keeps a card's name).
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from addon import contract, engine, normalise
-from addon.errors import InputError, LightingError, ModelError
+from addon.errors import InputError, LightingError, ModelError, RelightError
 from training import evaluate, lighting_sampling
 from training.lightstage import layout
 
@@ -204,7 +204,7 @@ class Model:
 
 
 def load_model(path, label: str | None = None, threads: int = 1, stride: int = 32) -> Model:
-    """A contract ONNX with its card (checked as the add-on checks it) or a bare one with a label."""
+    """A contract ONNX with its card (checked as the add-on checks it), or a bare one and a label."""
     import onnxruntime as ort
 
     from addon.pipeline import relit_times_s
@@ -384,7 +384,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--onnx", action="append", required=True, help="a model (repeat)")
     p.add_argument("--label", action="append", help="a name per --onnx, in order (needed for "
-                   "an ONNX without a card beside it)")
+                   "an ONNX without a card beside it; \"\" keeps a card's name)")
     p.add_argument("--frames", type=int, default=1000)
     p.add_argument("--speedups", type=int, nargs="+", default=list(SPEEDUPS))
     p.add_argument("--quick", action="store_true", help=f"{QUICK_FRAMES} frames, speed-ups "
@@ -474,4 +474,7 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except RelightError as err:  # a usage problem: say what to do, no traceback
+        sys.exit(f"error: {err}")
