@@ -511,8 +511,8 @@ def score_pair(r: PairResult, gains: dict) -> dict:
     return out
 
 
-def summarise(rows: list[tuple[str, dict]]) -> dict:
-    """rows of (kind, score_pair) -> {view: {method: {kind|'all': mean metrics + pairs}}}."""
+def summarise(rows: list[tuple]) -> dict:
+    """rows of (kind, score_pair, ...) -> {view: {method: {kind|'all': mean metrics + pairs}}}."""
     out: dict = {}
     for view in VIEWS:
         methods = list(rows[0][1][view]) if rows else []
@@ -520,7 +520,7 @@ def summarise(rows: list[tuple[str, dict]]) -> dict:
         for m in methods:
             out[view][m] = {}
             for kind in (*KINDS, "all"):
-                sel = [s[view][m] for k, s in rows if kind in ("all", k)]
+                sel = [s[view][m] for k, s, *_ in rows if kind in ("all", k)]
                 if sel:
                     out[view][m][kind] = {**evaluate.mean_metrics(sel), "pairs": len(sel)}
     return out
@@ -528,34 +528,61 @@ def summarise(rows: list[tuple[str, dict]]) -> dict:
 
 # --------------------------------------------------------------------------------- reporting
 
-def markdown(summary: dict, models: list[str], rates: dict | None = None) -> str:
+def markdown(summary: dict, models: list[str], paired: dict | None = None) -> str:
     lines = []
     for view in VIEWS:
-        table = summary[view]
-        kinds = [k for k in (*KINDS, "all") if any(k in table[m] for m in table)]
-        lines += [f"**{view}** (RMSE / PSNR dB / SSIM on the face ellipse, test subjects)", "",
-                  "| method | " + " | ".join(kinds) + " |",
-                  "| --- |" + " --- |" * len(kinds)]
-        for m in [*models, *REFERENCES]:
-            cells = [("{rmse:.4f} / {psnr:.2f} / {ssim:.4f}".format(**table[m][k])
-                      if k in table[m] else "-") for k in kinds]
-            lines.append(f"| {m} | " + " | ".join(cells) + " |")
-        lines.append("")
-    if rates:
-        lines += ["Share of test pairs where the model's RMSE is the lower", "",
-                  "| model, view | " + " | ".join(REFERENCES) + " |",
-                  "| --- |" + " --- |" * len(REFERENCES)]
-        lines += [f"| {m}, {view} | " + " | ".join(f"{rates[view][m][r]:.2f}" for r in REFERENCES)
-                  + " |" for m in models for view in VIEWS]
-        lines.append("")
+        lines += metrics_table(summary[view], view, models)
+    if paired:
+        lines += paired_table(paired, models)
     return "\n".join(lines)
 
 
-def win_rates(rows: list[tuple[str, dict]], models: list[str]) -> dict:
-    """{view: {model: {reference: share of pairs where the model's RMSE is the lower}}}."""
-    return {view: {m: {ref: float(np.mean([s[view][m]["rmse"] < s[view][ref]["rmse"]
-                                           for _, s in rows]))
-                       for ref in REFERENCES} for m in models} for view in VIEWS} if rows else {}
+def metrics_table(table: dict, view: str, models: list[str]) -> list[str]:
+    kinds = [k for k in (*KINDS, "all") if any(k in table[m] for m in table)]
+    lines = [f"**{view}** (RMSE / PSNR dB / SSIM on the face ellipse, test subjects)", "",
+             "| method | " + " | ".join(kinds) + " |", "| --- |" + " --- |" * len(kinds)]
+    for m in [*models, *REFERENCES]:
+        cells = [("{rmse:.4f} / {psnr:.2f} / {ssim:.4f}".format(**table[m][k])
+                  if k in table[m] else "-") for k in kinds]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
+def paired_table(paired: dict, models: list[str]) -> list[str]:
+    lines = ["Model minus reference, overall RMSE (negative: the model is better), +- one "
+             "standard error over subjects; share of pairs the model wins", "",
+             "| model, view | " + " | ".join(REFERENCES) + " |",
+             "| --- |" + " --- |" * len(REFERENCES)]
+    for m in models:
+        for view in VIEWS:
+            cells = []
+            for ref in REFERENCES:
+                c = paired[view][m][ref]
+                se = "" if c["se_subjects"] is None else f" +- {c['se_subjects']:.4f}"
+                cells.append(f"{c['mean_rmse_diff']:+.4f}{se}; wins {c['win_share']:.2f}")
+            lines.append(f"| {m}, {view} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
+def paired_comparison(rows: list[tuple], models: list[str]) -> dict:
+    """{view: {model: {reference: win share, mean RMSE difference and its standard error}}}.
+
+    rows: (kind, score_pair, subject). The difference is model minus reference (negative: the
+    model is better); its standard error is taken over subjects' mean differences, because the
+    pairs of one subject are not independent of each other."""
+    out: dict = {}
+    for view in VIEWS:
+        out[view] = {}
+        for m in models:
+            out[view][m] = {}
+            for ref in REFERENCES:
+                d = np.array([s[view][m]["rmse"] - s[view][ref]["rmse"] for _, s, _ in rows])
+                subj = np.array([name for _, _, name in rows])
+                means = np.array([d[subj == n].mean() for n in dict.fromkeys(subj)])
+                se = float(means.std(ddof=1) / math.sqrt(len(means))) if len(means) > 1 else None
+                out[view][m][ref] = {"win_share": float(np.mean(d < 0)),
+                                     "mean_rmse_diff": float(means.mean()), "se_subjects": se}
+    return out
 
 
 def verdict(summary: dict, models: list[str], against=BASELINES) -> dict:
@@ -679,7 +706,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         dropped[name] = [list(a) for a, _ in s.dropped]
         ambient[name] = s.ambient
         for r in iter_pairs([s], relighters, n_pairs, seed, bank):
-            rows.append((r.kind, score_pair(r, gains)))
+            rows.append((r.kind, score_pair(r, gains), r.subject))
             if sheet_path and len(sheet) < sheet_rows and r.kind == KINDS[len(sheet) % 3]:
                 sheet.append(r)  # one pair of each kind in turn, from the first subjects
         progress(f"{name}: {len(rows)} pairs so far, {time.perf_counter() - t0:.0f} s")
@@ -697,7 +724,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         "pairs_per_subject": n_pairs, "seed": seed, "quick": quick,
         "gains": gains, "results": summary, "beats_both_baselines": verdict(summary, models),
         "beats_flattened_ratio": verdict(summary, models, (FLATTENED,)),
-        "pair_win_rates": win_rates(rows, models),
+        "paired": paired_comparison(rows, models) if rows else {},
         "data": {"dropped_failed_strobes": {k: v for k, v in dropped.items() if v},
                  "ambient": ambient},
         "seconds": round(time.perf_counter() - t0, 1),
@@ -738,7 +765,7 @@ def main(argv=None) -> int:
     res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
               progress=lambda msg: print(msg, file=sys.stderr))
     models = list(res["models"])
-    table = markdown(res["results"], models, res["pair_win_rates"])
+    table = markdown(res["results"], models, res["paired"])
     res.update({"table_markdown": table, "date": started, "machine": m,
                 "command": "python -m training.yale_eval " + " ".join(argv if argv is not None
                                                                      else sys.argv[1:])})

@@ -234,6 +234,19 @@ def test_calibration_finds_the_gain_that_minimises_the_reported_rmse(b01):
     assert scored["dim"]["rmse"] < 0.01 and scored["right"]["rmse"] < 0.01
 
 
+def test_paired_comparison_takes_its_standard_error_over_subjects():
+    def score(model, ref):
+        return {v: {"m": {"rmse": model}, **{r: {"rmse": ref} for r in ye.REFERENCES}}
+                for v in ye.VIEWS}
+    # Subject "a": the model wins both pairs by 0.1; subject "b": it loses one by 0.1, ties one.
+    rows = [("hdri", score(0.1, 0.2), "a"), ("single", score(0.2, 0.3), "a"),
+            ("hdri", score(0.3, 0.2), "b"), ("few", score(0.2, 0.2), "b")]
+    c = ye.paired_comparison(rows, ["m"])["calibrated"]["m"]["identity"]
+    assert c["win_share"] == 0.5
+    assert c["mean_rmse_diff"] == pytest.approx((-0.1 + 0.05) / 2)
+    assert c["se_subjects"] == pytest.approx(np.std([-0.1, 0.05], ddof=1) / np.sqrt(2))
+
+
 def test_identity_is_exact_when_the_light_does_not_change(toy, b01):
     a = ye.Lighting("few", "same", np.where(np.arange(len(b01.dirs)) % 9 == 0, 0.1, 0.0))
     r = ye.relight_pair(b01, a, a, {"toy": ye.PipelineRelighter(toy)})
@@ -250,6 +263,7 @@ def test_command_line_quick_run_writes_the_table_and_sheet(toy, shared_data, yal
     assert res["split"] == {"tune": ["yaleB01"], "test": ["yaleB11", "yaleB12"]}
     assert res["results"]["calibrated"]["toy"]["all"]["pairs"] == 6
     assert set(res["beats_both_baselines"]["calibrated"]) == {"toy"}
-    rates = res["pair_win_rates"]["scale_invariant"]["toy"]
-    assert set(rates) == set(ye.REFERENCES) and all(0.0 <= v <= 1.0 for v in rates.values())
+    paired = res["paired"]["calibrated"]["toy"]
+    assert set(paired) == set(ye.REFERENCES)
+    assert all(0.0 <= c["win_share"] <= 1.0 and c["se_subjects"] >= 0 for c in paired.values())
     assert sheet.stat().st_size > 1000 and "| identity |" in capsys.readouterr().out
