@@ -97,7 +97,8 @@ class LightStageDataset:
 
     def __init__(self, split: str = "train", resolution: int = 128, seed: int = 0,
                  length: int = 100_000, data_root=None, cache_dir=None, effects="auto",
-                 sampling: bool = True, identities: int | None = None, pool: int | None = None):
+                 sampling: bool = True, identities: int | None = None, pool: int | None = None,
+                 transport: bool = False):
         if split not in SPLITS:
             raise InputError(f"Unknown split {split!r}; use one of {sorted(SPLITS)}.")
         if int(resolution) < 16:
@@ -107,6 +108,7 @@ class LightStageDataset:
         self.data_root = pathlib.Path(data_root) if data_root else assets.default_data_root()
         self.effects = effects  # accepted for the API; samples always hold every effect
         self.sampling = bool(sampling)
+        self.transport = bool(transport)  # add the SH transport targets (lightstage/pairs.py)
         n_ids = identities or {"train": 448, "val": 32, "test": 32}[split]
         self.ids = identity_ids(split, n_ids)
         self.model = assets.load_head(self.data_root)
@@ -186,6 +188,6 @@ class LightStageDataset:
             scene, t = self._draw_scene(rng) if p is None else self.pair_scene(p)
             rec = pairs.record_pair(scene, t)
         lights = lighting_sampling.sample_triplet(rng, self.bank, self.sampling, self.hdri_pool)
-        out = pairs.assemble(rec, lights, len(PARSING_CLASSES))
+        out = pairs.assemble(rec, lights, len(PARSING_CLASSES), with_transport=self.transport)
         assert torch.get_num_threads() == torch_threads
         return out

@@ -37,6 +37,9 @@ class Switches:
     parsing: bool = True
     adversarial: bool = True
     sampling: bool = True
+    # Not in the paper: supervise the ratio head's per-pixel SH transport with the light stage's
+    # own (its OLAT transfer projected to order-2 SH; training/lightstage/pairs.py transport).
+    transport: bool = False
 
     @classmethod
     def ablation(cls, name: str) -> "Switches":
@@ -142,7 +145,19 @@ def _decode_many(net: RelightNet, image, skips, code, source, lights, scales):
     relit, logits = net.decode(rep(image), torch.cat(lights, 0), [rep(s) for s in skips], rep(code),
                                rep(source))
     scales = torch.cat(scales, 0)[:, None, None, None]
+    _decode_many.transport = getattr(net.decoder, "last_transport", None)
     return list((relit * scales).chunk(n, 0)), logits.chunk(n, 0)[0]
+
+
+def transport_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Masked L1 between the predicted transport (n*N, 9, h, w) at the decoder's resolution (n
+    decodes of the same N frames) and the light stage's (N, 9, H, W), area-averaged to h x w."""
+    f = target.shape[-1] // pred.shape[-1]
+    t = F.avg_pool2d(target, f) if f > 1 else target
+    m = F.avg_pool2d(mask, f) if f > 1 else mask
+    n = pred.shape[0] // t.shape[0]
+    t, m = t.repeat(n, 1, 1, 1), (m > 0.5).float().repeat(n, 1, 1, 1)
+    return ((pred - t).abs() * m).sum() / (m.sum() * pred.shape[1]).clamp(min=1.0)
 
 
 def _unit(light):
@@ -167,8 +182,10 @@ def generator_objective(net: RelightNet, b: dict, sw: Switches, critic: Critic |
         lights_t, scales_t = [target, unit_i], [ones, k_i]
         lights_t1, scales_t1 = [target, unit_j], [ones, k_j]
     out_t, logits_t = _decode_many(net, b["img_t"], skips_t, code_t, light_t, lights_t, scales_t)
+    tr_t = _decode_many.transport
     out_t1, logits_t1 = _decode_many(net, b["img_t1"], skips_t1, code_t1, light_t1, lights_t1,
                                      scales_t1)
+    tr_t1 = _decode_many.transport
 
     parts = {}
     m_t, m_t1 = b["mask_t"], b["mask_t1"]
@@ -180,6 +197,9 @@ def generator_objective(net: RelightNet, b: dict, sw: Switches, critic: Critic |
         _, _, code_again = net.encode(out_t[0])
         _, _, code_again1 = net.encode(out_t1[0])
         parts["latent"] = latent_loss(code_t, code_again) + latent_loss(code_t1, code_again1)
+    if sw.transport and tr_t is not None and "transport_t" in b:
+        parts["transport"] = (transport_loss(tr_t, b["transport_t"], b["mask_t"])
+                              + transport_loss(tr_t1, b["transport_t1"], b["mask_t1"]))
     if sw.parsing:
         parts["parsing"] = (parsing_loss(logits_t, b["parsing_t"])
                             + parsing_loss(logits_t1, b["parsing_t1"]))

@@ -228,6 +228,7 @@ class Decoder(nn.Module):
             if source is None:
                 raise ValueError("the ratio head needs the source light (the encoder's estimate)")
             t = self.transport(x)
+            self.last_transport = t  # read by training.losses (transport supervision)
             g = g * (self._irradiance(t, light) / self._irradiance(t, source)).clamp(max=RATIO_MAX)
         gain = F.interpolate(g, size=size, mode="bilinear", align_corners=False)
         if self.shuffle:

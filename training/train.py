@@ -38,6 +38,7 @@ from . import losses, network, warp
 VAL_SEED = 777  # val samples (held-out identities) for the curves logged during training
 IMAGE_KEYS = ("img_t", "img_t1", "gt_t", "gt_t1")
 MASK_KEYS = ("mask_t", "mask_t1", "parsing_t", "parsing_t1")
+TRANSPORT_KEYS = ("transport_t", "transport_t1")
 
 
 # ------------------------------------------------------------------------------------ data to units
@@ -71,6 +72,9 @@ def normalise_sample(sample: dict) -> dict:
     }
     for key in MASK_KEYS + ("flow_fw", "flow_bw", "valid_fw", "valid_bw"):
         out[key] = f32(sample[key])
+    for key in TRANSPORT_KEYS:  # light-independent: no normalisation
+        if key in sample:
+            out[key] = f32(sample[key])
     return out
 
 
@@ -95,7 +99,7 @@ def downsample_batch(b: dict, factor: int) -> dict:
     if factor == 1:
         return b
     out = dict(b)
-    for k in IMAGE_KEYS + MASK_KEYS:
+    for k in IMAGE_KEYS + MASK_KEYS + tuple(k for k in TRANSPORT_KEYS if k in b):
         out[k] = F.avg_pool2d(b[k], factor)
     for k in ("flow_fw", "flow_bw"):
         out[k] = warp.downsample_flow(b[k], factor)
@@ -321,6 +325,8 @@ def train(args) -> pathlib.Path:
     if device.type == "cpu" and args.threads:
         torch.set_num_threads(args.threads)
     sw = losses.Switches.ablation(args.ablation)
+    if args.transport_loss:
+        sw = dataclasses.replace(sw, transport=True)
     net = network.build(args.preset, **net_overrides(args)).to(device)
     recipe = {"command": "python -m training.train " + " ".join(sys.argv[1:]), "args": vars(args),
               "switches": sw.to_dict(), "net": net.cfg.to_dict(), "git_commit": git_commit(),
@@ -332,10 +338,11 @@ def train(args) -> pathlib.Path:
         recipe["data_cache"] = json.loads((pathlib.Path(args.cache) / "cache.json").read_text())
     elif args.data_cache:
         ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling,
-                          cache_dir=args.data_cache)
+                          cache_dir=args.data_cache, transport=sw.transport)
         recipe["data_cache"] = {"dir": str(args.data_cache), "pool": ds.pool}
     else:
-        ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling)
+        ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling,
+                          transport=sw.transport)
     if args.overfit:  # a sanity check: can the model fit a few samples far below the baselines?
         ds = [ds[i] for i in range(args.overfit)]
         val = ds
@@ -471,6 +478,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ablation", default="full",
                    choices=["full", "no_structure", "no_temporal", "no_parsing", "no_sampling",
                             "basic_only"])
+    p.add_argument("--transport-loss", action="store_true",
+                   help="supervise the ratio head's SH transport with the light stage's (not in "
+                        "the paper; an experiment)")
     p.add_argument("--resolution", type=int, default=128, help="light-stage render size")
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--seed", type=int, default=0, help="torch and data seed")

@@ -12,6 +12,7 @@ relative rounding of at most 2**-11 per term; tested).
 
 from __future__ import annotations
 
+import functools
 import json
 import pathlib
 from dataclasses import dataclass
@@ -46,8 +47,36 @@ def record_pair(scene: Scene, t: float) -> PairRecord:
                       (f0.gb.label, f1.gb.label), flow_fw, flow_bw, valid_fw, valid_bw)
 
 
-def assemble(rec: PairRecord, lights, n_classes: int) -> dict:
-    """The sample dict (see training/dataset.py) of a pair under the triplet (L^i, L^j, L^k)."""
+@functools.lru_cache(maxsize=1)
+def transport_matrix() -> torch.Tensor:
+    """(114, 9) Q: a pixel's diffuse transfer D (irradiance = D @ stage weights) times Q is its
+    order-2 SH transport T, the weighted least-squares fit of E(L) = T . SH(L) with SH(L) the
+    light vector's projection as training/network.py computes it (basis at cell centres times
+    solid angle): D @ layout.projection() maps cell power to irradiance, and the fit over the
+    cells (weighted by solid angle) gives Q = P^T diag(omega) Y (Y^T diag(omega) Y)^-1."""
+    from addon import lightvec
+
+    from .shading import _sh9
+
+    y = _sh9(torch.from_numpy(lightvec.directions().reshape(-1, 3).astype(np.float64)))
+    omega = torch.from_numpy(lightvec.solid_angles().reshape(-1).astype(np.float64))
+    gram = y.T @ (omega[:, None] * y)
+    proj = torch.from_numpy(layout.projection())  # (114, 256): stage weights from cell power
+    return (proj @ (omega[:, None] * y) @ torch.linalg.inv(gram)).float()
+
+
+def transport(s: shading.ShadeInputs) -> torch.Tensor:
+    """(9, H, W) SH transport of the foreground pixels (0 elsewhere): the target of the network's
+    ratio head (training.losses transport term)."""
+    h, w = s.mask.shape
+    out = torch.zeros(9, h * w)
+    out[:, s.idx] = (s.diffuse.float() @ transport_matrix()).T
+    return out.view(9, h, w)
+
+
+def assemble(rec: PairRecord, lights, n_classes: int, with_transport: bool = False) -> dict:
+    """The sample dict (see training/dataset.py) of a pair under the triplet (L^i, L^j, L^k);
+    ``with_transport`` adds each frame's SH transport (``transport_t``, ``transport_t1``)."""
     li, lj, lk = lights
     w = torch.from_numpy(np.stack([layout.weights(x) for x in (li, lk, lj, lk)])).float()
     dirs = stage_dirs()
@@ -61,6 +90,8 @@ def assemble(rec: PairRecord, lights, n_classes: int) -> dict:
         parsing[0] = s.mask.float()
         out[f"mask_{key}"] = (s.mask.float() if s.cover is None else s.cover)[None]
         out[f"parsing_{key}"] = parsing
+        if with_transport:
+            out[f"transport_{key}"] = transport(s)
     out = {k: np.ascontiguousarray(v.numpy(), dtype=np.float32) for k, v in out.items()}
     out.update(light_i=np.asarray(li, np.float32), light_j=np.asarray(lj, np.float32),
                light_k=np.asarray(lk, np.float32))
