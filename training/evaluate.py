@@ -11,7 +11,7 @@ over the mask); PSNR = 20 log10(1 / RMSE). Each figure is the mean over the held
 
 ``shading_corr`` asks whether the light acts where it should: the Pearson correlation, over the
 portrait region, between the predicted and the true change of log luminance from the input to the
-relit frame, each with its mean over the region removed (so a global change of level or colour
+relit frame, each with its mean over the region removed (so a global change of level
 scores 0, the right spatial pattern of light and shadow scores 1, the opposite -1).
 
 Baselines: ``identity`` outputs the input unchanged; ``irradiance_ratio`` scales the input per
@@ -87,12 +87,19 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
 
 
 def shading_correlation(pred: np.ndarray, inp: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
-    """Correlation of the predicted and true spatial change of log luminance (see module doc)."""
+    """Correlation of the predicted and true spatial change of log luminance (see module doc),
+    over the portrait pixels the input shows (luminance above 1% of the white level: the log of
+    a near-black input is noise); relit values are floored at 0.1% of white."""
     w = np.array([0.2126, 0.7152, 0.0722])[:, None]
     lum = lambda x: (w * np.asarray(x, np.float64)[:, mask]).sum(0)  # noqa: E731
-    li, floor = lum(inp), 1e-3 * white_level(gt, mask)
-    a = np.log((np.maximum(lum(pred), 0) + floor) / (li + floor))
-    b = np.log((lum(gt) + floor) / (li + floor))
+    white = white_level(gt, mask)
+    li = lum(inp)
+    seen = li > 0.01 * white
+    if seen.sum() < 2:
+        return 0.0
+    floor = 1e-3 * white
+    a = np.log(np.maximum(lum(pred)[seen], floor) / li[seen])
+    b = np.log(np.maximum(lum(gt)[seen], floor) / li[seen])
     a, b = a - a.mean(), b - b.mean()
     den = math.sqrt(float((a * a).sum() * (b * b).sum()))
     return float((a * b).sum() / den) if den > 1e-12 else 0.0
@@ -131,8 +138,11 @@ def evaluate(predict, dataset, n: int | None = None, baselines: bool = True,
             fg = extras["foreground"] > 0.5
             fg_iou.append(float((fg & mask).sum() / max((fg | mask).sum(), 1)))
         if baselines:
-            rows["identity"].append(image_metrics(baseline_identity(s), gt, mask))
-            rows["irradiance_ratio"].append(image_metrics(baseline_irradiance_ratio(s), gt, mask))
+            for name, base in (("identity", baseline_identity(s)),
+                               ("irradiance_ratio", baseline_irradiance_ratio(s))):
+                rows[name].append({**image_metrics(base, gt, mask),
+                                   "shading_corr": shading_correlation(base, s["img_t_i"], gt,
+                                                                       mask)})
     out = {name: mean_metrics(r) for name, r in rows.items() if r}
     if fg_iou:
         out["model"]["foreground_iou"] = float(np.mean(fg_iou))
