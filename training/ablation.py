@@ -8,7 +8,8 @@ Each variant is one training run of the Draft network with one part of the metho
 steps whatever the machine's load), exported with training/export.py into models/research/. Rows:
 full, w/o structure, w/o temporal, w/o parsing, w/o sampling, then the two simple baselines
 (output = input; input scaled by the ratio of total irradiance, which is given the true source
-light). Metrics are training/evaluate.py's (portrait region, values normalised to [0, 1]), on the
+light). ``shading corr`` says whether the light acts where it should (training/evaluate.py).
+Metrics are training/evaluate.py's (portrait region, values normalised to [0, 1]), on the
 fixed test set of training/make_testset.py.
 
 Besides the means, each variant's RMSE difference to the full model is given with its paired
@@ -80,8 +81,9 @@ def paired(a_rows, b_rows, key="rmse") -> tuple[float, float]:
 
 def table(result: dict) -> str:
     v, base = result["variants"], result["baselines"]
-    lines = ["| variant | RMSE | PSNR dB | SSIM | RMSE - full (± s.e.) | steps (exported) | "
-             "paper RMSE / PSNR / SSIM |", "|---|---|---|---|---|---|---|"]
+    lines = ["| variant | RMSE | PSNR dB | SSIM | shading corr | RMSE - full (± s.e.) | "
+             "steps (exported) | paper RMSE / PSNR / SSIM |", "|---|---|---|---|---|---|---|---|"]
+    corr = lambda m: f"{m['shading_corr']:.3f}" if "shading_corr" in m else ""  # noqa: E731
     full = v.get("full")
     for name in VARIANTS:
         if name not in v:
@@ -91,7 +93,8 @@ def table(result: dict) -> str:
             "{:+.4f} ± {:.4f}".format(*paired(full["rows"], v[name]["rows"]))
         paper = "{:.4f} / {:.2f} / {:.4f}".format(*PAPER[name])
         lines.append(f"| {LABELS[name]} | {m['rmse']:.4f} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
-                     f"{diff} | {v[name]['steps']} ({v[name]['exported_step']}) | {paper} |")
+                     f"{corr(m)} | {diff} | {v[name]['steps']} ({v[name]['exported_step']}) | "
+                     f"{paper} |")
     for key, label in (("identity", "output = input"),
                        ("irradiance_ratio", "irradiance ratio (true source light)")):
         if key in base:
@@ -99,7 +102,7 @@ def table(result: dict) -> str:
             diff = "" if full is None else \
                 "{:+.4f} ± {:.4f}".format(*paired(full["rows"], base[key]["rows"]))
             lines.append(f"| {label} | {m['rmse']:.4f} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
-                         f"{diff} | | |")
+                         f"{corr(m)} | {diff} | | |")
     return "\n".join(lines)
 
 
