@@ -31,9 +31,10 @@ import numpy as np
 from . import evaluate
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-VARIANTS = ("full", "no_structure", "no_temporal", "no_parsing", "no_sampling")
+VARIANTS = ("full", "no_structure", "no_temporal", "no_parsing", "no_sampling", "transport")
 LABELS = {"full": "full (ours)", "no_structure": "w/o structure", "no_temporal": "w/o temporal",
-          "no_parsing": "w/o parsing", "no_sampling": "w/o sampling"}
+          "no_parsing": "w/o parsing", "no_sampling": "w/o sampling",
+          "transport": "full + transport supervision (not in the paper)"}
 PAPER = {"full": (0.0349, 30.6110, 0.9584), "no_temporal": (0.0404, 28.6403, 0.9510),
          "no_parsing": (0.0680, 23.6189, 0.9170), "no_sampling": (0.0616, 24.5142, 0.9223),
          "no_structure": (0.0549, 25.5496, 0.9021)}  # the paper's "w/o content" row
@@ -91,7 +92,7 @@ def table(result: dict) -> str:
         m = v[name]["mean"]
         diff = "" if full is None or name == "full" else \
             "{:+.4f} ± {:.4f}".format(*paired(full["rows"], v[name]["rows"]))
-        paper = "{:.4f} / {:.2f} / {:.4f}".format(*PAPER[name])
+        paper = "{:.4f} / {:.2f} / {:.4f}".format(*PAPER[name]) if name in PAPER else ""
         lines.append(f"| {LABELS[name]} | {m['rmse']:.4f} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
                      f"{corr(m)} | {diff} | {v[name]['steps']} ({v[name]['exported_step']}) | "
                      f"{paper} |")
