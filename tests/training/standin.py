@@ -45,3 +45,18 @@ class StandinDataset:
 
     def __getitem__(self, i):
         return sample(self.res, self.seed * 1000 + i)
+
+
+def perturbed_net(cfg, seed: int = 0, scale: float = 0.05):
+    """A RelightNet of ``cfg`` in eval mode, its weights moved off the identity start by
+    ``scale`` * N(0, 1) (seeded), so every output depends on the weights and the light."""
+    import torch
+
+    from training import network
+
+    torch.manual_seed(seed)
+    net = network.RelightNet(cfg)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(scale * torch.randn_like(p))
+    return net.eval()

@@ -15,12 +15,8 @@ TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, c
 
 
 def _export(folder, name, seed, recipe=None):
-    torch.manual_seed(seed)
-    net = network.RelightNet(TINY)
-    with torch.no_grad():  # different weights per variant, so their metrics differ
-        for p in net.parameters():
-            p.add_(0.05 * torch.randn_like(p))
-    path = export.export_onnx(net.eval(), folder / f"ablation-{name}.onnx")
+    net = standin.perturbed_net(TINY, seed)  # different weights per variant: metrics differ
+    path = export.export_onnx(net, folder / f"ablation-{name}.onnx")
     card = {"stride": TINY.stride, "training": {"recipe": recipe or {}}}
     path.with_suffix(".json").write_text(json.dumps(card))
     return path

@@ -19,12 +19,7 @@ TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, c
 
 @pytest.fixture(scope="module")
 def net():
-    torch.manual_seed(0)
-    n = network.RelightNet(TINY)
-    with torch.no_grad():  # move off the identity start so every output depends on the weights
-        for p in n.parameters():
-            p.add_(0.05 * torch.randn_like(p))
-    return n.eval()
+    return standin.perturbed_net(TINY, 0)
 
 
 @pytest.fixture(scope="module")

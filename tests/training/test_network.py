@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+import standin
 from addon import contract, lightvec, normalise
 from training import network
 
@@ -59,12 +60,7 @@ def test_channels_first_light_is_the_light_vector_transposed():
 
 
 def test_relight_by_is_linear_in_the_light_power():
-    torch.manual_seed(3)
-    net = network.RelightNet(TINY)
-    with torch.no_grad():  # make the decoder depend on the light, unlike the identity start
-        for p in net.parameters():
-            p.add_(0.05 * torch.randn_like(p))
-    net.eval()
+    net = standin.perturbed_net(TINY, 3)  # the decoder depends on the light, unlike at the start
     img = torch.rand(1, 3, 32, 32)
     with torch.no_grad():
         _, skips, code = net.encode(img)
@@ -156,12 +152,7 @@ def test_ratio_head_starts_as_the_identity_and_turns_light_direction_into_shadin
 
 
 def test_ratio_head_stays_finite_for_a_black_source_and_extreme_lights():
-    torch.manual_seed(6)
-    net = network.RelightNet(RATIO)
-    with torch.no_grad():
-        for p in net.parameters():
-            p.add_(0.2 * torch.randn_like(p))
-    net.eval()
+    net = standin.perturbed_net(RATIO, 6, scale=0.2)
     img = torch.rand(1, 3, 32, 32)
     spike = torch.zeros(1, 3, 16, 16)
     spike[0, :, 3, 5] = 1e5

@@ -73,12 +73,7 @@ def test_engine_reads_how_a_card_scales_relit():
 def test_engine_output_matches_training_units_for_an_exported_model(tmp_path):
     """A sample through export + addon.engine + the pipeline's output scaling equals the torch
     model's output brought back by training's relit_to_absolute."""
-    torch.manual_seed(0)
-    net = network.RelightNet(TINY)
-    with torch.no_grad():
-        for p in net.parameters():
-            p.add_(0.05 * torch.randn_like(p))
-    net.eval()
+    net = standin.perturbed_net(TINY, 0)
     onnx_path = export.export_onnx(net, tmp_path / "tiny.onnx")
     card = export.make_card("tiny", "draft", onnx_path, net, {"recipe": {}}, {}, {},
                             working_size=64)
