@@ -5,8 +5,11 @@
 
 Each variant is one training run of the Draft network with one part of the method switched off
 (training/losses.py Switches.ablation; ``--steps`` budget, so every run saw the same number of
-steps whatever the machine's load), exported with training/export.py into models/research/. Rows:
-full, w/o structure, w/o temporal, w/o parsing, w/o sampling, then the two simple baselines
+steps whatever the machine's load), exported with training/export.py into models/research/.
+"full" is the shipped Draft's recipe: the paper's losses plus the transport supervision of the
+ratio head (``--transport-loss``), without which the network did not learn the light's direction;
+"w/o transport supervision" is therefore the paper's own full recipe. Rows: full, w/o structure,
+w/o temporal, w/o parsing, w/o sampling, w/o transport supervision, then the two baselines
 (output = input; input scaled by the ratio of total irradiance, which is given the true source
 light). ``shading corr`` says whether the light acts where it should (training/evaluate.py).
 Metrics are training/evaluate.py's (portrait region, values normalised to [0, 1]), on the
@@ -31,10 +34,10 @@ import numpy as np
 from . import evaluate
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-VARIANTS = ("full", "no_structure", "no_temporal", "no_parsing", "no_sampling", "transport")
+VARIANTS = ("full", "no_structure", "no_temporal", "no_parsing", "no_sampling", "no_transport")
 LABELS = {"full": "full (ours)", "no_structure": "w/o structure", "no_temporal": "w/o temporal",
           "no_parsing": "w/o parsing", "no_sampling": "w/o sampling",
-          "transport": "full + transport supervision (not in the paper)"}
+          "no_transport": "w/o transport supervision (= the paper's full recipe)"}
 PAPER = {"full": (0.0349, 30.6110, 0.9584), "no_temporal": (0.0404, 28.6403, 0.9510),
          "no_parsing": (0.0680, 23.6189, 0.9170), "no_sampling": (0.0616, 24.5142, 0.9223),
          "no_structure": (0.0549, 25.5496, 0.9021)}  # the paper's "w/o content" row
