@@ -14,6 +14,11 @@ portrait region, between the predicted and the true change of log luminance from
 relit frame, each with its mean over the region removed (so a global change of level
 scores 0, the right spatial pattern of light and shadow scores 1, the opposite -1).
 
+``lateral_response`` is a blunter check of the same: each sample relit by one lamp from the
+camera's left and by one from its right (90 degrees off the view axis, at eye height); the
+image-left over image-right mean luminance of the portrait under the first, divided by the same
+under the second (median over samples). 1 means the side of the light makes no difference.
+
 Baselines: ``identity`` outputs the input unchanged; ``irradiance_ratio`` scales the input per
 channel by total_power(L^k) / total_power(L^i) with the true source light (an oracle on lighting).
 """
@@ -103,6 +108,28 @@ def shading_correlation(pred: np.ndarray, inp: np.ndarray, gt: np.ndarray, mask:
     a, b = a - a.mean(), b - b.mean()
     den = math.sqrt(float((a * a).sum() * (b * b).sum()))
     return float((a * b).sum() / den) if den > 1e-12 else 0.0
+
+
+def lateral_response(predict, dataset, n: int = 16) -> float:
+    """Median over samples of balance(left lamp) / balance(right lamp) (see module doc)."""
+    w = np.array([0.2126, 0.7152, 0.0722])[:, None, None]
+    out = []
+    for idx in range(min(n, len(dataset))):
+        s = dataset[idx]
+        mask = np.asarray(s["mask_t"])[0] > 0.5
+        half = mask.shape[1] // 2
+        left, right = mask.copy(), mask.copy()
+        left[:, half:], right[:, :half] = False, False
+        if not left.any() or not right.any():
+            continue
+        bal = []
+        for direction in ((-1.0, 0.0, 0.0), (1.0, 0.0, 0.0)):
+            lamp = lightvec.splat_direction(direction, (1.0, 1.0, 1.0))
+            relit, _ = predict({**s, "light_k": lamp})
+            lum = (w * np.asarray(relit, np.float64)).sum(0)
+            bal.append(lum[left].mean() / max(lum[right].mean(), 1e-12))
+        out.append(bal[0] / max(bal[1], 1e-12))
+    return float(np.median(out)) if out else float("nan")
 
 
 def baseline_identity(sample: dict) -> np.ndarray:
@@ -244,7 +271,8 @@ def main(argv=None):
         so.intra_op_num_threads = a.threads
         card = json.loads(open(a.onnx[:-5] + ".json").read()) if a.onnx.endswith(".onnx") else {}
         predict = onnx_predictor(ort.InferenceSession(a.onnx, so), int(card.get("stride", 32)))
-    print(json.dumps({**evaluate(predict, ds, a.n), **dataset_id(ds)}, indent=2))
+    print(json.dumps({**evaluate(predict, ds, a.n), "lateral_response": lateral_response(predict, ds),
+                      **dataset_id(ds)}, indent=2))
 
 
 if __name__ == "__main__":

@@ -245,10 +245,11 @@ def main(argv=None):
     check = verify(net, onnx_path)
     print("verified:", json.dumps(check))
     ds = evaluate.heldout_dataset(res)
-    metrics = evaluate.evaluate(evaluate.onnx_predictor(session(onnx_path, a.threads),
-                                                        net.cfg.stride), ds, a.eval)
-    metrics.update(split="test", resolution=res, definition=evaluate.__doc__.split("\n\n")[2],
-                   **evaluate.dataset_id(ds))
+    predict = evaluate.onnx_predictor(session(onnx_path, a.threads), net.cfg.stride)
+    metrics = evaluate.evaluate(predict, ds, a.eval)
+    metrics["model"]["lateral_response"] = evaluate.lateral_response(predict, ds)
+    metrics.update(split="test", resolution=res, definition="\n\n".join(
+        evaluate.__doc__.split("\n\n")[2:5]), **evaluate.dataset_id(ds))
     print("metrics:", json.dumps(metrics))
     cost = {"cpu": measure_cost(onnx_path, threads=a.threads),
             "machine": "2-core x86-64 CPU (AMD EPYC, AVX-512 VNNI), shared and noisy"}

@@ -141,3 +141,20 @@ def test_shading_correlation_scores_the_spatial_pattern_of_the_change():
     assert evaluate.shading_correlation(inp, inp, gt, mask) == 0.0        # no change
     other = inp * (0.3 + yy)[None].astype(np.float32)     # light from below: unrelated pattern
     assert abs(evaluate.shading_correlation(other, inp, gt, mask)) < 0.3
+
+
+def test_lateral_response_tells_a_light_blind_model_from_one_that_follows_the_lamp():
+    ds = standin.StandinDataset("test", 32, n=3)
+    xx = np.mgrid[0:32, 0:32][1] / 31.0
+
+    def follows(s):  # brighter on the side the lamp's energy is (light vector columns < 8: left)
+        light = np.asarray(s["light_k"])
+        side = light[:, 8:].sum() - light[:, :8].sum()   # > 0: the lamp is on the right
+        shade = 1.0 + 2.0 * (xx if side > 0 else 1.0 - xx)
+        return s["img_t_i"] * shade[None], {}
+
+    def blind(s):
+        return s["img_t_i"] * 3.0, {}
+
+    assert evaluate.lateral_response(blind, ds) == pytest.approx(1.0)
+    assert evaluate.lateral_response(follows, ds) > 1.5
