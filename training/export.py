@@ -283,7 +283,8 @@ def export_int8(a, net, fp32_path, ds, training, res, working, fp32_cost):
         q_path.unlink()
         return
     # its own preset name: the panel picks a model by preset, and int8 must be chosen knowingly
-    card = make_card(f"{a.name}-int8", training["recipe"]["args"]["preset"] + "-int8", q_path, net,
+    preset = training["recipe"]["args"]["preset"] + "-int8"
+    card = make_card(f"{a.name}-int8", preset, q_path, net,
                      {**training, "quantisation": "static int8 QDQ, per-channel, calibrated on "
                                                   "16 light-stage training frames"},
                      metrics, cost, working, {"speedup_vs_fp32_512": round(speedup, 2)})
