@@ -91,7 +91,8 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
     return {"rmse": rmse, "psnr": psnr, "ssim": ssim}
 
 
-def shading_correlation(pred: np.ndarray, inp: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+def shading_correlation(pred: np.ndarray, inp: np.ndarray, gt: np.ndarray,
+                        mask: np.ndarray) -> float:
     """Correlation of the predicted and true spatial change of log luminance (see module doc),
     over the portrait pixels the input shows (luminance above 1% of the white level: the log of
     a near-black input is noise); relit values are floored at 0.1% of white."""
@@ -271,8 +272,8 @@ def main(argv=None):
         so.intra_op_num_threads = a.threads
         card = json.loads(open(a.onnx[:-5] + ".json").read()) if a.onnx.endswith(".onnx") else {}
         predict = onnx_predictor(ort.InferenceSession(a.onnx, so), int(card.get("stride", 32)))
-    print(json.dumps({**evaluate(predict, ds, a.n), "lateral_response": lateral_response(predict, ds),
-                      **dataset_id(ds)}, indent=2))
+    res = {**evaluate(predict, ds, a.n), "lateral_response": lateral_response(predict, ds)}
+    print(json.dumps({**res, **dataset_id(ds)}, indent=2))
 
 
 if __name__ == "__main__":
