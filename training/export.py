@@ -238,6 +238,10 @@ def main(argv=None):
     net, ck = load_checkpoint(pathlib.Path(a.run) / a.checkpoint)
     recipe = {**ck["recipe"], "exported_checkpoint": {"file": a.checkpoint, "step": ck["step"],
                                                       "val": ck.get("val")}}
+    final = pathlib.Path(a.run) / "recipe.json"  # a finished run's recipe adds its totals
+    if final.is_file():
+        done = json.loads(final.read_text())
+        recipe.update({k: done[k] for k in ("steps", "trained_minutes") if k in done})
     res = a.eval_resolution or int(recipe["args"]["resolution"])
     working = a.working_size or int(recipe["args"]["resolution"])
     out_dir = pathlib.Path(a.out_dir)
