@@ -61,7 +61,7 @@ def transport_matrix() -> torch.Tensor:
     y = _sh9(torch.from_numpy(lightvec.directions().reshape(-1, 3).astype(np.float64)))
     omega = torch.from_numpy(lightvec.solid_angles().reshape(-1).astype(np.float64))
     gram = y.T @ (omega[:, None] * y)
-    proj = torch.from_numpy(layout.projection())  # (114, 256): stage weights from cell power
+    proj = torch.from_numpy(layout.projection().copy())  # (114, 256): weights from cell power
     return (proj @ (omega[:, None] * y) @ torch.linalg.inv(gram)).float()
 
 
