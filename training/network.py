@@ -245,7 +245,9 @@ class Decoder(nn.Module):
         (N,3,h,w). The softplus keeps E positive with a soft floor of ~0.035 (unit-power lights
         give E of order 1), so the ratio stays finite in the dark."""
         coeff = light.flatten(2) @ self.sh_basis  # (N, 3, 9) SH coefficients of the light
-        e = (transport[:, None] * coeff[:, :, :, None, None]).sum(dim=2)
+        n, _, h, w = transport.shape
+        # one batched MatMul: a broadcast multiply and sum over (N, 3, 9, h, w) cost ~4 ms/frame
+        e = (coeff @ transport.flatten(2)).reshape(n, 3, h, w)
         # + a hard floor: softplus of a very negative value underflows to 0 in float32
         return F.softplus(e, beta=SOFTPLUS_BETA) + IRRADIANCE_EPS
 
