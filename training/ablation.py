@@ -11,7 +11,8 @@ ratio head (``--transport-loss``), without which the network did not learn the l
 "w/o transport supervision" is therefore the paper's own full recipe. Rows: full, w/o structure,
 w/o temporal, w/o parsing, w/o sampling, w/o transport supervision, then the two baselines
 (output = input; input scaled by the ratio of total irradiance, which is given the true source
-light). ``shading corr`` says whether the light acts where it should (training/evaluate.py).
+light). ``shading corr`` and ``lateral response`` say whether the light acts where it should
+(training/evaluate.py; both baselines change the whole image alike, so their lateral response is 1).
 Metrics are training/evaluate.py's (portrait region, values normalised to [0, 1]), on the
 fixed test set of training/make_testset.py.
 
@@ -71,6 +72,7 @@ def run(paths: dict, dataset, n: int, threads: int) -> dict:
                          for k in ("identity", "irradiance_ratio")}
         recipe = card.get("training", {}).get("recipe", {})
         out[name] = {"mean": res["model"], "rows": rows["model"], "onnx": str(path),
+                     "lateral_response": evaluate.lateral_response(predict, dataset),
                      "steps": recipe.get("steps"),
                      "exported_step": recipe.get("exported_checkpoint", {}).get("step"),
                      "command": recipe.get("command")}
@@ -85,8 +87,9 @@ def paired(a_rows, b_rows, key="rmse") -> tuple[float, float]:
 
 def table(result: dict) -> str:
     v, base = result["variants"], result["baselines"]
-    lines = ["| variant | RMSE | PSNR dB | SSIM | shading corr | RMSE - full (± s.e.) | "
-             "steps (exported) | paper RMSE / PSNR / SSIM |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| variant | RMSE | PSNR dB | SSIM | shading corr | lateral response | "
+             "RMSE - full (± s.e.) | steps (exported) | paper RMSE / PSNR / SSIM |",
+             "|---|---|---|---|---|---|---|---|---|"]
     corr = lambda m: f"{m['shading_corr']:.3f}" if "shading_corr" in m else ""  # noqa: E731
     full = v.get("full")
     for name in VARIANTS:
@@ -97,7 +100,8 @@ def table(result: dict) -> str:
             "{:+.4f} ± {:.4f}".format(*paired(full["rows"], v[name]["rows"]))
         paper = "{:.4f} / {:.2f} / {:.4f}".format(*PAPER[name]) if name in PAPER else ""
         lines.append(f"| {LABELS[name]} | {m['rmse']:.4f} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
-                     f"{corr(m)} | {diff} | {v[name]['steps']} ({v[name]['exported_step']}) | "
+                     f"{corr(m)} | {v[name]['lateral_response']:.1f} | {diff} | "
+                     f"{v[name]['steps']} ({v[name]['exported_step']}) | "
                      f"{paper} |")
     for key, label in (("identity", "output = input"),
                        ("irradiance_ratio", "irradiance ratio (true source light)")):
@@ -106,7 +110,7 @@ def table(result: dict) -> str:
             diff = "" if full is None else \
                 "{:+.4f} ± {:.4f}".format(*paired(full["rows"], base[key]["rows"]))
             lines.append(f"| {label} | {m['rmse']:.4f} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
-                         f"{corr(m)} | {diff} | | |")
+                         f"{corr(m)} | 1.0 | {diff} | | |")
     return "\n".join(lines)
 
 
