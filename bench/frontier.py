@@ -438,6 +438,11 @@ def untrained_variants(quick: bool) -> list[tuple[str, dict]]:
             ("standard wide (widths x1.5)", {"preset": "standard", "widths": (48, 72, 144, 192)})]
 
 
+def file_stem(label: str) -> str:
+    """A variant's label as a file name ("standard narrow (widths/2)" has a slash)."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)
+
+
 def quantised(session, frames, working: int, fullres, folder: pathlib.Path):
     """(int8 card or None, why not): static QDQ int8 of the model's convolutions, calibrated on
     what the network sees of the test frames (held out from training, not from this)."""
@@ -454,7 +459,7 @@ def quantised(session, frames, working: int, fullres, folder: pathlib.Path):
         h, w = f.x_full.shape[:2]
         x_low = fullres.shrink(f.x_full, *detail.working_shape(h, w, working))
         feeds.append(session.preprocess(x_low, normalise.normalise_light(f.light)[0]).feeds)
-    out = folder / f"{card.name}-int8.onnx"
+    out = folder / f"{file_stem(card.name)}-int8.onnx"
     export.quantize_int8(card.onnx_path, out, feeds)
     return card_for(out, card.stride, card.working_size, f"{card.name}-int8", card.preset,
                     card.classes, card.data), ""
@@ -466,7 +471,7 @@ def half_precision(card: engine.ModelCard, folder: pathlib.Path) -> engine.Model
     import onnx
     from onnxruntime.transformers.float16 import convert_float_to_float16
 
-    out = folder / f"{card.name}-fp16.onnx"
+    out = folder / f"{file_stem(card.name)}-fp16.onnx"
     onnx.save(convert_float_to_float16(onnx.load(str(card.onnx_path)), keep_io_types=True),
               str(out))
     return card_for(out, card.stride, card.working_size, f"{card.name}-fp16", card.preset,

@@ -261,3 +261,9 @@ def test_untrained_rows_only_for_configs_without_a_trained_point(research_run):
     _, result, _ = research_run
     assert not any(r.kind.startswith("untrained") for r in result["rows"])
     assert {r.kind for r in result["rows"]} >= {"preset x resolution", frontier.TRAINED_KIND}
+
+
+def test_variant_labels_become_flat_file_names():
+    # "standard narrow (widths/2)" once made the int8 export write into a missing sub-folder
+    stem = frontier.file_stem("standard narrow (widths/2)")
+    assert "/" not in stem and " " not in stem and stem.startswith("standard_narrow")
