@@ -63,6 +63,9 @@ class RelightOptions:
     threads: int | None = None
     overwrite: bool = False    # replace another run's output in out_dir instead of refusing
     exr_compression: str = "none"     # see frames.COMPRESSIONS; not part of the run identity
+    # Composite the relit subject over the source's own background by the network's foreground
+    # matte: the models repaint backgrounds they were never trained to keep.
+    keep_background: bool = False
 
 
 @dataclass
@@ -172,7 +175,9 @@ def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,
         "lights_sha256": light_hash,
         "model_sha256": card.sha256,
         "settings": {"working_size": working, "detail_transfer": options.detail_transfer,
-                     "write_matte": options.write_matte},
+                     "write_matte": options.write_matte,
+                     # only when set, so runs made before the option existed still resume
+                     **({"keep_background": True} if options.keep_background else {})},
     }
 
 
@@ -282,6 +287,7 @@ class Plan:
     write_matte: bool
     compression: str
     relit_times_s: bool = True  # the model's relit output is in image / (s k) units (old cards)
+    keep_background: bool = False
 
 
 def relit_times_s(card) -> bool:
@@ -354,6 +360,15 @@ def finish_planar(x_full: np.ndarray, ab, x_max: float,
 def _count_clamped(y: np.ndarray) -> int:
     """Values at +-65504 (half bits 0x7BFF once the sign is masked)."""
     return int(np.count_nonzero((y.view(np.uint16) & 0x7FFF) == 0x7BFF))
+
+
+def keep_background(relit: np.ndarray, x_full: np.ndarray, matte: np.ndarray,
+                    plan: Plan) -> np.ndarray:
+    """relit * matte + source * (1 - matte), half (3, H, W), scene-linear; ``x_full`` is the
+    exposure-normalised source (times s is the footage's own linear radiance)."""
+    m = np.asarray(matte, np.float32)[None]
+    out = np.asarray(relit, np.float32) * m + x_full * np.float32(plan.scale) * (1.0 - m)
+    return np.clip(out, -65504.0, 65504.0).astype(np.float16)
 
 
 def matte_full(fg, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
@@ -501,7 +516,7 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
             {"identity": identity, "exposure_scale": scale, "model": session.card.name,
              "providers": session.providers}, indent=2))
     plan = Plan(space, scale, plan.size, plan.working, plan.detail_transfer, plan.write_matte,
-                plan.compression, relit_times_s(session.card))
+                plan.compression, relit_times_s(session.card), options.keep_background)
     out.info(f"Relighting {len(selected)} frames at {plan.working[1]}x{plan.working[0]} with "
              f"{session.card.name} on {session.providers[0]}; exposure scale {scale:.6g}.")
 
@@ -550,7 +565,10 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                     return
                 i, x_full, x_max, ab, fg, source = item
                 relit, clamped = finish_planar(x_full, ab, x_max, fullres)
-                matte = matte_full(fg, plan, fullres) if plan.write_matte else None
+                keep = plan.keep_background and fg is not None  # no matte: a black frame
+                matte = matte_full(fg, plan, fullres) if plan.write_matte or keep else None
+                if keep:
+                    relit = keep_background(relit, x_full, matte, plan)
                 write_frame(out_dir, i, relit, matte, source, plan)
                 counts["clamped"] += clamped
                 counts["written"] += 1

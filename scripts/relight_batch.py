@@ -65,6 +65,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--out", metavar="DIR", help="output folder (default: the .blend's setting)")
     p.add_argument("--frames", type=frame_range, metavar="A-B", help="scene frames to relight")
     p.add_argument("--matte", action="store_true", help="also write the portrait matte")
+    p.add_argument("--keep-background", action="store_true",
+                   help="composite the relit subject over the footage's own background")
     p.add_argument("--overwrite", action="store_true", help="redo frames an earlier run made")
     p.add_argument("--save", action="store_true", help="save the .blend with the relit strip")
     p.add_argument("--debug", action="store_true", help="show tracebacks of unexpected errors")
@@ -200,6 +202,7 @@ def apply_settings(scene, args) -> None:
     if args.frames:
         s.frame_start, s.frame_end = args.frames
     s.write_matte = args.matte or s.write_matte
+    s.keep_background = args.keep_background or s.keep_background
     s.overwrite = args.overwrite
 
 

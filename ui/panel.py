@@ -86,6 +86,7 @@ def draw_output(box, settings):
     box.prop(settings, "output_dir", text="")
     row = box.row()
     row.prop(settings, "write_matte")
+    row.prop(settings, "keep_background")
     row.prop(settings, "overwrite")
     box.prop(settings, "use_frame_range")
     if settings.use_frame_range:

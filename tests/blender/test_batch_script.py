@@ -2,6 +2,7 @@
 a real kill half-way, and clear failures."""
 
 import hashlib
+import json
 import os
 import pathlib
 import re
@@ -128,3 +129,13 @@ def test_demo_relights_the_built_in_clip(toy_models, tmp_path):
     relit = list((tmp_path / "demo").glob("*/relit/relit_*.exr"))
     assert len(relit) == len(frames)
     assert "relit frames are in" in done.stdout
+
+
+def test_keep_background_flag_reaches_the_run(toy_models, tmp_path):
+    if not sorted((ROOT / "demo" / "frames").glob("*.png")):
+        pytest.skip("the demo clip (demo/frames) has not been made in this checkout")
+    done = run([sys.executable, str(SCRIPT), "--demo", "--models", str(toy_models), "--out",
+                str(tmp_path / "demo"), "--keep-background", "--frames", "1-2"])
+    assert done.returncode == 0, done.stderr
+    (run_file,) = (tmp_path / "demo").glob("*/relight_run.json")
+    assert json.loads(run_file.read_text())["identity"]["settings"]["keep_background"] is True

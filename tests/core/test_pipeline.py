@@ -309,3 +309,23 @@ def test_alpha_and_grey_footage_warn(toy, src, tmp_path):
     out = frames.read_exr(res.relit_files[0])
     assert any("greyscale" in w for w in res.warnings)
     np.testing.assert_array_equal(out[..., 0], out[..., 1])
+
+
+def test_keep_background_composites_the_relit_subject_over_the_source(toy, movie, src, tmp_path):
+    light = 3 * UNIFORM  # the toy triples the linear input: subject and background differ
+    plain = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "a",
+                                  opts(toy, write_matte=True))
+    kept = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "b",
+                                 opts(toy, write_matte=True, keep_background=True))
+    for i in range(2):
+        relit, out = frames.read_exr(plain.relit_files[i]), frames.read_exr(kept.relit_files[i])
+        m = frames.read_exr(plain.matte_files[i])[..., :1]
+        source = colour.to_linear(src[i], colour.lookup("sRGB"))
+        want = relit * m + source * (1 - m)
+        np.testing.assert_allclose(out, want, rtol=4e-3, atol=2e-4)
+        assert 0.05 < float(m.mean()) < 0.95  # both subject and background are in the frame
+        assert np.all(np.isfinite(out))
+    # a different setting is a different run: it cannot silently resume the plain one
+    with pytest.raises(OutputError):
+        pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "a",
+                              opts(toy, write_matte=True, keep_background=True))
