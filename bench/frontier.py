@@ -101,16 +101,22 @@ def spread(times_s) -> dict:
             "p90": float(np.percentile(t, 90)), "runs": int(t.size)}
 
 
-def interleaved_times(fns, repeats: int, warmup: int = 3, seed: int = 0) -> list[dict]:
+def interleaved_times(fns, repeats: int, warmup: int = 3, seed: int = 0,
+                      rewarm: bool = True) -> list[dict]:
     """Median and spread of each ``fn(round)``, timed round-robin: ``warmup`` untimed rounds,
     then ``repeats`` rounds that each run every fn once, in an order shuffled with a fixed seed.
     Timed one after the other, the first variant paid the thread spin-up, page faults and cold
     caches (an untrained Draft once measured slower than the untrained Final); interleaved, every
-    variant's runs spread over the whole session and share its drifts in load."""
+    variant's runs spread over the whole session and share its drifts in load. ``rewarm``: each
+    timed run follows an untimed run of the same fn, so it finds its weights in the caches as it
+    would frame after frame in a real run (round-robin alone timed every run cold: medians up by
+    a third and p90 up to twice the median)."""
     rng = np.random.default_rng(seed)
     times = [[] for _ in fns]
     for r in range(-warmup, repeats):
         for i in rng.permutation(len(fns)):
+            if rewarm and r >= 0:
+                fns[i](r)
             t0 = time.perf_counter()
             fns[i](r)
             if r >= 0:

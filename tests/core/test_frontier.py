@@ -182,7 +182,7 @@ def test_interleaved_timing_warms_up_then_goes_round_robin():
         return [setting(i) for i in range(3)], calls
 
     fns, calls = settings_and_calls()
-    out = frontier.interleaved_times(fns, repeats=4, warmup=2, seed=7)
+    out = frontier.interleaved_times(fns, repeats=4, warmup=2, seed=7, rewarm=False)
     rounds = [calls[k:k + 3] for k in range(0, len(calls), 3)]
     assert len(rounds) == 6
     for n, rnd in enumerate(rounds):
@@ -190,8 +190,23 @@ def test_interleaved_timing_warms_up_then_goes_round_robin():
     assert len({tuple(i for i, _ in rnd) for rnd in rounds}) > 1  # the order is shuffled
     assert all(s["runs"] == 4 and s["p90"] < 40 for s in out)  # the cold start is not timed
     fns, again = settings_and_calls()
-    frontier.interleaved_times(fns, repeats=4, warmup=2, seed=7)
+    frontier.interleaved_times(fns, repeats=4, warmup=2, seed=7, rewarm=False)
     assert again == calls  # the same seed, the same order
+
+
+def test_rewarm_times_each_run_right_after_a_run_of_the_same_setting():
+    calls = []
+
+    def setting(i):
+        return lambda r: calls.append((i, r))
+
+    out = frontier.interleaved_times([setting(i) for i in range(3)], repeats=2, warmup=1, seed=3)
+    warm, timed = calls[:3], calls[3:]
+    assert sorted(i for i, _ in warm) == [0, 1, 2]
+    assert len(timed) == 2 * 3 * 2
+    pairs = [timed[k:k + 2] for k in range(0, len(timed), 2)]
+    assert all(a == b for a, b in pairs)  # the untimed re-warm, then the timed run
+    assert all(s["runs"] == 2 for s in out)
 
 
 def test_quick_run_without_a_research_folder_skips_the_trained_points(quick_run):
