@@ -329,3 +329,18 @@ def test_keep_background_composites_the_relit_subject_over_the_source(toy, movie
     with pytest.raises(OutputError):
         pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "a",
                               opts(toy, write_matte=True, keep_background=True))
+
+
+def test_keep_background_with_a_dark_light_and_bad_pixels_stays_finite(toy, tmp_path):
+    px = np.random.default_rng(6).random((12, 20, 3)).astype(np.float32) + 0.05
+    bad = px.copy()
+    bad[2, 3] = np.nan
+    bad[4, 5] = np.inf
+    bad[6, 7] = -1.0
+    files = write_exr_sequence(tmp_path / "in", [px, bad])
+    lights = np.stack([lightvec.uniform(0.0), lightvec.uniform(1e4)])
+    res = pipeline.relight_clip(image_clip(files, space="Linear Rec.709"), lights,
+                                tmp_path / "out", opts(toy, working_size=8, keep_background=True))
+    dark, huge = (frames.read_exr(f) for f in res.relit_files)
+    assert not dark.any()  # no light, no matte: the whole frame is black, not the source
+    assert np.all(np.isfinite(huge)) and np.abs(huge).max() <= 65504.0
