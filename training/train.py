@@ -303,6 +303,18 @@ def net_overrides(args) -> dict:
     return out
 
 
+def load_init(net, path) -> dict:
+    """Start from a checkpoint's weights (continue or fine-tune a run; the schedule starts anew).
+    The architecture must be the same: another preset or width is a clear error."""
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    if ck.get("config") != net.cfg.to_dict():
+        raise SystemExit(f"--init {path}: its network ({ck.get('config')}) is not the one this run "
+                         f"builds ({net.cfg.to_dict()}); use the same --preset/--widths/--blocks.")
+    net.load_state_dict(ck["state_dict"])
+    return {"checkpoint": str(path), "step": ck.get("step"),
+            "recipe": (ck.get("recipe") or {}).get("command")}
+
+
 def save_checkpoint(path, net, recipe, step, extra=None):
     torch.save({"state_dict": net.state_dict(), "config": net.cfg.to_dict(), "recipe": recipe,
                 "step": step, **(extra or {})}, path)
@@ -327,11 +339,13 @@ def train(args) -> pathlib.Path:
     sw = losses.Switches.ablation(args.ablation)
     if args.transport_loss:
         sw = dataclasses.replace(sw, transport=True)
-    net = network.build(args.preset, **net_overrides(args)).to(device)
+    net = network.build(args.preset, **net_overrides(args))
+    init = load_init(net, args.init) if args.init else None
+    net = net.to(device)
     recipe = {"command": "python -m training.train " + " ".join(sys.argv[1:]), "args": vars(args),
               "switches": sw.to_dict(), "net": net.cfg.to_dict(), "git_commit": git_commit(),
               "data_seed": args.seed, "machine": machine(), "device": str(device),
-              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "init": init}
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
     if args.cache:
         ds = CachedSamples(args.cache)
@@ -472,6 +486,11 @@ def parser() -> argparse.ArgumentParser:
                         "of it, so runs compare fairly on a loaded machine (ablations)")
     p.add_argument("--val-every-steps", type=int, default=250,
                    help="steps between val metrics when --steps is given")
+    p.add_argument("--init", metavar="CKPT",
+                   help="start from this checkpoint's weights (same architecture), e.g. to train "
+                        "a shipped model further: runs/final-t2500/checkpoint.pt. The schedule "
+                        "starts anew: continue with a lower --lr and --progressive 1:1 (a 1e-3 "
+                        "restart at 64 px undid a trained Draft within two steps)")
     p.add_argument("--widths", help="override the preset's four encoder widths, e.g. 12,16,32,48")
     p.add_argument("--blocks", help="override the preset's four block counts, e.g. 1,1,1,1")
     p.add_argument("--out", default="runs/latest")

@@ -174,3 +174,18 @@ def test_progressive_schedule():
     with pytest.raises(ValueError):
         train.parse_stages("0.5:2")
     assert train.lr_at(1.0, 0.0) == pytest.approx(1.0) and train.lr_at(1.0, 1.0) == pytest.approx(0.05)
+
+
+def test_init_loads_a_checkpoint_of_the_same_network_and_refuses_another(tmp_path):
+    cfg = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,
+                            light_embed=16, relight="ratio")
+    src = standin.perturbed_net(cfg, 9)
+    train.save_checkpoint(tmp_path / "a.pt", src, {"command": "x"}, 123)
+    fresh = network.RelightNet(cfg)
+    info = train.load_init(fresh, tmp_path / "a.pt")
+    assert info["step"] == 123
+    for a, b in zip(fresh.state_dict().values(), src.state_dict().values()):
+        assert torch.equal(a, b)
+    other = network.RelightNet(network.NetConfig(**{**cfg.to_dict(), "widths": (8, 8, 16, 24)}))
+    with pytest.raises(SystemExit, match="same --preset"):
+        train.load_init(other, tmp_path / "a.pt")
