@@ -58,46 +58,68 @@ def scene_light_module():
     return importlib.import_module(f"{EXT_ID}.ops.scene_light")
 
 
-def referee_scene(res: int = 64, samples: int = 32):
-    """A fresh scene: a white diffuse sphere at the origin, an orthographic camera on -Y looking
-    at it (Blender's front view: light frame X = world X, Y = world Z, Z = world -Y), black world,
-    Cycles on the CPU with no denoising and a 'Standard' view. Returns (scene, camera, sphere)."""
-    import bmesh
-
+def direct_light_scene(width: int, height: int, samples: int, world_name: str = "black"):
+    """A fresh empty scene for the Cycles referees (here and bench/lightstage_cycles.py): Cycles
+    on the CPU, direct light only (the renderers compared have no interreflection), no denoising
+    or adaptive sampling, box filter, fixed seed, two threads, a 'Standard' view, 32-bit EXR
+    output and a black world."""
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
     scene.render.engine = 'CYCLES'
     cyc = scene.cycles
     cyc.device = 'CPU'
     cyc.samples, cyc.use_denoising, cyc.use_adaptive_sampling = samples, False, False
-    cyc.max_bounces = 0  # a convex sphere cannot light itself; direct light is all there is
+    cyc.max_bounces = 0
     cyc.pixel_filter_type = 'BOX'
     cyc.seed = 1
-    scene.render.resolution_x = scene.render.resolution_y = res
+    scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     scene.render.threads_mode, scene.render.threads = 'FIXED', 2
     scene.view_settings.view_transform = 'Standard'
     scene.view_settings.exposure, scene.view_settings.gamma = 0.0, 1.0
     scene.render.image_settings.file_format = 'OPEN_EXR'
     scene.render.image_settings.color_depth = '32'
-
-    world = bpy.data.worlds.new("referee")
+    world = bpy.data.worlds.new(world_name)
     world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
     scene.world = world
+    return scene
 
+
+def diffuse_material(name: str, albedo: float):
+    """A grey Lambertian material (a Diffuse BSDF in place of the Principled one)."""
+    mat = bpy.data.materials.new(name)
+    nodes = mat.node_tree.nodes
+    nodes.remove(nodes["Principled BSDF"])
+    diffuse = nodes.new('ShaderNodeBsdfDiffuse')
+    diffuse.inputs["Color"].default_value = (albedo, albedo, albedo, 1.0)
+    mat.node_tree.links.new(diffuse.outputs[0], nodes["Material Output"].inputs["Surface"])
+    return mat
+
+
+def render_rgba(scene, path) -> np.ndarray:
+    """Render with Cycles to a 32-bit EXR at ``path``; its RGBA pixels (top row first)."""
+    import OpenEXR
+
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+    with OpenEXR.File(str(path)) as f:
+        return np.array(f.channels()["RGBA"].pixels, dtype=np.float64)
+
+
+def referee_scene(res: int = 64, samples: int = 32):
+    """A fresh scene: a white diffuse sphere at the origin, an orthographic camera on -Y looking
+    at it (Blender's front view: light frame X = world X, Y = world Z, Z = world -Y), black world,
+    Cycles on the CPU with no denoising and a 'Standard' view. Returns (scene, camera, sphere)."""
+    import bmesh
+
+    scene = direct_light_scene(res, res, samples, "referee")
     mesh = bpy.data.meshes.new("sphere")
     bm = bmesh.new()
     bmesh.ops.create_uvsphere(bm, u_segments=128, v_segments=64, radius=RADIUS)
     bm.to_mesh(mesh)
     bm.free()
     mesh.shade_smooth()
-    mat = bpy.data.materials.new("white")
-    nodes = mat.node_tree.nodes
-    nodes.remove(nodes["Principled BSDF"])
-    diffuse = nodes.new('ShaderNodeBsdfDiffuse')
-    diffuse.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
-    mat.node_tree.links.new(diffuse.outputs[0], nodes["Material Output"].inputs["Surface"])
-    mesh.materials.append(mat)
+    mesh.materials.append(diffuse_material("white", 1.0))
     sphere = bpy.data.objects.new("subject", mesh)
     scene.collection.objects.link(sphere)
 
@@ -135,13 +157,7 @@ def add_lamp(scene, kind: str, distance: float | None = None, direction=LAMP_DIR
 
 def render_linear(scene, folder) -> np.ndarray:
     """Render with Cycles; read the scene-linear result back from a 32-bit EXR (top row first)."""
-    import OpenEXR
-
-    path = str(pathlib.Path(folder) / "referee.exr")
-    scene.render.filepath = path
-    bpy.ops.render.render(write_still=True)
-    with OpenEXR.File(path) as f:
-        return np.array(f.channels()["RGBA"].pixels[..., :3], dtype=np.float64)
+    return render_rgba(scene, pathlib.Path(folder) / "referee.exr")[..., :3]
 
 
 def sphere_normals(res: int) -> tuple[np.ndarray, np.ndarray]:

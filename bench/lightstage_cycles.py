@@ -31,6 +31,7 @@ import torch
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
+from bench import light_conversion  # noqa: E402
 from training.lightstage import assets, layout  # noqa: E402
 from training.lightstage.png import to_srgb8, write_png  # noqa: E402
 from training.lightstage.scene import Scene  # noqa: E402
@@ -64,36 +65,14 @@ def ours(scene, frame, light: int) -> np.ndarray:
 
 
 def cycles_scene(scene, frame, samples: int):
-    bpy.ops.wm.read_homefile(use_empty=True)
-    sc = bpy.context.scene
-    sc.render.engine = 'CYCLES'
-    cyc = sc.cycles
-    cyc.device = 'CPU'
-    cyc.samples, cyc.use_denoising, cyc.use_adaptive_sampling = samples, False, False
-    cyc.max_bounces = 0  # our renderer has no interreflection: compare direct light only
-    cyc.pixel_filter_type, cyc.seed = 'BOX', 1
-    sc.render.resolution_x, sc.render.resolution_y = scene.cam.width, scene.cam.height
-    sc.render.resolution_percentage = 100
+    sc = light_conversion.direct_light_scene(scene.cam.width, scene.cam.height, samples)
     sc.render.film_transparent = True
-    sc.render.threads_mode, sc.render.threads = 'FIXED', 2
-    sc.view_settings.view_transform = 'Standard'
-    sc.render.image_settings.file_format = 'OPEN_EXR'
-    sc.render.image_settings.color_depth = '32'
-    world = bpy.data.worlds.new("black")
-    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
-    sc.world = world
 
     mesh = bpy.data.meshes.new("subject")
     verts = frame.posed.verts.numpy().astype(np.float64)
     mesh.from_pydata(verts.tolist(), [], scene.rig.faces.numpy().tolist())
     mesh.shade_smooth()
-    mat = bpy.data.materials.new("grey")
-    nodes = mat.node_tree.nodes
-    nodes.remove(nodes["Principled BSDF"])
-    diffuse = nodes.new('ShaderNodeBsdfDiffuse')
-    diffuse.inputs["Color"].default_value = (ALBEDO, ALBEDO, ALBEDO, 1.0)
-    mat.node_tree.links.new(diffuse.outputs[0], nodes["Material Output"].inputs["Surface"])
-    mesh.materials.append(mat)
+    mesh.materials.append(light_conversion.diffuse_material("grey", ALBEDO))
     sc.collection.objects.link(bpy.data.objects.new("subject", mesh))
 
     cam = bpy.data.cameras.new("camera")  # at the origin, looking down -Z, +Y up: our frame
@@ -111,16 +90,11 @@ def cycles_scene(scene, frame, samples: int):
 
 
 def render(sc, sun_obj, direction, folder) -> tuple[np.ndarray, np.ndarray]:
-    import OpenEXR
     from mathutils import Vector
 
     toward = Vector(tuple(float(x) for x in direction))
     sun_obj.rotation_euler = (-toward).to_track_quat('-Z', 'Y').to_euler()
-    path = str(pathlib.Path(folder) / "cycles.exr")
-    sc.render.filepath = path
-    bpy.ops.render.render(write_still=True)
-    with OpenEXR.File(path) as f:
-        px = np.array(f.channels()["RGBA"].pixels, dtype=np.float64)
+    px = light_conversion.render_rgba(sc, pathlib.Path(folder) / "cycles.exr")
     return px[..., :3].mean(axis=2), px[..., 3]
 
 
