@@ -294,11 +294,10 @@ def _solid_angles() -> torch.Tensor:
 def _sh_projection() -> torch.Tensor:
     """(256, 9): a light vector's order-2 SH coefficients are ``light.flatten(2) @ this``
     (each cell's basis value at its centre direction times its solid angle)."""
-    from .lightstage.shading import _sh9
+    from .lightstage.shading import cell_sh
 
-    d = torch.from_numpy(lightvec.directions().reshape(-1, 3).astype(np.float32))
-    omega = _solid_angles().reshape(-1, 1)
-    return (_sh9(d) * omega).contiguous()
+    basis, omega = cell_sh(torch.float32)
+    return (basis * omega[:, None]).contiguous()
 
 
 def light_power(light: torch.Tensor) -> torch.Tensor:

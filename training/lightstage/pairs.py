@@ -54,12 +54,7 @@ def transport_matrix() -> torch.Tensor:
     light vector's projection as training/network.py computes it (basis at cell centres times
     solid angle): D @ layout.projection() maps cell power to irradiance, and the fit over the
     cells (weighted by solid angle) gives Q = P^T diag(omega) Y (Y^T diag(omega) Y)^-1."""
-    from addon import lightvec
-
-    from .shading import _sh9
-
-    y = _sh9(torch.from_numpy(lightvec.directions().reshape(-1, 3).astype(np.float64)))
-    omega = torch.from_numpy(lightvec.solid_angles().reshape(-1).astype(np.float64))
+    y, omega = shading.cell_sh(torch.float64)
     gram = y.T @ (omega[:, None] * y)
     proj = torch.from_numpy(layout.projection().copy())  # (114, 256): weights from cell power
     return (proj @ (omega[:, None] * y) @ torch.linalg.inv(gram)).float()

@@ -228,6 +228,17 @@ def _sh9(d: torch.Tensor) -> torch.Tensor:
                         1.092548 * x * z, 0.546274 * (x * x - y * y)], 1)
 
 
+def cell_sh(dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+    """The order-2 SH basis at the light vector's cell centres (256, 9) and the cells' solid
+    angles (256,): a light vector's SH coefficients are ``light.flatten @ (basis * omega)``
+    (training/network.py's ratio head and the transport targets of pairs.py)."""
+    from addon import lightvec
+
+    d = torch.from_numpy(lightvec.directions().reshape(-1, 3)).to(dtype)
+    omega = torch.from_numpy(lightvec.solid_angles().reshape(-1)).to(dtype)
+    return _sh9(d), omega
+
+
 def sh_irradiance(normals: torch.Tensor, dirs: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """(N, C*3) unshadowed irradiance from distant lights ``dirs`` (M, 3) with weights (C, M, 3),
     through the order-2 SH fit of the clamped cosine (Ramamoorthi and Hanrahan 2001)."""
