@@ -34,6 +34,7 @@ import numpy as np
 from addon import lightvec
 
 WHITE_PERCENTILE = 99.0
+LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec.709 luminance weights
 _SSIM_C1, _SSIM_C2 = 0.01 ** 2, 0.03 ** 2
 
 
@@ -96,8 +97,7 @@ def shading_correlation(pred: np.ndarray, inp: np.ndarray, gt: np.ndarray,
     """Correlation of the predicted and true spatial change of log luminance (see module doc),
     over the portrait pixels the input shows (luminance above 1% of the white level: the log of
     a near-black input is noise); relit values are floored at 0.1% of white."""
-    w = np.array([0.2126, 0.7152, 0.0722])[:, None]
-    lum = lambda x: (w * np.asarray(x, np.float64)[:, mask]).sum(0)  # noqa: E731
+    lum = lambda x: (LUMA[:, None] * np.asarray(x, np.float64)[:, mask]).sum(0)  # noqa: E731
     white = white_level(gt, mask)
     li = lum(inp)
     seen = li > 0.01 * white
@@ -113,7 +113,6 @@ def shading_correlation(pred: np.ndarray, inp: np.ndarray, gt: np.ndarray,
 
 def lateral_response(predict, dataset, n: int = 16) -> float:
     """Median over samples of balance(left lamp) / balance(right lamp) (see module doc)."""
-    w = np.array([0.2126, 0.7152, 0.0722])[:, None, None]
     out = []
     for idx in range(min(n, len(dataset))):
         s = dataset[idx]
@@ -127,7 +126,7 @@ def lateral_response(predict, dataset, n: int = 16) -> float:
         for direction in ((-1.0, 0.0, 0.0), (1.0, 0.0, 0.0)):
             lamp = lightvec.splat_direction(direction, (1.0, 1.0, 1.0))
             relit, _ = predict({**s, "light_k": lamp})
-            lum = (w * np.asarray(relit, np.float64)).sum(0)
+            lum = (LUMA[:, None, None] * np.asarray(relit, np.float64)).sum(0)
             bal.append(lum[left].mean() / max(lum[right].mean(), 1e-12))
         out.append(bal[0] / max(bal[1], 1e-12))
     return float(np.median(out)) if out else float("nan")

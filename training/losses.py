@@ -139,14 +139,16 @@ def make_critic_optimizer(critic: Critic, lr: float = 5e-5) -> torch.optim.Optim
 def _decode_many(net: RelightNet, image, skips, code, source, lights, scales):
     """Decode one frame under several lights in one batched pass. ``lights`` are unit-power;
     each output is multiplied by its scale (1 for a target light, k for an estimated one).
-    ``source`` is the frame's estimated own light (the ratio head's denominator)."""
+    ``source`` is the frame's estimated own light (the ratio head's denominator). Returns the
+    outputs, the parsing logits and the ratio head's transport of every decode (None without
+    one)."""
     n = len(lights)
     rep = lambda t: t.repeat(n, *([1] * (t.dim() - 1)))  # noqa: E731
     relit, logits = net.decode(rep(image), torch.cat(lights, 0), [rep(s) for s in skips], rep(code),
                                rep(source))
     scales = torch.cat(scales, 0)[:, None, None, None]
-    _decode_many.transport = getattr(net.decoder, "last_transport", None)
-    return list((relit * scales).chunk(n, 0)), logits.chunk(n, 0)[0]
+    transport = net.decoder.last_transport if net.decoder.ratio else None
+    return list((relit * scales).chunk(n, 0)), logits.chunk(n, 0)[0], transport
 
 
 def transport_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -181,11 +183,10 @@ def generator_objective(net: RelightNet, b: dict, sw: Switches, critic: Critic |
     else:
         lights_t, scales_t = [target, unit_i], [ones, k_i]
         lights_t1, scales_t1 = [target, unit_j], [ones, k_j]
-    out_t, logits_t = _decode_many(net, b["img_t"], skips_t, code_t, light_t, lights_t, scales_t)
-    tr_t = _decode_many.transport
-    out_t1, logits_t1 = _decode_many(net, b["img_t1"], skips_t1, code_t1, light_t1, lights_t1,
-                                     scales_t1)
-    tr_t1 = _decode_many.transport
+    out_t, logits_t, tr_t = _decode_many(net, b["img_t"], skips_t, code_t, light_t, lights_t,
+                                         scales_t)
+    out_t1, logits_t1, tr_t1 = _decode_many(net, b["img_t1"], skips_t1, code_t1, light_t1,
+                                            lights_t1, scales_t1)
 
     parts = {}
     m_t, m_t1 = b["mask_t"], b["mask_t1"]
