@@ -50,21 +50,11 @@ def model_paths(folder) -> dict:
             if (folder / f"ablation-{v}.onnx").is_file()}
 
 
-def predictor(onnx_path, threads: int):
-    import onnxruntime as ort
-
-    card = json.loads(pathlib.Path(onnx_path).with_suffix(".json").read_text())
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    session = ort.InferenceSession(str(onnx_path), so, providers=["CPUExecutionProvider"])
-    return evaluate.onnx_predictor(session, int(card.get("stride", 32))), card
-
-
 def run(paths: dict, dataset, n: int, threads: int) -> dict:
     """Per-variant metrics and per-sample rows; the baselines come with the first variant."""
     out, baselines = {}, None
     for name, path in paths.items():
-        predict, card = predictor(path, threads)
+        predict, card = evaluate.onnx_file_predictor(path, threads)
         res = evaluate.evaluate(predict, dataset, n, baselines=baselines is None, per_sample=True)
         rows = res.pop("per_sample")
         if baselines is None:

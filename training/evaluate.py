@@ -209,6 +209,19 @@ def onnx_predictor(session, stride: int):
     return predict
 
 
+def onnx_file_predictor(path, threads: int):
+    """(predict, card) for an exported model: its card (the .json beside an .onnx) gives the
+    stride; onnxruntime on the CPU with ``threads`` threads."""
+    import onnxruntime as ort
+
+    path = str(path)
+    card = json.loads(open(path[:-5] + ".json").read()) if path.endswith(".onnx") else {}
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    session = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+    return onnx_predictor(session, int(card.get("stride", 32))), card
+
+
 def torch_predictor(net):
     import torch
 
@@ -265,12 +278,7 @@ def main(argv=None):
         net, _ = load_checkpoint(f"{a.run}/checkpoint.pt")
         predict = torch_predictor(net)
     else:
-        import onnxruntime as ort
-
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = a.threads
-        card = json.loads(open(a.onnx[:-5] + ".json").read()) if a.onnx.endswith(".onnx") else {}
-        predict = onnx_predictor(ort.InferenceSession(a.onnx, so), int(card.get("stride", 32)))
+        predict, _ = onnx_file_predictor(a.onnx, a.threads)
     res = {**evaluate(predict, ds, a.n), "lateral_response": lateral_response(predict, ds)}
     print(json.dumps({**res, **dataset_id(ds)}, indent=2))
 
