@@ -20,6 +20,15 @@ training too (training/lighting_sampling.py). Within a split a sample picks one 
 ids of that split, a performance (seeded per identity and clip), a time, a camera, a backdrop and a
 lighting triplet (training/lighting_sampling.py).
 
+Backdrops: by default the stage's own matte wall (a smooth colour field); ``backdrops="varied"``
+puts a photo crop, a chroma-key screen, a busy pattern or the wall behind the subject instead
+(training/lightstage/backdrops.py), drawn from its own random stream so everything else in the
+sample stays the same, and lit as the wall is. It works on cached pairs too.
+
+Every sample carries every light's shadows, specular and subsurface: with the cache they cost
+nothing extra at sample time. The selective-effects shortcut (``Scene.shade_selective``) is for
+shading paid per image; the frontier benchmark measures its error and time.
+
 Pools and the cache: with ``pool=P`` the frames come from a fixed pool of P frame pairs of the
 split (pair p is a pure function of (split, resolution, p), whatever the seed), and a sample is a
 pair drawn by its seed plus a fresh lighting triplet. Shading is linear in the lighting, so a pair's
@@ -31,6 +40,7 @@ pool up to the cache's float16 transfer (tested).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 import warnings
@@ -43,6 +53,7 @@ from addon.errors import InputError
 
 from . import lighting_sampling
 from .lightstage import assets
+from .lightstage import backdrops as backdrops_mod
 from .lightstage import pairs
 from .lightstage.scene import Scene
 from .lightstage.subject import Performance, sample_camera, sample_identity
@@ -53,6 +64,8 @@ HELD_OUT = {"val": (14,), "test": (15,)}
 CLIP_SECONDS = 60.0  # performance times are drawn from [0, CLIP_SECONDS)
 CLIPS_PER_IDENTITY = 4
 POOL_SALT = 0x9001
+BACKDROP_SALT = 0xBDBD
+BACKDROPS = ("wall", "varied")  # lightstage/backdrops.py
 # What a rendered sample holds is versioned by hand: caches and the test set record RENDER_VERSION,
 # so a stale one is noticed. Bump it with every change that alters samples (the renderer's look,
 # the lighting sampling, the sample layout) and rewrite the golden probe
@@ -93,9 +106,9 @@ class LightStageDataset:
     """Map-style dataset of synthetic light-stage samples (no DataLoader needed)."""
 
     def __init__(self, split: str = "train", resolution: int = 128, seed: int = 0,
-                 length: int = 100_000, data_root=None, cache_dir=None, effects="auto",
+                 length: int = 100_000, data_root=None, cache_dir=None,
                  sampling: bool = True, identities: int | None = None, pool: int | None = None,
-                 transport: bool = False):
+                 transport: bool = False, backdrops: str = "wall"):
         if split not in SPLITS:
             raise InputError(f"Unknown split {split!r}; use one of {sorted(SPLITS)}.")
         if int(resolution) < 16:
@@ -103,7 +116,9 @@ class LightStageDataset:
         self.split, self.resolution, self.seed = split, int(resolution), int(seed)
         self.length = int(length)
         self.data_root = pathlib.Path(data_root) if data_root else assets.default_data_root()
-        self.effects = effects  # accepted for the API; samples always hold every effect
+        if backdrops not in BACKDROPS:
+            raise InputError(f"Unknown backdrops {backdrops!r}; use one of {list(BACKDROPS)}.")
+        self.backdrops = backdrops
         self.sampling = bool(sampling)
         self.transport = bool(transport)  # add the SH transport targets (lightstage/pairs.py)
         n_ids = identities or {"train": 448, "val": 32, "test": 32}[split]
@@ -111,6 +126,9 @@ class LightStageDataset:
         self.model = assets.load_head(self.data_root)
         names, self.bank = lighting_sampling.environment_bank(self.data_root)
         self.hdri_pool = lighting_sampling.hdri_pool(names, split)
+        if backdrops == "varied":
+            photo_names, self.photo_bank = backdrops_mod.photo_bank(self.data_root)
+            self.photo_pool = backdrops_mod.pool_for(photo_names, split)
         self.cache = None
         if cache_dir is not None:
             self.cache = cache_folder(cache_dir, split, self.resolution)
@@ -185,6 +203,13 @@ class LightStageDataset:
             scene, t = self._draw_scene(rng) if p is None else self.pair_scene(p)
             rec = pairs.record_pair(scene, t)
         lights = lighting_sampling.sample_triplet(rng, self.bank, self.sampling, self.hdri_pool)
+        if self.backdrops == "varied":  # its own random stream: the rest of the sample is unchanged
+            brng = np.random.default_rng([self.seed, SPLITS[self.split], int(idx), BACKDROP_SALT])
+            h, w = rec.frames[0].mask.shape
+            bd = backdrops_mod.sample(brng, h, w, rec.frames[0].backdrop, self.photo_bank,
+                                      self.photo_pool)
+            rec = dataclasses.replace(rec, frames=tuple(dataclasses.replace(f, backdrop=bd)
+                                                        for f in rec.frames))
         out = pairs.assemble(rec, lights, len(PARSING_CLASSES), with_transport=self.transport)
         assert torch.get_num_threads() == torch_threads
         return out

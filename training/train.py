@@ -352,11 +352,15 @@ def train(args) -> pathlib.Path:
         recipe["data_cache"] = json.loads((pathlib.Path(args.cache) / "cache.json").read_text())
     elif args.data_cache:
         ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling,
-                          cache_dir=args.data_cache, transport=sw.transport)
+                          cache_dir=args.data_cache, transport=sw.transport,
+                          backdrops=args.backdrops)
         recipe["data_cache"] = {"dir": str(args.data_cache), "pool": ds.pool}
     else:
         ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling,
-                          transport=sw.transport)
+                          transport=sw.transport, backdrops=args.backdrops)
+    if args.cache and args.backdrops != "wall":
+        raise SystemExit("--backdrops works with --data-cache or on-the-fly samples, not with "
+                         "--cache (those samples are rendered already)")
     if args.overfit:  # a sanity check: can the model fit a few samples far below the baselines?
         ds = [ds[i] for i in range(args.overfit)]
         val = ds
@@ -500,6 +504,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--transport-loss", action="store_true",
                    help="supervise the ratio head's SH transport with the light stage's (not in "
                         "the paper; an experiment)")
+    p.add_argument("--backdrops", default="wall", choices=["wall", "varied"],
+                   help="what stands behind the training subjects: the stage's smooth wall, or "
+                        "photos, chroma-key screens and busy patterns as well "
+                        "(training/lightstage/backdrops.py); validation keeps the wall")
     p.add_argument("--resolution", type=int, default=128, help="light-stage render size")
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--seed", type=int, default=0, help="torch and data seed")

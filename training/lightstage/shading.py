@@ -198,7 +198,6 @@ def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
     x = torch.arange(-r, r + 1, dtype=img.dtype)
     k = torch.exp(-0.5 * (x / sigma) ** 2)
     k = k / k.sum()
-    c = img.shape[0]
     out = tf.conv2d(img[:, None], k.view(1, 1, 1, -1), padding=(0, r))
     out = tf.conv2d(out, k.view(1, 1, -1, 1), padding=(r, 0))
     return out[:, 0]
