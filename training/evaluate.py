@@ -19,6 +19,12 @@ camera's left and by one from its right (90 degrees off the view axis, at eye he
 image-left over image-right mean luminance of the portrait under the first, divided by the same
 under the second (median over samples). 1 means the side of the light makes no difference.
 
+``background`` asks whether the backdrop is kept: held-out samples with varied backdrops (photos,
+chroma-key screens, busy patterns; training/lightstage/backdrops.py) whose background is a matte
+plane lit by the light, so relit it changes by one factor per channel. RMSE over the pixels the
+subject does not cover, normalised with the portrait's white level as above. A model that repaints
+the backdrop scores worse than the irradiance-ratio baseline there.
+
 Baselines: ``identity`` outputs the input unchanged; ``irradiance_ratio`` scales the input per
 channel by total_power(L^k) / total_power(L^i) with the true source light (an oracle on lighting).
 """
@@ -130,6 +136,33 @@ def lateral_response(predict, dataset, n: int = 16) -> float:
             bal.append(lum[left].mean() / max(lum[right].mean(), 1e-12))
         out.append(bal[0] / max(bal[1], 1e-12))
     return float(np.median(out)) if out else float("nan")
+
+
+def background_error(predict, n: int = 16, resolution: int = 128, data_root=None) -> dict:
+    """RMSE over the background of ``n`` held-out samples with varied backdrops (module doc) for
+    the model and both baselines: {"model": ..., "identity": ..., "irradiance_ratio": ...}."""
+    from .dataset import LightStageDataset
+    from .make_testset import TEST_SEED
+
+    ds = LightStageDataset("test", resolution, seed=TEST_SEED, length=n, data_root=data_root,
+                           backdrops="varied")
+    err = {"model": [], "identity": [], "irradiance_ratio": []}
+    for idx in range(n):
+        s = ds[idx]
+        cover = np.asarray(s["mask_t"])[0]
+        bg = cover == 0
+        if not bg.any():
+            continue
+        gt = np.asarray(s["gt_t_k"], np.float32)
+        white = white_level(gt, cover > 0.5)
+        g = to_unit(gt, white)[:, bg]
+        for name, img in (("model", predict(s)[0]), ("identity", baseline_identity(s)),
+                          ("irradiance_ratio", baseline_irradiance_ratio(s))):
+            p = to_unit(np.nan_to_num(img, nan=0.0, posinf=white, neginf=0.0), white)[:, bg]
+            err[name].append(float(np.sqrt(np.mean((p - g) ** 2))))
+    out = {k: float(np.mean(v)) for k, v in err.items() if v}
+    out["samples"] = len(err["model"])
+    return out
 
 
 def baseline_identity(sample: dict) -> np.ndarray:
@@ -279,7 +312,8 @@ def main(argv=None):
         predict = torch_predictor(net)
     else:
         predict, _ = onnx_file_predictor(a.onnx, a.threads)
-    res = {**evaluate(predict, ds, a.n), "lateral_response": lateral_response(predict, ds)}
+    res = {**evaluate(predict, ds, a.n), "lateral_response": lateral_response(predict, ds),
+           "background": background_error(predict, resolution=a.resolution)}
     print(json.dumps({**res, **dataset_id(ds)}, indent=2))
 
 

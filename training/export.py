@@ -252,8 +252,9 @@ def main(argv=None):
     predict = evaluate.onnx_predictor(session(onnx_path, a.threads), net.cfg.stride)
     metrics = evaluate.evaluate(predict, ds, a.eval)
     metrics["model"]["lateral_response"] = evaluate.lateral_response(predict, ds)
+    metrics["background"] = evaluate.background_error(predict, resolution=res)
     metrics.update(split="test", resolution=res, definition="\n\n".join(
-        evaluate.__doc__.split("\n\n")[2:5]), **evaluate.dataset_id(ds))
+        evaluate.__doc__.split("\n\n")[2:6]), **evaluate.dataset_id(ds))
     print("metrics:", json.dumps(metrics))
     cost = {"cpu": measure_cost(onnx_path, threads=a.threads),
             "machine": "2-core x86-64 CPU (AMD EPYC, AVX-512 VNNI), shared and noisy"}

@@ -97,3 +97,18 @@ def test_the_training_flag_reaches_the_dataset(shared_data):
     ds = make_dataset("train", RES, 0, data_root=shared_data, pool=2, backdrops=args.backdrops)
     assert ds.backdrops == "varied"
     assert parser().parse_args([]).backdrops == "wall"
+
+
+def test_background_error_scores_a_kept_backdrop_and_a_repainted_one(shared_data):
+    from training.evaluate import background_error
+    exact = background_error(lambda s: (s["gt_t_k"], {}), n=3, resolution=RES,
+                             data_root=shared_data)
+    assert exact["samples"] == 3 and exact["model"] < 1e-6
+    assert exact["identity"] > 0.01 and exact["irradiance_ratio"] > 0
+    # a repainted backdrop: the background replaced by its mean colour
+    def flat(s):
+        out = np.array(s["gt_t_k"])
+        bg = s["mask_t"][0] == 0
+        out[:, bg] = out[:, bg].mean(axis=1, keepdims=True)
+        return out, {}
+    assert background_error(flat, n=3, resolution=RES, data_root=shared_data)["model"] > 0.01
