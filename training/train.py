@@ -437,11 +437,12 @@ def validate(net, samples) -> dict:
 
 def curve(run) -> str:
     """A run's log as a markdown table: val metrics of the model and both baselines over time,
-    and the mean training loss terms since the previous val row."""
+    the model's shading correlation, and the mean training loss terms since the previous val row
+    ("-" for a term the run did not train)."""
     rows = [json.loads(line) for line in open(pathlib.Path(run) / "log.jsonl")]
-    terms = ("basic", "latent", "parsing", "temporal", "adv")
-    out = ["| step | min | model RMSE / PSNR / SSIM | identity | irradiance ratio | "
-           + " | ".join(terms) + " |", "|" + "---|" * (5 + len(terms))]
+    terms = ("basic", "latent", "parsing", "temporal", "transport", "adv")
+    out = ["| step | min | model RMSE / PSNR / SSIM | shading corr | identity | irradiance ratio | "
+           + " | ".join(terms) + " |", "|" + "---|" * (6 + len(terms))]
     pending = []
     for r in rows:
         if "val" not in r:
@@ -449,11 +450,12 @@ def curve(run) -> str:
             continue
         v = r["val"]
         cell = lambda m: f"{m['rmse']:.4f} / {m['psnr']:.2f} / {m['ssim']:.3f}"  # noqa: E731
-        means = [np.mean([p[k] for p in pending if k in p]) if any(k in p for p in pending)
-                 else float("nan") for k in terms]
-        out.append(f"| {r['step']} | {r['minutes']} | {cell(v['model'])} | {cell(v['identity'])} | "
-                   f"{cell(v['irradiance_ratio'])} | " + " | ".join(f"{m:.3f}" for m in means)
-                   + " |")
+        means = [f"{np.mean([p[k] for p in pending if k in p]):.3f}"
+                 if any(k in p for p in pending) else "-" for k in terms]
+        corr = v["model"].get("shading_corr")
+        out.append(f"| {r['step']} | {r['minutes']} | {cell(v['model'])} | "
+                   f"{'-' if corr is None else f'{corr:.3f}'} | {cell(v['identity'])} | "
+                   f"{cell(v['irradiance_ratio'])} | " + " | ".join(means) + " |")
         pending = []
     return "\n".join(out)
 
