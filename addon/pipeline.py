@@ -53,6 +53,13 @@ class ClipSpec:
     fps: float
 
 
+# What stands behind the relit subject: "network" its own output (the models repaint backgrounds),
+# "keep" the source's background as it was, "relit" the source's background brightened and tinted
+# by the change of light on a matte wall facing the camera (wall_gain, with the network's own
+# estimate of the source light). "keep" and "relit" composite by the network's foreground matte.
+BACKGROUNDS = ("network", "keep", "relit")
+
+
 @dataclass(frozen=True)
 class RelightOptions:
     model_path: str            # the .onnx; its card is the same stem + '.json'
@@ -63,9 +70,10 @@ class RelightOptions:
     threads: int | None = None
     overwrite: bool = False    # replace another run's output in out_dir instead of refusing
     exr_compression: str = "none"     # see frames.COMPRESSIONS; not part of the run identity
-    # Composite the relit subject over the source's own background by the network's foreground
-    # matte: the models repaint backgrounds they were never trained to keep.
-    keep_background: bool = False
+    # What stands behind the relit subject (BACKGROUNDS): the network's own output, or the
+    # source's background composited in by the network's foreground matte, as it was or relit as
+    # a wall facing the camera (the models repaint backgrounds; training/evaluate.py measures it).
+    background: str = "network"
 
 
 @dataclass
@@ -177,7 +185,10 @@ def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,
         "settings": {"working_size": working, "detail_transfer": options.detail_transfer,
                      "write_matte": options.write_matte,
                      # only when set, so runs made before the option existed still resume
-                     **({"keep_background": True} if options.keep_background else {})},
+                     # ("keep" is written as session 2's keep_background flag was)
+                     **({} if options.background == "network" else
+                        {"keep_background": True} if options.background == "keep" else
+                        {"background": options.background})},
     }
 
 
@@ -287,7 +298,7 @@ class Plan:
     write_matte: bool
     compression: str
     relit_times_s: bool = True  # the model's relit output is in image / (s k) units (old cards)
-    keep_background: bool = False
+    background: str = "network"
 
 
 def relit_times_s(card) -> bool:
@@ -363,12 +374,34 @@ def _count_clamped(y: np.ndarray) -> int:
 
 
 def keep_background(relit: np.ndarray, x_full: np.ndarray, matte: np.ndarray,
-                    plan: Plan) -> np.ndarray:
-    """relit * matte + source * (1 - matte), half (3, H, W), scene-linear; ``x_full`` is the
-    exposure-normalised source (times s is the footage's own linear radiance)."""
+                    plan: Plan, gain=None) -> np.ndarray:
+    """relit * matte + source * gain * (1 - matte), half (3, H, W), scene-linear; ``x_full`` is
+    the exposure-normalised source (times s is the footage's own linear radiance); ``gain``: per
+    channel (3,), 1 when None."""
     m = np.asarray(matte, np.float32)[None]
-    out = np.asarray(relit, np.float32) * m + x_full * np.float32(plan.scale) * (1.0 - m)
-    return np.clip(out, -65504.0, 65504.0).astype(np.float16)
+    g = np.ones(3, np.float32) if gain is None else np.asarray(gain, np.float32)
+    out = (np.asarray(relit, np.float32) * m
+           + x_full * (np.float32(plan.scale) * g[:, None, None]) * (1.0 - m))
+    return np.clip(np.nan_to_num(out, nan=0.0, posinf=65504.0, neginf=-65504.0),
+                   -65504.0, 65504.0).astype(np.float16)
+
+
+_TO_CAMERA = np.array([0.0, 0.0, 1.0])
+
+
+def wall_gain(target: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """(3,) how much brighter, per channel, a matte wall facing the camera is under ``target``
+    than under ``source`` (absolute light vectors): the kept background's change of light for
+    background "relit". A source channel near 0 (1% of the mean of the three) is floored there;
+    a source with no light on the wall at all falls back to the ratio of total power."""
+    e_t = lightvec.irradiance(target, _TO_CAMERA)
+    e_s = lightvec.irradiance(source, _TO_CAMERA)
+    if not np.all(np.isfinite(e_s)) or float(np.mean(e_s)) <= 1e-12:
+        e_t, e_s = lightvec.total_power(target), lightvec.total_power(source)
+        if not np.all(np.isfinite(e_s)) or float(np.mean(e_s)) <= 1e-12:
+            return np.zeros(3, np.float32)
+    gain = e_t / np.maximum(e_s, 0.01 * float(np.mean(e_s)))
+    return np.nan_to_num(gain, nan=0.0, posinf=65504.0).astype(np.float32)
 
 
 def matte_full(fg, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
@@ -480,6 +513,9 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
     resume)."""
     out = Log(log)
     out_dir = str(out_dir)
+    if options.background not in BACKGROUNDS:
+        raise InputError(f"Unknown background {options.background!r}; use one of "
+                         f"{', '.join(BACKGROUNDS)}.")
     info = _check_clip(clip)
     lights = _check_lights(lights, clip.count)
     selected = _check_frames(frames, clip.count)
@@ -516,7 +552,7 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
             {"identity": identity, "exposure_scale": scale, "model": session.card.name,
              "providers": session.providers}, indent=2))
     plan = Plan(space, scale, plan.size, plan.working, plan.detail_transfer, plan.write_matte,
-                plan.compression, relit_times_s(session.card), options.keep_background)
+                plan.compression, relit_times_s(session.card), options.background)
     out.info(f"Relighting {len(selected)} frames at {plan.working[1]}x{plan.working[0]} with "
              f"{session.card.name} on {session.providers[0]}; exposure scale {scale:.6g}.")
 
@@ -563,12 +599,12 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 item = results.get()
                 if item is _DONE:
                     return
-                i, x_full, x_max, ab, fg, source = item
+                i, x_full, x_max, ab, fg, source, gain = item
                 relit, clamped = finish_planar(x_full, ab, x_max, fullres)
-                keep = plan.keep_background and fg is not None  # no matte: a black frame
+                keep = plan.background != "network" and fg is not None  # no matte: black frame
                 matte = matte_full(fg, plan, fullres) if plan.write_matte or keep else None
                 if keep:
-                    relit = keep_background(relit, x_full, matte, plan)
+                    relit = keep_background(relit, x_full, matte, plan, gain)
                 write_frame(out_dir, i, relit, matte, source, plan)
                 counts["clamped"] += clamped
                 counts["written"] += 1
@@ -598,11 +634,12 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             if item is _DONE:
                 break
             i, x_full, x_max, x_low = item
-            relit_low, source, fg, k = infer_planar(session, x_low,
-                                                    lights[min(i, len(lights) - 1)])
+            light = lights[min(i, len(lights) - 1)]
+            relit_low, source, fg, k = infer_planar(session, x_low, light)
             ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
-            _put(results, (i, x_full, x_max, ab, fg, source * np.float32(plan.scale)), stop,
-                 alive=writer)
+            source = source * np.float32(plan.scale)  # the source light in the footage's units
+            gain = wall_gain(light, source) if plan.background == "relit" else None
+            _put(results, (i, x_full, x_max, ab, fg, source, gain), stop, alive=writer)
             _raise_if_failed(writer)
     finally:
         stop.set()

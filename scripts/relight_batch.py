@@ -65,14 +65,21 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--out", metavar="DIR", help="output folder (default: the .blend's setting)")
     p.add_argument("--frames", type=frame_range, metavar="A-B", help="scene frames to relight")
     p.add_argument("--matte", action="store_true", help="also write the portrait matte")
+    p.add_argument("--background", choices=["network", "keep", "relit"],
+                   help="what stands behind the relit subject: the network's output, the "
+                        "footage's own background as it was, or relit as a wall facing the camera "
+                        "(default: the .blend's setting)")
     p.add_argument("--keep-background", action="store_true",
-                   help="composite the relit subject over the footage's own background")
+                   help="the same as --background keep")
     p.add_argument("--overwrite", action="store_true", help="redo frames an earlier run made")
     p.add_argument("--save", action="store_true", help="save the .blend with the relit strip")
     p.add_argument("--debug", action="store_true", help="show tracebacks of unexpected errors")
     args = p.parse_args(argv)
     if bool(args.strip) == bool(args.demo):
         p.error("give either --strip NAME or --demo")
+    if args.keep_background and args.background not in (None, "keep"):
+        p.error(f"--keep-background is --background keep; it contradicts --background "
+                f"{args.background}: give one of them")
     return args
 
 
@@ -202,7 +209,8 @@ def apply_settings(scene, args) -> None:
     if args.frames:
         s.frame_start, s.frame_end = args.frames
     s.write_matte = args.matte or s.write_matte
-    s.keep_background = args.keep_background or s.keep_background
+    if args.background or args.keep_background:
+        s.background = (args.background or "keep").upper()
     s.overwrite = args.overwrite
 
 

@@ -84,9 +84,9 @@ def draw_quality(box, context, settings):
 def draw_output(box, settings):
     box.label(text="Output", icon='OUTPUT')
     box.prop(settings, "output_dir", text="")
+    box.prop(settings, "background")
     row = box.row()
     row.prop(settings, "write_matte")
-    row.prop(settings, "keep_background")
     row.prop(settings, "overwrite")
     box.prop(settings, "use_frame_range")
     if settings.use_frame_range:

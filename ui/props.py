@@ -65,10 +65,16 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
                                description="Folder for the relit EXR frames (one sub-folder per strip)")
     write_matte: BoolProperty(name="Matte Strip", default=False,
                               description="Also write the portrait matte and add it as a strip")
-    keep_background: BoolProperty(
-        name="Keep Background", default=False,
-        description="Put the relit subject over the footage's own background (by the portrait "
-                    "matte) instead of the network's repainted one")
+    background: EnumProperty(
+        name="Background", default='NETWORK',
+        items=[('NETWORK', "Network", "The network's output everywhere (it repaints the "
+                                      "background)"),
+               ('KEEP', "Keep", "The relit subject over the footage's own background, as it was "
+                                "(by the portrait matte)"),
+               ('RELIT', "Keep, Relit", "The relit subject over the footage's own background, "
+                                        "brightened and tinted by the change of light as a wall "
+                                        "facing the camera")],
+        description="What stands behind the relit subject")
     detail_transfer: BoolProperty(name="Keep Fine Detail", default=True,
                                   description="Bring the footage's full-resolution detail back "
                                               "into the relit frames")

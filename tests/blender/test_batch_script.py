@@ -131,11 +131,14 @@ def test_demo_relights_the_built_in_clip(toy_models, tmp_path):
     assert "relit frames are in" in done.stdout
 
 
-def test_keep_background_flag_reaches_the_run(toy_models, tmp_path):
+@pytest.mark.parametrize("flags,want", [(["--keep-background"], {"keep_background": True}),
+                                        (["--background", "relit"], {"background": "relit"})])
+def test_background_flags_reach_the_run(toy_models, tmp_path, flags, want):
     if not sorted((ROOT / "demo" / "frames").glob("*.png")):
         pytest.skip("the demo clip (demo/frames) has not been made in this checkout")
     done = run([sys.executable, str(SCRIPT), "--demo", "--models", str(toy_models), "--out",
-                str(tmp_path / "demo"), "--keep-background", "--frames", "1-2"])
+                str(tmp_path / "demo"), *flags, "--frames", "1-2"])
     assert done.returncode == 0, done.stderr
     (run_file,) = (tmp_path / "demo").glob("*/relight_run.json")
-    assert json.loads(run_file.read_text())["identity"]["settings"]["keep_background"] is True
+    settings = json.loads(run_file.read_text())["identity"]["settings"]
+    assert {k: settings[k] for k in want} == want

@@ -316,7 +316,7 @@ def test_keep_background_composites_the_relit_subject_over_the_source(toy, movie
     plain = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "a",
                                   opts(toy, write_matte=True))
     kept = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "b",
-                                 opts(toy, write_matte=True, keep_background=True))
+                                 opts(toy, write_matte=True, background="keep"))
     for i in range(2):
         relit, out = frames.read_exr(plain.relit_files[i]), frames.read_exr(kept.relit_files[i])
         m = frames.read_exr(plain.matte_files[i])[..., :1]
@@ -328,10 +328,52 @@ def test_keep_background_composites_the_relit_subject_over_the_source(toy, movie
     # a different setting is a different run: it cannot silently resume the plain one
     with pytest.raises(OutputError):
         pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "a",
-                              opts(toy, write_matte=True, keep_background=True))
+                              opts(toy, write_matte=True, background="keep"))
 
 
-def test_keep_background_with_a_dark_light_and_bad_pixels_stays_finite(toy, tmp_path):
+def test_relit_background_is_the_source_changed_by_the_light_on_a_wall(toy, movie, src,
+                                                                      tmp_path):
+    light = 3 * UNIFORM
+    plain = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "a",
+                                  opts(toy, write_matte=True))
+    relit_bg = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "b",
+                                     opts(toy, write_matte=True, background="relit"))
+    for i in range(2):
+        relit, out = frames.read_exr(plain.relit_files[i]), frames.read_exr(relit_bg.relit_files[i])
+        m = frames.read_exr(plain.matte_files[i])[..., :1]
+        source_light = np.load(pipeline.source_path(str(tmp_path / "b"), i))
+        gain = pipeline.wall_gain(light[0], source_light)
+        assert np.all(np.abs(gain - 1) > 0.05)  # the light changed: not the same as "keep"
+        source = colour.to_linear(src[i], colour.lookup("sRGB"))
+        want = relit * m + source * gain * (1 - m)
+        np.testing.assert_allclose(out, want, rtol=4e-3, atol=2e-4)
+    with pytest.raises(InputError, match="relit"):
+        pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "c",
+                              opts(toy, background="kept"))
+
+
+def test_wall_gain_is_the_change_of_light_on_a_wall_facing_the_camera():
+    np.testing.assert_allclose(pipeline.wall_gain(lightvec.uniform(2.0), lightvec.uniform(1.0)),
+                               [2, 2, 2], rtol=1e-6)
+    warm = lightvec.uniform(1.0) * np.array([1.0, 0.5, 0.25], np.float32)
+    np.testing.assert_allclose(pipeline.wall_gain(warm, lightvec.uniform(1.0)),
+                               [1.0, 0.5, 0.25], rtol=1e-6)
+    front = lightvec.splat_direction((0.0, 0.0, 1.0), (1.0, 1.0, 1.0))
+    back = lightvec.splat_direction((0.0, 0.0, -1.0), (1.0, 1.0, 1.0))
+    assert np.all(pipeline.wall_gain(back, front) < 0.05)  # a wall facing the camera goes dark
+    # a source with no light on the wall: the ratio of total power, finite
+    np.testing.assert_allclose(pipeline.wall_gain(2 * front, back), [2, 2, 2], rtol=1e-5)
+    assert not pipeline.wall_gain(front, lightvec.zeros()).any()
+    one_dark = lightvec.uniform(1.0) * np.array([1.0, 1.0, 0.0], np.float32)
+    g = pipeline.wall_gain(lightvec.uniform(1.0), one_dark)
+    np.testing.assert_allclose(g, [1, 1, 150], rtol=1e-5)  # floored at 1% of the mean (2/3)
+    nan = lightvec.uniform(1.0).copy()
+    nan[0, 0, 0] = np.nan
+    assert np.all(np.isfinite(pipeline.wall_gain(front, nan)))
+
+
+@pytest.mark.parametrize("background", ["keep", "relit"])
+def test_keep_background_with_a_dark_light_and_bad_pixels_stays_finite(toy, tmp_path, background):
     px = np.random.default_rng(6).random((12, 20, 3)).astype(np.float32) + 0.05
     bad = px.copy()
     bad[2, 3] = np.nan
@@ -340,7 +382,7 @@ def test_keep_background_with_a_dark_light_and_bad_pixels_stays_finite(toy, tmp_
     files = write_exr_sequence(tmp_path / "in", [px, bad])
     lights = np.stack([lightvec.uniform(0.0), lightvec.uniform(1e4)])
     res = pipeline.relight_clip(image_clip(files, space="Linear Rec.709"), lights,
-                                tmp_path / "out", opts(toy, working_size=8, keep_background=True))
+                                tmp_path / "out", opts(toy, working_size=8, background=background))
     dark, huge = (frames.read_exr(f) for f in res.relit_files)
     assert not dark.any()  # no light, no matte: the whole frame is black, not the source
     assert np.all(np.isfinite(huge)) and np.abs(huge).max() <= 65504.0
