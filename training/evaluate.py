@@ -23,7 +23,8 @@ under the second (median over samples). 1 means the side of the light makes no d
 chroma-key screens, busy patterns; training/lightstage/backdrops.py) whose background is a matte
 plane lit by the light, so relit it changes by one factor per channel. RMSE over the pixels the
 subject does not cover, normalised with the portrait's white level as above. A model that repaints
-the backdrop scores worse than the irradiance-ratio baseline there.
+the backdrop scores worse than the irradiance-ratio baseline there. ``model_keep`` and
+``model_relit`` score the product's background choices "keep" and "relit" (addon/pipeline.py).
 
 Baselines: ``identity`` outputs the input unchanged; ``irradiance_ratio`` scales the input per
 channel by total_power(L^k) / total_power(L^i) with the true source light (an oracle on lighting).
@@ -139,14 +140,18 @@ def lateral_response(predict, dataset, n: int = 16) -> float:
 
 
 def background_error(predict, n: int = 16, resolution: int = 128, data_root=None) -> dict:
-    """RMSE over the background of ``n`` held-out samples with varied backdrops (module doc) for
-    the model and both baselines: {"model": ..., "identity": ..., "irradiance_ratio": ...}."""
+    """RMSE over the background of ``n`` held-out samples with varied backdrops (module doc):
+    the model as the product composes it under each background choice of addon/pipeline.py
+    ("network": its own output; "keep": the source's background by its foreground matte; "relit":
+    the same times pipeline.wall_gain with its own source-light estimate), and both baselines."""
+    from addon.pipeline import wall_gain
+
     from .dataset import LightStageDataset
     from .make_testset import TEST_SEED
 
     ds = LightStageDataset("test", resolution, seed=TEST_SEED, length=n, data_root=data_root,
                            backdrops="varied")
-    err = {"model": [], "identity": [], "irradiance_ratio": []}
+    err: dict[str, list] = {}
     for idx in range(n):
         s = ds[idx]
         cover = np.asarray(s["mask_t"])[0]
@@ -156,12 +161,21 @@ def background_error(predict, n: int = 16, resolution: int = 128, data_root=None
         gt = np.asarray(s["gt_t_k"], np.float32)
         white = white_level(gt, cover > 0.5)
         g = to_unit(gt, white)[:, bg]
-        for name, img in (("model", predict(s)[0]), ("identity", baseline_identity(s)),
-                          ("irradiance_ratio", baseline_irradiance_ratio(s))):
+        src = np.asarray(s["img_t_i"], np.float32)
+        pred, extras = predict(s)
+        images = {"model": pred, "identity": baseline_identity(s),
+                  "irradiance_ratio": baseline_irradiance_ratio(s)}
+        if "foreground" in extras:
+            m = np.clip(np.asarray(extras["foreground"], np.float32), 0, 1)[None]
+            images["model_keep"] = pred * m + src * (1 - m)
+            if "source_light" in extras:
+                gain = wall_gain(s["light_k"], extras["source_light"])[:, None, None]
+                images["model_relit"] = pred * m + src * gain * (1 - m)
+        for name, img in images.items():
             p = to_unit(np.nan_to_num(img, nan=0.0, posinf=white, neginf=0.0), white)[:, bg]
-            err[name].append(float(np.sqrt(np.mean((p - g) ** 2))))
-    out = {k: float(np.mean(v)) for k, v in err.items() if v}
-    out["samples"] = len(err["model"])
+            err.setdefault(name, []).append(float(np.sqrt(np.mean((p - g) ** 2))))
+    out = {k: float(np.mean(v)) for k, v in err.items()}
+    out["samples"] = len(err.get("model", []))
     return out
 
 
@@ -233,12 +247,19 @@ def _pad(img: np.ndarray, stride: int) -> np.ndarray:
     return np.pad(img, ((0, 0), (0, 0), (0, -h % stride), (0, -w % stride)), mode="reflect")
 
 
+def _source_light(src, s) -> np.ndarray:
+    """The network's source-light estimate (1, 3, 16, 16) for image / s -> absolute (16, 16, 3)."""
+    return np.asarray(src, np.float32)[0].transpose(1, 2, 0) * np.float32(s)
+
+
 def onnx_predictor(session, stride: int):
     def predict(sample):
         img, light, s, k = _normalised_inputs(sample)
         h, w = img.shape[-2:]
-        relit, _, parsing = session.run(None, {"image": _pad(img, stride), "target_light": light})
-        return _absolute(relit[0, :, :h, :w], s, k), {"foreground": parsing[0, 0, :h, :w]}
+        relit, src, parsing = session.run(None, {"image": _pad(img, stride),
+                                                 "target_light": light})
+        return _absolute(relit[0, :, :h, :w], s, k), {"foreground": parsing[0, 0, :h, :w],
+                                                      "source_light": _source_light(src, s)}
     return predict
 
 
@@ -262,10 +283,11 @@ def torch_predictor(net):
         img, light, s, k = _normalised_inputs(sample)
         h, w = img.shape[-2:]
         with torch.no_grad():
-            relit, _, parsing = net(torch.from_numpy(_pad(img, net.cfg.stride)),
-                                    torch.from_numpy(light))
+            relit, src, parsing = net(torch.from_numpy(_pad(img, net.cfg.stride)),
+                                      torch.from_numpy(light))
         return (_absolute(relit[0, :, :h, :w].numpy(), s, k),
-                {"foreground": parsing[0, 0, :h, :w].numpy()})
+                {"foreground": parsing[0, 0, :h, :w].numpy(),
+                 "source_light": _source_light(src.numpy(), s)})
     return predict
 
 

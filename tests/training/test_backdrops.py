@@ -112,3 +112,16 @@ def test_background_error_scores_a_kept_backdrop_and_a_repainted_one(shared_data
         out[:, bg] = out[:, bg].mean(axis=1, keepdims=True)
         return out, {}
     assert background_error(flat, n=3, resolution=RES, data_root=shared_data)["model"] > 0.01
+
+
+def test_the_relit_background_choice_with_the_true_source_light_matches_the_stage(shared_data):
+    """pipeline.wall_gain (the product's "relit" background) and the light stage's wall agree:
+    given the true matte and source light, the kept-and-relit background is nearly exact."""
+    from training.evaluate import background_error
+
+    def oracle(s):
+        return s["gt_t_k"], {"foreground": s["mask_t"][0], "source_light": s["light_i"]}
+    r = background_error(oracle, n=4, resolution=RES, data_root=shared_data)
+    assert r["model"] < 1e-6
+    assert r["model_relit"] < 0.25 * r["identity"]
+    assert r["model_relit"] < r["model_keep"]
