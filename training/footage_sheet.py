@@ -121,12 +121,12 @@ class Run:
 
 
 def relight(clip: pipeline.ClipSpec, light: np.ndarray, out_dir: pathlib.Path, model: pathlib.Path,
-            threads: int) -> tuple[int, float, float | None]:
+            threads: int, background: str = "network") -> tuple[int, float, float | None]:
     """Run the product pipeline; (frames written, wall seconds, steady-state fps)."""
     stamps: list[tuple[float, int]] = []
     # The matte is written to measure which side of the portrait the light falls on (balance).
     options = pipeline.RelightOptions(str(model), threads=threads, write_matte=True,
-                                      overwrite=True)
+                                      overwrite=True, background=background)
     start = time.perf_counter()
     result = pipeline.relight_clip(clip, light[None], str(out_dir), options,
                                    on_progress=lambda done, total, _: stamps.append(
@@ -306,6 +306,8 @@ def parse_args(argv):
     p.add_argument("--seq-length", type=int, default=6, help="frames on the sequence sheet")
     p.add_argument("--data", default=str(DATA), help="the shared data folder")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
+    p.add_argument("--background", default="network", choices=pipeline.BACKGROUNDS,
+                   help="what stands behind the relit subject (the panel's Background choice)")
     a = p.parse_args(argv)
     if a.frames < 1 or a.seq_length < 2:
         p.error("--frames must be at least 1 and --seq-length at least 2")
@@ -313,16 +315,17 @@ def parse_args(argv):
 
 
 def run_one(spec, clip_name: str, name: str, light, model: pathlib.Path, out: pathlib.Path,
-            threads: int, mid: int, x_mid: np.ndarray) -> Run:
+            threads: int, mid: int, x_mid: np.ndarray, background: str = "network") -> Run:
     """Relight one clip under one lighting with one model, and measure its middle frame."""
     run_dir = out / clip_name / name / model.stem
-    written, seconds, steady = relight(spec, light, run_dir, model, threads)
+    written, seconds, steady = relight(spec, light, run_dir, model, threads, background)
     matte = read_matte(run_dir, mid)
     return Run(clip_name, name, model.stem, run_dir, spec.count, written, seconds, steady,
                (balance(x_mid, matte), balance(relit_frame(run_dir, mid), matte)))
 
 
-def relight_all(data, clips, lights, models, out, frames_n: int, threads: int):
+def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
+                background: str = "network"):
     """[(clip spec, {lighting: Run})], one entry per clip and model, grouped by clip."""
     rows, mid = [], frames_n // 2
     for clip_name in clips:
@@ -331,7 +334,8 @@ def relight_all(data, clips, lights, models, out, frames_n: int, threads: int):
         for model in models:
             row = {}
             for name, light in lights.items():
-                run = run_one(spec, clip_name, name, light, model, out, threads, mid, x_mid)
+                run = run_one(spec, clip_name, name, light, model, out, threads, mid, x_mid,
+                              background)
                 print(f"{clip_name:>4} {name:<9} {model.stem}: {run.fps_text()}; left/right "
                       f"balance input {run.balance[0]:.2f} -> relit {run.balance[1]:.2f}",
                       flush=True)
@@ -372,7 +376,7 @@ def make_sheets(a) -> dict:
     models = [model_path(m) for m in a.models]
     out = pathlib.Path(a.out)
     mid = a.frames // 2
-    rows = relight_all(data, clips, lights, models, out, a.frames, a.threads)
+    rows = relight_all(data, clips, lights, models, out, a.frames, a.threads, a.background)
     write_png(out / "sheet.png", main_sheet(rows, lights, mid))
     length = min(a.seq_length, a.frames)
     first = max(0, min(mid - length // 2, a.frames - length))
@@ -384,6 +388,7 @@ def make_sheets(a) -> dict:
         "columns": ["input"] + [lt.name for lt in lightings],
         "lightings": {lt.name: lt.what for lt in lightings},
         "middle_frame": mid,
+        "background": a.background,
         "sequence": {"lighting": seq_name, "frames": [first, first + length - 1],
                      "mean_change": changes},
         "runs": [{"clip": r.clip, "lighting": r.lighting, "model": r.model, "frames": r.frames,
