@@ -4,7 +4,9 @@
 
 Rows: 16 of the 114 OLAT images of one frame (every 7th light, auto-exposed each); the same frame
 under six HDRIs and two point-light sets; parsing labels, forward flow and its valid mask, the
-mask; eight consecutive 25 fps frames of the performance under one HDRI.
+mask; eight consecutive 25 fps frames of the performance under one HDRI; the same frame under that
+HDRI in front of the varied training backdrops (``--backdrops varied``: photo crops, chroma-key
+screens, busy patterns, the stage's wall).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import torch
 from addon.contract import PARSING_CLASSES
 
 from . import lighting_sampling
-from .lightstage import assets
+from .lightstage import assets, backdrops
 from .lightstage.png import to_srgb8, write_png
 from .lightstage.scene import Scene
 from .lightstage.subject import FPS, Performance, sample_camera, sample_identity
@@ -70,7 +72,19 @@ def sheet(size: int = 96, identity: int = 33, data_root=None) -> np.ndarray:
             .astype(np.uint8), (np.repeat(f.gb.mask.numpy()[..., None], 3, 2) * 255).astype(np.uint8)]
     seq = [scene.shade(scene.frame(1.0 + n * 3 / FPS), [envs[0]])[0] for n in range(4)]
     row4 += [_img(x, exposure=0.7 / float(np.percentile(seq[0].mean(0).numpy(), 95))) for x in seq]
-    rows = [np.concatenate(r, 1) for r in (row1, row2, row3, row4)]
+    _, photos = backdrops.photo_bank(root)
+    brng = np.random.default_rng(identity)
+    h, w = f.gb.mask.shape
+    walls = [backdrops.photo(brng, h, w, photos[names.index(n)]) for n in
+             ("blender/interior", "pmndrs/apartment", "blender/city")]
+    walls += [backdrops.screen(brng, h, w) for _ in range(2)]
+    walls += [backdrops.pattern(brng, h, w) for _ in range(2)] + [scene.backdrop]
+    row5 = []
+    for wall in walls:
+        scene.backdrop = wall.clamp(*backdrops.ALBEDO)
+        row5.append(_img(scene.shade(f, [envs[0]])[0], exposure=0.7 / float(
+            np.percentile(seq[0].mean(0).numpy(), 95))))
+    rows = [np.concatenate(r, 1) for r in (row1, row2, row3, row4, row5)]
     return np.concatenate(rows, 0)
 
 

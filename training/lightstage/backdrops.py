@@ -39,12 +39,12 @@ WIDTH = 512  # the bank's maps are reduced to this width once
 
 
 def _tone_map(rgb: np.ndarray) -> np.ndarray:
-    """HDR radiance to a plausible albedo: log luminance from its 2nd-98th percentile to 0.03-0.85,
+    """HDR radiance to a plausible albedo: log luminance from its 2nd-98th percentile to 0.02-0.6,
     hue and saturation kept."""
     lum = np.maximum(rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32), 1e-6)
     log = np.log(lum)
     lo, hi = np.percentile(log, [2, 98])
-    mapped = 0.03 + 0.82 * np.clip((log - lo) / max(hi - lo, 1e-3), 0, 1)
+    mapped = 0.02 + 0.58 * np.clip((log - lo) / max(hi - lo, 1e-3), 0, 1)
     out = np.clip(rgb, 0, None) / lum[..., None] * mapped[..., None]
     return np.clip(out, *ALBEDO).astype(np.float32)
 
@@ -99,7 +99,7 @@ def photo(rng: np.random.Generator, h: int, w: int, band: torch.Tensor) -> torch
 
 
 def screen(rng: np.random.Generator, h: int, w: int) -> torch.Tensor:
-    base = np.array([0.10, 0.48, 0.14]) if rng.random() < 0.7 else np.array([0.07, 0.16, 0.52])
+    base = np.array([0.03, 0.40, 0.06]) if rng.random() < 0.7 else np.array([0.02, 0.08, 0.45])
     base = base * np.exp(rng.normal(0.0, 0.12, 3)) * rng.uniform(0.7, 1.2)
     folds = 0.8 + 0.3 * _noise(rng, h, w, int(rng.integers(3, 7)))
     return torch.from_numpy(base.astype(np.float32))[:, None, None] * folds
