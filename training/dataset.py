@@ -68,7 +68,7 @@ BACKDROP_SALT = 0xBDBD
 BACKDROPS = ("wall", "varied")  # lightstage/backdrops.py
 # What a rendered sample holds is versioned by hand: caches and the test set record RENDER_VERSION,
 # so a stale one is noticed. Bump it with every change that alters samples (the renderer's look,
-# the lighting sampling, the sample layout) and rewrite the golden probe
+# the lighting sampling, the varied backdrops, the sample layout) and rewrite the golden probe
 # (`python -m training.make_testset --write-probe`); tests/training/test_render_version.py renders
 # the probe and fails when samples changed without a bump. (Until session 3 the key was a hash of
 # whole source files: every edit, even one that changed no sample, made caches look stale.)

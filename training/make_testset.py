@@ -14,7 +14,7 @@ new set rather than silently mixing two. ``load_testset(res)`` builds it when mi
 printed (and stored beside it) is of the array contents, so two builds can be compared.
 
 The golden probe keeps RENDER_VERSION honest: two test-split samples at 40 px (with the transport
-targets) stored in tests/training/golden/; tests/training/test_render_version.py renders them again
+targets, and their images in front of varied backdrops) stored in tests/training/golden/; tests/training/test_render_version.py renders them again
 and compares. After a deliberate change to what samples hold, bump RENDER_VERSION and run
 
     .venv/bin/python -m training.make_testset --write-probe
@@ -58,13 +58,13 @@ def testset_path(resolution: int, n: int = DEFAULT_N, folder=None) -> pathlib.Pa
 
 
 def render_testset(resolution: int, n: int = DEFAULT_N, data_root=None,
-                   transport: bool = False) -> dict:
+                   transport: bool = False, backdrops: str = "wall") -> dict:
     """The stacked samples (float32, as the dataset gives them), rendered on one thread."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         ds = LightStageDataset("test", resolution, seed=TEST_SEED, length=n, data_root=data_root,
-                               transport=transport)
+                               transport=transport, backdrops=backdrops)
         samples = [ds[i] for i in range(n)]
     finally:
         torch.set_num_threads(threads)
@@ -101,8 +101,13 @@ def load_testset(resolution: int = 128, n: int = DEFAULT_N, folder=None, data_ro
 
 
 def render_probe(data_root=None) -> dict:
-    """The golden probe's samples, rendered now (see the module docstring)."""
-    return render_testset(PROBE_RES, PROBE_N, data_root, transport=True)
+    """The golden probe's samples, rendered now (see the module docstring): with the stage's
+    wall, and (keys "varied/...") the images with varied backdrops, which evaluate's background
+    figure is measured on."""
+    out = render_testset(PROBE_RES, PROBE_N, data_root, transport=True)
+    varied = render_testset(PROBE_RES, PROBE_N, data_root, backdrops="varied")
+    out.update({f"varied/{k}": v for k, v in varied.items() if k.startswith(("img_", "gt_"))})
+    return out
 
 
 def write_probe(data_root=None, path=PROBE_PATH) -> pathlib.Path:
