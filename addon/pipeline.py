@@ -72,8 +72,9 @@ class RelightOptions:
     exr_compression: str = "none"     # see frames.COMPRESSIONS; not part of the run identity
     # What stands behind the relit subject (BACKGROUNDS): the network's own output, or the
     # source's background composited in by the network's foreground matte, as it was or relit as
-    # a wall facing the camera (the models repaint backgrounds; training/evaluate.py measures it).
-    background: str = "network"
+    # a wall facing the camera (the default: the models repaint backgrounds; training/evaluate.py
+    # measures it).
+    background: str = "relit"
 
 
 @dataclass
@@ -373,17 +374,18 @@ def _count_clamped(y: np.ndarray) -> int:
     return int(np.count_nonzero((y.view(np.uint16) & 0x7FFF) == 0x7BFF))
 
 
-def keep_background(relit: np.ndarray, x_full: np.ndarray, matte: np.ndarray,
-                    plan: Plan, gain=None) -> np.ndarray:
-    """relit * matte + source * gain * (1 - matte), half (3, H, W), scene-linear; ``x_full`` is
-    the exposure-normalised source (times s is the footage's own linear radiance); ``gain``: per
-    channel (3,), 1 when None."""
-    m = np.asarray(matte, np.float32)[None]
+def background_coefficients(ab, fg, plan: Plan, gain=None):
+    """(a, b) of coefficients_planar with the source's own background composited in by the
+    foreground matte ``fg`` (h, w), at the working resolution: finishing is linear in (a, b), so
+    m (up(a) x + up(b)) + (1 - m) s g x becomes up(m a + (1 - m) s g) x + up(m b), which costs
+    nothing at full resolution (exact where the matte or a is flat; across the silhouette the
+    blend follows the bilinearly enlarged matte, as the written matte does). ``gain``: per
+    channel (3,) for background "relit", 1 when None."""
+    a, b = ab
+    m = np.clip(np.nan_to_num(np.asarray(fg, np.float32), nan=0.0), 0.0, 1.0)[None]
     g = np.ones(3, np.float32) if gain is None else np.asarray(gain, np.float32)
-    out = (np.asarray(relit, np.float32) * m
-           + x_full * (np.float32(plan.scale) * g[:, None, None]) * (1.0 - m))
-    return np.clip(np.nan_to_num(out, nan=0.0, posinf=65504.0, neginf=-65504.0),
-                   -65504.0, 65504.0).astype(np.float16)
+    back = (np.float32(plan.scale) * g)[:, None, None]
+    return m * a + (1.0 - m) * back, m * b
 
 
 _TO_CAMERA = np.array([0.0, 0.0, 1.0])
@@ -599,12 +601,9 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 item = results.get()
                 if item is _DONE:
                     return
-                i, x_full, x_max, ab, fg, source, gain = item
+                i, x_full, x_max, ab, fg, source = item
                 relit, clamped = finish_planar(x_full, ab, x_max, fullres)
-                keep = plan.background != "network" and fg is not None  # no matte: black frame
-                matte = matte_full(fg, plan, fullres) if plan.write_matte or keep else None
-                if keep:
-                    relit = keep_background(relit, x_full, matte, plan, gain)
+                matte = matte_full(fg, plan, fullres) if plan.write_matte else None
                 write_frame(out_dir, i, relit, matte, source, plan)
                 counts["clamped"] += clamped
                 counts["written"] += 1
@@ -638,8 +637,10 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             relit_low, source, fg, k = infer_planar(session, x_low, light)
             ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
             source = source * np.float32(plan.scale)  # the source light in the footage's units
-            gain = wall_gain(light, source) if plan.background == "relit" else None
-            _put(results, (i, x_full, x_max, ab, fg, source, gain), stop, alive=writer)
+            if plan.background != "network" and ab is not None:  # no light: a black frame
+                gain = wall_gain(light, source) if plan.background == "relit" else None
+                ab = background_coefficients(ab, fg, plan, gain)
+            _put(results, (i, x_full, x_max, ab, fg, source), stop, alive=writer)
             _raise_if_failed(writer)
     finally:
         stop.set()

@@ -8,7 +8,9 @@ Makes a 1920x1080 H.264 clip (yuv420p, textured moving gradient) and a random-we
 of about --gflops GFLOP per 512x512 frame (tests/onnx_fixtures.py) in a temporary folder, then
 1. times each stage alone, one frame at a time (median and spread over the frames): decode,
    colour (to linear, exposure), resize (to the working size), inference (onnxruntime, incl.
-   padding), full-resolution transfer (detail.py, incl. the matte), write (half EXR);
+   padding), full-resolution transfer (detail.py, incl. the matte and, for --background
+   keep/relit, the composite over the footage's own background, folded into the coefficients),
+   write (half EXR);
 2. runs the real pipeline (relight_clip: decode and write overlap inference in threads) and
    reports frames per second from the per-frame completion times, and the process CPU time
    per frame (user + system, all threads): on a shared machine the frame rate follows the
@@ -75,6 +77,9 @@ def time_stages(clip: pipeline.ClipSpec, session, fullres, plan: pipeline.Plan, 
         relit_low, source, fg, k = pipeline.infer_planar(session, x_low, light)
         f = time.perf_counter()
         ab = pipeline.coefficients_planar(x_low, relit_low, k, plan, fullres)
+        if plan.background != "network" and ab is not None:  # as pipeline._run_frames does
+            gain = pipeline.wall_gain(light, source) if plan.background == "relit" else None
+            ab = pipeline.background_coefficients(ab, fg, plan, gain)
         relit, _ = pipeline.finish_planar(x_full, ab, x_max, fullres)
         matte = pipeline.matte_full(fg, plan, fullres) if plan.write_matte else None
         g = time.perf_counter()
@@ -93,6 +98,9 @@ def main(argv=None) -> int:
     ap.add_argument("--working-size", type=int, default=512)
     ap.add_argument("--compression", default="none", choices=frames.COMPRESSIONS)
     ap.add_argument("--matte", action="store_true")
+    ap.add_argument("--background", default=pipeline.RelightOptions("").background,
+                    choices=pipeline.BACKGROUNDS, help="what stands behind the subject "
+                    "(default: the product's default)")
     ap.add_argument("--no-detail", action="store_true")
     ap.add_argument("--exr-options", action="store_true",
                     help="only time the EXR compressions on one relit-like 1080p frame")
@@ -111,7 +119,8 @@ def main(argv=None) -> int:
         model = write_conv_model(tmp, gflops_at_512=args.gflops, name="bench")
         card = engine.load_card(model)
         print(f"model: {card.data['cost']['gflops_at_512']} GFLOP at 512x512 "
-              f"(width {card.data['cost']['width']}), working size {args.working_size}")
+              f"(width {card.data['cost']['width']}), working size {args.working_size}, "
+              f"background {args.background}")
         t0 = time.perf_counter()
         path = make_clip(os.path.join(tmp, "clip.mp4"), n)
         print(f"clip: 1920x1080 H.264, {n} frames (made in {time.perf_counter() - t0:.1f} s)")
@@ -119,13 +128,15 @@ def main(argv=None) -> int:
         opts = pipeline.RelightOptions(str(model), working_size=args.working_size,
                                        detail_transfer=not args.no_detail,
                                        write_matte=args.matte, threads=args.threads,
-                                       exr_compression=args.compression)
+                                       exr_compression=args.compression,
+                                       background=args.background)
         light = lightvec.splat_direction([0.5, 0.4, 1.0], [3.0, 2.5, 2.0]) + 0.2
         session = engine.new_session(model, threads=args.threads, spin=False)
         fullres = pipeline.detail.FullRes(threads=1)
         plan = pipeline.Plan(colour_mod.lookup("sRGB"), 1.0, (1920, 1080),
                              pipeline.detail.working_shape(1080, 1920, args.working_size),
-                             opts.detail_transfer, opts.write_matte, args.compression)
+                             opts.detail_transfer, opts.write_matte, args.compression,
+                             background=args.background)
         stage_dir = os.path.join(tmp, "stages")
         for sub in ("relit", "matte", "source_light"):
             os.makedirs(os.path.join(stage_dir, sub))

@@ -66,7 +66,7 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
     write_matte: BoolProperty(name="Matte Strip", default=False,
                               description="Also write the portrait matte and add it as a strip")
     background: EnumProperty(
-        name="Background", default='NETWORK',
+        name="Background", default='RELIT',
         items=[('NETWORK', "Network", "The network's output everywhere (it repaints the "
                                       "background)"),
                ('KEEP', "Keep", "The relit subject over the footage's own background, as it was "

@@ -48,6 +48,7 @@ def image_clip(files, first=0, count=None, space="sRGB"):
 def opts(model, **kw):
     kw.setdefault("working_size", 32)
     kw.setdefault("threads", 1)
+    kw.setdefault("background", "network")  # the network's own output: what these tests check
     return pipeline.RelightOptions(model, **kw)
 
 
@@ -160,7 +161,7 @@ CHUNK_SCRIPT = """
 import sys, numpy as np
 from addon import lightvec, pipeline
 clip = pipeline.ClipSpec('movie', sys.argv[1], (), 0, {n}, 'sRGB', 25.0)
-opts = pipeline.RelightOptions(sys.argv[2], working_size=32, threads=1)
+opts = pipeline.RelightOptions(sys.argv[2], working_size=32, threads=1, background='network')
 pipeline.relight_clip(clip, lightvec.uniform(1.0)[None], sys.argv[3], opts,
                       frames=range(int(sys.argv[4]), int(sys.argv[5])))
 """

@@ -45,6 +45,7 @@ def clip_of(movie):
 
 
 def opts(model, **kw):
+    kw.setdefault("background", "network")
     return pipeline.RelightOptions(model, working_size=32, threads=1, write_matte=True, **kw)
 
 
