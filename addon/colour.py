@@ -16,6 +16,10 @@ import numpy as np
 
 from .errors import InputError
 
+# Rec.709 / sRGB luminance weights (linear RGB -> Y): the one copy; callers build the arrays they
+# need from it (float32 or float64) so every use keeps its exact values.
+REC709_LUMA = (0.2126, 0.7152, 0.0722)
+
 # XYZ (D65) -> RGB matrices, rows as in config.ocio (out = M @ xyz).
 XYZ_TO_REC709 = np.array([[3.2409699, -1.5373832, -0.4986108],
                           [-0.9692436, 1.8759675, 0.0415551],

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import lightvec
+from . import colour, lightvec
 from .errors import LightingError
 
 KINDS = ("POINT", "SUN", "SPOT", "AREA")
@@ -286,7 +286,7 @@ def lamp_to_light(lamp: Lamp, subject_radius: float) -> np.ndarray:
 
 def light_power(light: np.ndarray) -> float:
     """Luminance of a light vector's total power: how much a lamp contributes, as one number."""
-    return float(lightvec.total_power(light) @ np.array([0.2126, 0.7152, 0.0722]))
+    return float(lightvec.total_power(light) @ np.array(colour.REC709_LUMA))
 
 
 def lamps_to_light(lamps, subject_radius: float,
@@ -344,5 +344,5 @@ def blackbody_rgb(kelvin: float) -> tuple[float, float, float]:
     planck = 1.0 / (lam ** 5 * np.expm1(1.4387769e-2 / (lam * t)))
     xyz = _CMF_TABLE @ planck
     rgb = np.clip(_XYZ_TO_REC709 @ (xyz / xyz[1]), 0.0, None)
-    rgb = rgb / (rgb @ np.array([0.2126, 0.7152, 0.0722]))
+    rgb = rgb / (rgb @ np.array(colour.REC709_LUMA))
     return (float(rgb[0]), float(rgb[1]), float(rgb[2]))

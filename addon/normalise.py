@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import colour
+
 # The clip's 90th-percentile luminance is mapped to this level. Portraits are mostly mid-tones
 # with dark backgrounds; the 90th percentile follows the lit face, not the background.
 REFERENCE_LEVEL = 0.5
 PERCENTILE = 90.0
 TINY = 1e-8
-REC709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+REC709 = np.array(colour.REC709_LUMA, dtype=np.float32)
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:

@@ -38,10 +38,10 @@ import math
 
 import numpy as np
 
-from addon import lightvec
+from addon import colour, lightvec
 
 WHITE_PERCENTILE = 99.0
-LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec.709 luminance weights
+LUMA = np.array(colour.REC709_LUMA)  # Rec.709 luminance weights
 _SSIM_C1, _SSIM_C2 = 0.01 ** 2, 0.03 ** 2
 
 

@@ -19,7 +19,7 @@ import shutil
 import numpy as np
 import torch
 
-from addon import hdri
+from addon import colour, hdri
 from addon.hdri_io import read_hdri
 
 from .lightstage import assets
@@ -52,7 +52,7 @@ def render_clip(out: pathlib.Path, frames: int = 48, size: int = 256, supersampl
         x = torch.nn.functional.avg_pool2d(x[None], supersample)[0]
         linear.append(x.permute(1, 2, 0).numpy())
     # One exposure for the clip: the 90th percentile of the first frame's luminance -> 0.6.
-    lum = linear[0] @ np.array([0.2126, 0.7152, 0.0722])
+    lum = linear[0] @ np.array(colour.REC709_LUMA)
     exposure = 0.6 / float(np.percentile(lum, 90))
     frames_dir = out / "frames"
     if frames_dir.exists():

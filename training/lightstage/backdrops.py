@@ -27,6 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as tf
 
+from addon import colour
 from addon.hdri_io import read_hdri
 
 from . import shading
@@ -41,7 +42,7 @@ WIDTH = 512  # the bank's maps are reduced to this width once
 def _tone_map(rgb: np.ndarray) -> np.ndarray:
     """HDR radiance to a plausible albedo: log luminance from its 2nd-98th percentile to 0.02-0.6,
     hue and saturation kept."""
-    lum = np.maximum(rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32), 1e-6)
+    lum = np.maximum(rgb @ np.array(colour.REC709_LUMA, np.float32), 1e-6)
     log = np.log(lum)
     lo, hi = np.percentile(log, [2, 98])
     mapped = 0.02 + 0.58 * np.clip((log - lo) / max(hi - lo, 1e-3), 0, 1)
@@ -112,8 +113,8 @@ def pattern(rng: np.random.Generator, h: int, w: int) -> torch.Tensor:
         y0, x0 = int(rng.integers(0, h)), int(rng.integers(0, w))
         rh = int(rng.integers(2, max(3, h // 3)))
         rw = int(rng.integers(2, max(3, w // 3)))
-        colour = torch.from_numpy(rng.uniform(0.02, 0.9, 3).astype(np.float32))[:, None, None]
-        img[:, y0:y0 + rh, x0:x0 + rw] = colour
+        paint = torch.from_numpy(rng.uniform(0.02, 0.9, 3).astype(np.float32))[:, None, None]
+        img[:, y0:y0 + rh, x0:x0 + rw] = paint
     sigma = float(rng.uniform(0.0, 2.5)) * h / 128
     return _blur(img, sigma)
 
