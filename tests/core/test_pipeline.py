@@ -312,44 +312,38 @@ def test_alpha_and_grey_footage_warn(toy, src, tmp_path):
     np.testing.assert_array_equal(out[..., 0], out[..., 1])
 
 
-def test_keep_background_composites_the_relit_subject_over_the_source(toy, movie, src, tmp_path):
+@pytest.mark.parametrize("background", ["keep", "relit"])
+def test_kept_backgrounds_composite_the_relit_subject_over_the_source(toy, movie, src, tmp_path,
+                                                                      background):
+    """keep: relit * matte + source * (1 - matte); relit: the source times the wall's change of
+    light (wall_gain with the run's own source-light estimate)."""
     light = 3 * UNIFORM  # the toy triples the linear input: subject and background differ
     plain = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "a",
                                   opts(toy, write_matte=True))
     kept = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "b",
-                                 opts(toy, write_matte=True, background="keep"))
+                                 opts(toy, write_matte=True, background=background))
     for i in range(2):
         relit, out = frames.read_exr(plain.relit_files[i]), frames.read_exr(kept.relit_files[i])
         m = frames.read_exr(plain.matte_files[i])[..., :1]
+        gain = np.ones(3)
+        if background == "relit":
+            source_light = np.load(pipeline.source_path(str(tmp_path / "b"), i))
+            gain = pipeline.wall_gain(light[0], source_light)
+            assert np.all(np.abs(gain - 1) > 0.05)  # the light changed: not the same as "keep"
         source = colour.to_linear(src[i], colour.lookup("sRGB"))
-        want = relit * m + source * (1 - m)
+        want = relit * m + source * gain * (1 - m)
         np.testing.assert_allclose(out, want, rtol=4e-3, atol=2e-4)
         assert 0.05 < float(m.mean()) < 0.95  # both subject and background are in the frame
         assert np.all(np.isfinite(out))
     # a different setting is a different run: it cannot silently resume the plain one
     with pytest.raises(OutputError):
         pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "a",
-                              opts(toy, write_matte=True, background="keep"))
+                              opts(toy, write_matte=True, background=background))
 
 
-def test_relit_background_is_the_source_changed_by_the_light_on_a_wall(toy, movie, src,
-                                                                      tmp_path):
-    light = 3 * UNIFORM
-    plain = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "a",
-                                  opts(toy, write_matte=True))
-    relit_bg = pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "b",
-                                     opts(toy, write_matte=True, background="relit"))
-    for i in range(2):
-        relit, out = frames.read_exr(plain.relit_files[i]), frames.read_exr(relit_bg.relit_files[i])
-        m = frames.read_exr(plain.matte_files[i])[..., :1]
-        source_light = np.load(pipeline.source_path(str(tmp_path / "b"), i))
-        gain = pipeline.wall_gain(light[0], source_light)
-        assert np.all(np.abs(gain - 1) > 0.05)  # the light changed: not the same as "keep"
-        source = colour.to_linear(src[i], colour.lookup("sRGB"))
-        want = relit * m + source * gain * (1 - m)
-        np.testing.assert_allclose(out, want, rtol=4e-3, atol=2e-4)
+def test_an_unknown_background_says_which_exist(toy, movie, tmp_path):
     with pytest.raises(InputError, match="relit"):
-        pipeline.relight_clip(movie_clip(movie, count=2), light, tmp_path / "c",
+        pipeline.relight_clip(movie_clip(movie, count=2), UNIFORM, tmp_path / "c",
                               opts(toy, background="kept"))
 
 
