@@ -217,10 +217,7 @@ def write_card(card: dict, onnx_path) -> pathlib.Path:
 
 # ------------------------------------------------------------------------------------------ CLI
 
-def main(argv=None):
-    from . import evaluate
-    from .train import load_checkpoint
-
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description="export a run to models/<name>.onnx + card")
     p.add_argument("--run", required=True)
     p.add_argument("--checkpoint", default="checkpoint.pt",
@@ -233,7 +230,14 @@ def main(argv=None):
     p.add_argument("--int8", action="store_true", help="also try static int8 QDQ")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--note", default="")
-    a = p.parse_args(argv)
+    return p
+
+
+def main(argv=None):
+    from . import evaluate
+    from .train import load_checkpoint
+
+    a = parser().parse_args(argv)
     torch.set_num_threads(a.threads)
     net, ck = load_checkpoint(pathlib.Path(a.run) / a.checkpoint)
     recipe = {**ck["recipe"], "exported_checkpoint": {"file": a.checkpoint, "step": ck["step"],

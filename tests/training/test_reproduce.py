@@ -1,0 +1,54 @@
+"""training.reproduce: the shipped cards' recipes are valid commands of today's training CLI."""
+
+import json
+import pathlib
+import shlex
+
+import pytest
+
+from training import export, reproduce, train
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+CARDS = sorted((ROOT / "models").glob("*.json"))
+
+
+def _card(init=None, preset="draft", name="relight-draft"):
+    recipe = {"command": "python -m training.train --preset draft --steps 10 --out runs/b",
+              "args": {"out": "runs/b"}, "exported_checkpoint": {"file": "best.pt", "step": 10}}
+    if init:
+        recipe["init"] = {"checkpoint": "runs/a/best.pt", "step": 5, "recipe": init}
+    return {"name": name, "preset": preset, "training": {"recipe": recipe}}
+
+
+def test_a_continued_model_reproduces_its_first_run_then_the_second_then_the_export():
+    first = "python -m training.train --preset draft --steps 5 --out runs/a"
+    cmds = reproduce.commands(_card(init=first))
+    assert cmds[0] == first and "--out runs/b" in cmds[1]
+    assert cmds[2] == ("python -m training.export --run runs/b --checkpoint best.pt --name "
+                       "relight-draft --threads 1 --eval 64")
+    assert len(reproduce.commands(_card())) == 2
+    int8 = reproduce.commands(_card(preset="final-int8", name="relight-final-int8"))
+    assert int8[-1].endswith("--name relight-final --threads 1 --eval 64 --int8")
+
+
+@pytest.mark.parametrize("card", CARDS, ids=[c.stem for c in CARDS])
+def test_every_shipped_card_gives_commands_the_current_cli_accepts(card):
+    cmds = reproduce.commands(json.loads(card.read_text()))
+    for c in cmds:
+        args = shlex.split(c)
+        assert args[:2] == ["python", "-m"]
+        if args[2] == "training.train":
+            parsed = train.parser().parse_args(args[3:])
+            assert parsed.steps > 0  # step budgets: the same work on any machine
+        else:
+            assert args[2] == "training.export"
+            export.parser().parse_args(args[3:])
+    trains = [c for c in cmds if "training.train" in c]
+    for before, after in zip(trains, trains[1:]):  # each run starts from the one before it
+        out = shlex.split(before)[shlex.split(before).index("--out") + 1]
+        assert f"--init {out}/" in after
+
+
+def test_a_missing_card_says_what_to_pass(tmp_path, capsys):
+    assert reproduce.main([str(tmp_path / "nope.json")]) == 2
+    assert "models/<name>.json" in capsys.readouterr().err
