@@ -306,8 +306,10 @@ def parse_args(argv):
     p.add_argument("--seq-length", type=int, default=6, help="frames on the sequence sheet")
     p.add_argument("--data", default=str(DATA), help="the shared data folder")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
-    p.add_argument("--background", default="network", choices=pipeline.BACKGROUNDS,
-                   help="what stands behind the relit subject (the panel's Background choice)")
+    p.add_argument("--background", default=pipeline.RelightOptions("").background,
+                   choices=pipeline.BACKGROUNDS,
+                   help="what stands behind the relit subject (the panel's Background choice; "
+                        "default: the product's)")
     a = p.parse_args(argv)
     if a.frames < 1 or a.seq_length < 2:
         p.error("--frames must be at least 1 and --seq-length at least 2")
