@@ -7,6 +7,9 @@ Each clip of ``../shared/data/footage/*.mp4`` (first ``--frames`` frames) goes t
 ``addon.pipeline.relight_clip`` (the code path the Blender operator runs) under three HDRIs and two
 lamp setups, into ``<out>/<clip>/<lighting>/<model>/``. Then:
 
+* the console and ``<out>/sheet.json``: per run, the left/right balance of the middle frame
+  (input and relit) and the share of it the foreground matte covers (a matte that covers the room
+  makes the kept background fall back to the network's);
 * ``<out>/sheet.png``: one row per clip (and model), columns = the input and each lighting, the
   clip's middle frame; above each lighting column its light vector (16x16 latitude-longitude map:
   top = up, centre = toward the camera, right = the camera's right, both edges = behind).
@@ -111,6 +114,7 @@ class Run:
     seconds: float
     steady_fps: float | None   # from the first finished frame to the last (no load, no probe)
     balance: tuple[float, float] = (float("nan"), float("nan"))  # (input, relit), see balance()
+    matte_cover: float = float("nan")  # share of the middle frame the foreground matte covers
 
     def fps_text(self) -> str:
         if not self.written:
@@ -323,7 +327,8 @@ def run_one(spec, clip_name: str, name: str, light, model: pathlib.Path, out: pa
     written, seconds, steady = relight(spec, light, run_dir, model, threads, background)
     matte = read_matte(run_dir, mid)
     return Run(clip_name, name, model.stem, run_dir, spec.count, written, seconds, steady,
-               (balance(x_mid, matte), balance(relit_frame(run_dir, mid), matte)))
+               (balance(x_mid, matte), balance(relit_frame(run_dir, mid), matte)),
+               float(np.mean(matte)))
 
 
 def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
@@ -339,8 +344,8 @@ def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
                 run = run_one(spec, clip_name, name, light, model, out, threads, mid, x_mid,
                               background)
                 print(f"{clip_name:>4} {name:<9} {model.stem}: {run.fps_text()}; left/right "
-                      f"balance input {run.balance[0]:.2f} -> relit {run.balance[1]:.2f}",
-                      flush=True)
+                      f"balance input {run.balance[0]:.2f} -> relit {run.balance[1]:.2f}; "
+                      f"matte covers {run.matte_cover:.0%}", flush=True)
                 row[name] = run
             rows.append((spec, row))
     return rows
@@ -396,7 +401,8 @@ def make_sheets(a) -> dict:
         "runs": [{"clip": r.clip, "lighting": r.lighting, "model": r.model, "frames": r.frames,
                   "written": r.written, "seconds": round(r.seconds, 3),
                   "steady_fps": r.steady_fps and round(r.steady_fps, 2),
-                  "balance_input": _num(r.balance[0]), "balance_relit": _num(r.balance[1])}
+                  "balance_input": _num(r.balance[0]), "balance_relit": _num(r.balance[1]),
+                  "matte_cover": _num(r.matte_cover)}
                  for r in runs],
     }
     (out / "sheet.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
