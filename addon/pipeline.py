@@ -58,6 +58,7 @@ class ClipSpec:
 # by the change of light on a matte wall facing the camera (wall_gain, with the network's own
 # estimate of the source light). "keep" and "relit" composite by the network's foreground matte.
 BACKGROUNDS = ("network", "keep", "relit")
+DEFAULT_BACKGROUND = "relit"
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,7 @@ class RelightOptions:
     # source's background composited in by the network's foreground matte, as it was or relit as
     # a wall facing the camera (the default: the models repaint backgrounds; training/evaluate.py
     # measures it).
-    background: str = "relit"
+    background: str = DEFAULT_BACKGROUND
 
 
 @dataclass

@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     ap.add_argument("--working-size", type=int, default=512)
     ap.add_argument("--compression", default="none", choices=frames.COMPRESSIONS)
     ap.add_argument("--matte", action="store_true")
-    ap.add_argument("--background", default=pipeline.RelightOptions("").background,
+    ap.add_argument("--background", default=pipeline.DEFAULT_BACKGROUND,
                     choices=pipeline.BACKGROUNDS, help="what stands behind the subject "
                     "(default: the product's default)")
     ap.add_argument("--no-detail", action="store_true")

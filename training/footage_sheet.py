@@ -310,7 +310,7 @@ def parse_args(argv):
     p.add_argument("--seq-length", type=int, default=6, help="frames on the sequence sheet")
     p.add_argument("--data", default=str(DATA), help="the shared data folder")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
-    p.add_argument("--background", default=pipeline.RelightOptions("").background,
+    p.add_argument("--background", default=pipeline.DEFAULT_BACKGROUND,
                    choices=pipeline.BACKGROUNDS,
                    help="what stands behind the relit subject (the panel's Background choice; "
                         "default: the product's)")
