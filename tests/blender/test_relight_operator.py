@@ -211,3 +211,16 @@ def test_ui_worker_cancels_half_way_and_resumes(extension, toy_models, tmp_path)
     state.run(lights)
     assert state.error is None and state.result.resumed == len(done)
     assert state.done == 6
+
+
+def test_the_panel_defaults_to_the_pipelines_background_and_the_run_records_it(
+        extension, toy_models, tmp_path):
+    import json
+
+    from portrait_relight.addon import pipeline
+
+    source = footage_scene(tmp_path, count=2)
+    assert bpy.context.scene.relight.background.lower() == pipeline.DEFAULT_BACKGROUND
+    relight(toy_models)
+    run = json.loads((tmp_path / "out" / source.name / "relight_run.json").read_text())
+    assert run["identity"]["settings"]["background"] == pipeline.DEFAULT_BACKGROUND
