@@ -389,6 +389,16 @@ def background_coefficients(ab, fg, plan: Plan, gain=None):
     return m * a + (1.0 - m) * back, m * b
 
 
+def with_background(ab, fg, light: np.ndarray, source: np.ndarray, plan: Plan):
+    """The frame's (a, b) under ``plan.background``: unchanged for "network" or a black frame
+    (``ab`` None), else background_coefficients, with wall_gain(light, source) for "relit"
+    (``source``: the network's source-light estimate in the footage's units)."""
+    if plan.background == "network" or ab is None:
+        return ab
+    gain = wall_gain(light, source) if plan.background == "relit" else None
+    return background_coefficients(ab, fg, plan, gain)
+
+
 _TO_CAMERA = np.array([0.0, 0.0, 1.0])
 
 
@@ -638,9 +648,7 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             relit_low, source, fg, k = infer_planar(session, x_low, light)
             ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
             source = source * np.float32(plan.scale)  # the source light in the footage's units
-            if plan.background != "network" and ab is not None:  # no light: a black frame
-                gain = wall_gain(light, source) if plan.background == "relit" else None
-                ab = background_coefficients(ab, fg, plan, gain)
+            ab = with_background(ab, fg, light, source, plan)
             _put(results, (i, x_full, x_max, ab, fg, source), stop, alive=writer)
             _raise_if_failed(writer)
     finally:

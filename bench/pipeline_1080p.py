@@ -77,9 +77,7 @@ def time_stages(clip: pipeline.ClipSpec, session, fullres, plan: pipeline.Plan, 
         relit_low, source, fg, k = pipeline.infer_planar(session, x_low, light)
         f = time.perf_counter()
         ab = pipeline.coefficients_planar(x_low, relit_low, k, plan, fullres)
-        if plan.background != "network" and ab is not None:  # as pipeline._run_frames does
-            gain = pipeline.wall_gain(light, source) if plan.background == "relit" else None
-            ab = pipeline.background_coefficients(ab, fg, plan, gain)
+        ab = pipeline.with_background(ab, fg, light, source, plan)
         relit, _ = pipeline.finish_planar(x_full, ab, x_max, fullres)
         matte = pipeline.matte_full(fg, plan, fullres) if plan.write_matte else None
         g = time.perf_counter()
