@@ -71,7 +71,8 @@ def sheet(size: int = 96, identity: int = 33, data_root=None) -> np.ndarray:
     row4 = [par, _flow_rgb(fl, valid), (np.repeat(valid[0].numpy()[..., None], 3, 2) * 255)
             .astype(np.uint8), (np.repeat(f.gb.mask.numpy()[..., None], 3, 2) * 255).astype(np.uint8)]
     seq = [scene.shade(scene.frame(1.0 + n * 3 / FPS), [envs[0]])[0] for n in range(4)]
-    row4 += [_img(x, exposure=0.7 / float(np.percentile(seq[0].mean(0).numpy(), 95))) for x in seq]
+    seq_exposure = 0.7 / float(np.percentile(seq[0].mean(0).numpy(), 95))
+    row4 += [_img(x, exposure=seq_exposure) for x in seq]
     _, photos = backdrops.photo_bank(root)
     brng = np.random.default_rng(identity)
     h, w = f.gb.mask.shape
@@ -82,8 +83,7 @@ def sheet(size: int = 96, identity: int = 33, data_root=None) -> np.ndarray:
     row5 = []
     for wall in walls:
         scene.backdrop = wall.clamp(*backdrops.ALBEDO)
-        row5.append(_img(scene.shade(f, [envs[0]])[0], exposure=0.7 / float(
-            np.percentile(seq[0].mean(0).numpy(), 95))))
+        row5.append(_img(scene.shade(f, [envs[0]])[0], exposure=seq_exposure))
     rows = [np.concatenate(r, 1) for r in (row1, row2, row3, row4, row5)]
     return np.concatenate(rows, 0)
 

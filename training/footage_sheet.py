@@ -125,7 +125,7 @@ class Run:
 
 
 def relight(clip: pipeline.ClipSpec, light: np.ndarray, out_dir: pathlib.Path, model: pathlib.Path,
-            threads: int, background: str = "network") -> tuple[int, float, float | None]:
+            threads: int, background: str) -> tuple[int, float, float | None]:
     """Run the product pipeline; (frames written, wall seconds, steady-state fps)."""
     stamps: list[tuple[float, int]] = []
     # The matte is written to measure which side of the portrait the light falls on (balance).
@@ -321,7 +321,7 @@ def parse_args(argv):
 
 
 def run_one(spec, clip_name: str, name: str, light, model: pathlib.Path, out: pathlib.Path,
-            threads: int, mid: int, x_mid: np.ndarray, background: str = "network") -> Run:
+            threads: int, mid: int, x_mid: np.ndarray, background: str) -> Run:
     """Relight one clip under one lighting with one model, and measure its middle frame."""
     run_dir = out / clip_name / name / model.stem
     written, seconds, steady = relight(spec, light, run_dir, model, threads, background)
@@ -332,7 +332,7 @@ def run_one(spec, clip_name: str, name: str, light, model: pathlib.Path, out: pa
 
 
 def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
-                background: str = "network"):
+                background: str):
     """[(clip spec, {lighting: Run})], one entry per clip and model, grouped by clip."""
     rows, mid = [], frames_n // 2
     for clip_name in clips:

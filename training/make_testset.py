@@ -9,13 +9,15 @@ and environment lighting drawn half from the four HDRIs held out of training
 thread, so float reductions run in one order and a rebuild on the same machine gives the same bits.
 
 The file lives under cache/testset/ (git-ignored), named after the resolution, the count and the
-light stage's sample version (training.dataset.RENDER_VERSION), so a change to the renderer builds a
-new set rather than silently mixing two. ``load_testset(res)`` builds it when missing and returns the stacked arrays; the sha256
-printed (and stored beside it) is of the array contents, so two builds can be compared.
+light stage's sample version (training.dataset.RENDER_VERSION), so a change to the renderer builds
+a new set rather than silently mixing two. ``load_testset(res)`` builds it when missing and returns
+the stacked arrays; the sha256 printed (and stored beside it) is of the array contents, so two
+builds can be compared.
 
 The golden probe keeps RENDER_VERSION honest: two test-split samples at 40 px (with the transport
-targets, and their images in front of varied backdrops) stored in tests/training/golden/; tests/training/test_render_version.py renders them again
-and compares. After a deliberate change to what samples hold, bump RENDER_VERSION and run
+targets, and their images in front of varied backdrops) stored in tests/training/golden/;
+tests/training/test_render_version.py renders them again and compares. After a deliberate change
+to what samples hold, bump RENDER_VERSION and run
 
     .venv/bin/python -m training.make_testset --write-probe
 """

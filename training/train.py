@@ -330,6 +330,9 @@ def load_checkpoint(path, map_location="cpu"):
 
 
 def train(args) -> pathlib.Path:
+    if args.cache and args.backdrops != "wall":
+        raise SystemExit("--backdrops works with --data-cache or on-the-fly samples, not with "
+                         "--cache (those samples are rendered already)")
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
@@ -358,9 +361,6 @@ def train(args) -> pathlib.Path:
     else:
         ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling,
                           transport=sw.transport, backdrops=args.backdrops)
-    if args.cache and args.backdrops != "wall":
-        raise SystemExit("--backdrops works with --data-cache or on-the-fly samples, not with "
-                         "--cache (those samples are rendered already)")
     if args.overfit:  # a sanity check: can the model fit a few samples far below the baselines?
         ds = [ds[i] for i in range(args.overfit)]
         val = ds

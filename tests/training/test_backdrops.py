@@ -1,4 +1,4 @@
-"""Varied backdrops: only the background changes, it is lit as a matte plane, and the kinds differ."""
+"""Varied backdrops: only the background changes, it is lit as a matte plane, the kinds differ."""
 
 import numpy as np
 import pytest

@@ -35,7 +35,7 @@ from . import shading
 KINDS = ("photo", "screen", "pattern", "wall")
 SHARES = (0.45, 0.15, 0.2, 0.2)
 ALBEDO = (0.01, 0.95)
-BAND = (0.3, 0.62)  # rows of an equirectangular map that hold the scenery (above, below: sky, floor)
+BAND = (0.3, 0.62)  # rows of an equirectangular map holding the scenery (above/below: sky, floor)
 WIDTH = 512  # the bank's maps are reduced to this width once
 
 
@@ -73,7 +73,8 @@ def _blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
     """Gaussian blur renormalised at the borders (the frame edge stays as bright as the rest)."""
     if sigma < 0.3:
         return img
-    return shading.gaussian_blur(img, sigma) / shading.gaussian_blur(torch.ones_like(img[:1]), sigma)
+    ones = torch.ones_like(img[:1])
+    return shading.gaussian_blur(img, sigma) / shading.gaussian_blur(ones, sigma)
 
 
 def _noise(rng: np.random.Generator, h: int, w: int, cells: int) -> torch.Tensor:
@@ -119,7 +120,8 @@ def pattern(rng: np.random.Generator, h: int, w: int) -> torch.Tensor:
     return _blur(img, sigma)
 
 
-def sample(rng: np.random.Generator, h: int, w: int, wall: torch.Tensor, bank, pool) -> torch.Tensor:
+def sample(rng: np.random.Generator, h: int, w: int, wall: torch.Tensor, bank,
+           pool) -> torch.Tensor:
     """(3, h, w) albedo of one backdrop; ``wall``: the stage's own; ``bank``: photo_bank's bands;
     ``pool``: the bank indices this split may use."""
     kind = KINDS[int(rng.choice(len(KINDS), p=SHARES))]
@@ -139,4 +141,3 @@ def pool_for(names, split: str) -> np.ndarray:
     from .. import lighting_sampling
 
     return np.unique(lighting_sampling.hdri_pool(names, split))
-
