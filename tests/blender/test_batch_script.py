@@ -119,6 +119,24 @@ def test_blender_style_arguments_after_double_dash():
     assert batch.script_args(["relight_batch.py", "s.blend", "--demo"]) == ["s.blend", "--demo"]
 
 
+def test_background_choices_are_the_pipelines(extension):
+    """The script parses its flags before the extension loads, so it spells the choices out; they
+    must stay the pipeline's (and the panel's) list."""
+    import importlib.util
+
+    from portrait_relight.addon import pipeline
+
+    spec = importlib.util.spec_from_file_location("relight_batch", SCRIPT)
+    batch = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(batch)
+    for choice in pipeline.BACKGROUNDS:
+        assert batch.parse_args(["--demo", "--background", choice]).background == choice
+    with pytest.raises(SystemExit):
+        batch.parse_args(["--demo", "--background", "transparent"])
+    items = bpy.context.scene.relight.bl_rna.properties["background"].enum_items
+    assert sorted(i.identifier.lower() for i in items) == sorted(pipeline.BACKGROUNDS)
+
+
 def test_demo_relights_the_built_in_clip(toy_models, tmp_path):
     frames = sorted((ROOT / "demo" / "frames").glob("*.png"))
     if not frames:
