@@ -235,12 +235,13 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None):
     from . import evaluate
-    from .train import load_checkpoint
+    from .train import load_checkpoint, resolve_lineage
 
     a = parser().parse_args(argv)
     torch.set_num_threads(a.threads)
     net, ck = load_checkpoint(pathlib.Path(a.run) / a.checkpoint)
-    recipe = {**ck["recipe"], "exported_checkpoint": {"file": a.checkpoint, "step": ck["step"],
+    recipe = {**ck["recipe"], "init": resolve_lineage(ck["recipe"].get("init")),
+              "exported_checkpoint": {"file": a.checkpoint, "step": ck["step"],
                                                       "val": ck.get("val")}}
     final = pathlib.Path(a.run) / "recipe.json"  # a finished run's recipe adds its totals
     if final.is_file():

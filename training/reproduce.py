@@ -4,8 +4,9 @@
     .venv/bin/python -m training.reproduce models/relight-draft.json --run    # and run them
 
 A card's ``training.recipe`` holds the exact training command (every argument) and, for a model
-trained further from another run (``--init``), that run's command too; the commands run in order
-(the first writes the checkpoint the second starts from), then ``training.export`` writes the
+trained further from another run (``--init``), that run's command too, and the command of the run
+that one started from, back to a run from scratch; the commands run in order (each writes the
+checkpoint the next starts from), then ``training.export`` writes the
 ONNX and the card again (``--int8`` for an int8 card, from the same run). On this project's
 2-core CPU the shipped presets take 40-120 minutes each; a GPU runs the same step budgets.
 """
@@ -25,11 +26,12 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 def commands(card: dict) -> list[str]:
     """The shell commands that made the model of ``card``, in order."""
     recipe = card["training"]["recipe"]
-    out = []
-    init = recipe.get("init") or {}
-    if init.get("recipe"):
-        out.append(init["recipe"])
-    out.append(recipe["command"])
+    chain, init = [], recipe.get("init")
+    while init:  # the run it started from, that run's own start, ... (training.train lineage)
+        if init.get("recipe"):
+            chain.append(init["recipe"])
+        init = init.get("init")
+    out = chain[::-1] + [recipe["command"]]
     name, int8 = card["name"], str(card.get("preset", "")).endswith("-int8")
     if int8 and name.endswith("-int8"):
         name = name[: -len("-int8")]

@@ -311,8 +311,24 @@ def load_init(net, path) -> dict:
         raise SystemExit(f"--init {path}: its network ({ck.get('config')}) is not the one this run "
                          f"builds ({net.cfg.to_dict()}); use the same --preset/--widths/--blocks.")
     net.load_state_dict(ck["state_dict"])
-    return {"checkpoint": str(path), "step": ck.get("step"),
-            "recipe": (ck.get("recipe") or {}).get("command")}
+    recipe = ck.get("recipe") or {}
+    return {"checkpoint": str(path), "step": ck.get("step"), "recipe": recipe.get("command"),
+            "init": resolve_lineage(recipe.get("init"))}
+
+
+def resolve_lineage(init: dict | None) -> dict | None:
+    """The whole chain of runs a checkpoint was trained from: ``init`` (the recipe's record of the
+    checkpoint a run started from) with that checkpoint's own ``init`` nested in it, and so on back
+    to a run from scratch, so a model trained further several times can be reproduced from its
+    card alone. Records written before the chain was kept (one level) are completed from the
+    parent checkpoints where they are on disk; where one is not, the chain stops there."""
+    if not init or "init" in init:
+        return init
+    path = pathlib.Path(init.get("checkpoint") or "")
+    if not path.is_file():
+        return init
+    parent = (torch.load(path, map_location="cpu", weights_only=False).get("recipe") or {})
+    return {**init, "init": resolve_lineage(parent.get("init"))}
 
 
 def save_checkpoint(path, net, recipe, step, extra=None):

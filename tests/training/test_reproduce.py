@@ -31,6 +31,28 @@ def test_a_continued_model_reproduces_its_first_run_then_the_second_then_the_exp
     assert int8[-1].endswith("--name relight-final --threads 1 --eval 64 --int8")
 
 
+def test_a_model_trained_further_twice_reproduces_the_whole_chain(tmp_path):
+    """train.load_init keeps the parent's own start (nested), completing an older one-level
+    record from the parent checkpoint on disk; reproduce runs the chain from the first run."""
+    from training import network
+
+    net = network.build("draft")
+    cmd = {k: f"python -m training.train --preset draft --steps 5 --out {tmp_path}/{k}"
+           for k in "abc"}
+    train.save_checkpoint(tmp_path / "a.pt", net, {"command": cmd["a"]}, 5)
+    old_style = {"checkpoint": str(tmp_path / "a.pt"), "step": 5, "recipe": cmd["a"]}
+    train.save_checkpoint(tmp_path / "b.pt", net, {"command": cmd["b"], "init": old_style}, 5)
+    init = train.load_init(network.build("draft"), tmp_path / "b.pt")
+    assert init["recipe"] == cmd["b"] and init["init"]["recipe"] == cmd["a"]
+    assert init["init"]["init"] is None  # a run from scratch ends the chain
+    card = {"name": "relight-draft", "preset": "draft", "training": {"recipe": {
+        "command": cmd["c"], "args": {"out": f"{tmp_path}/c"}, "init": init}}}
+    assert reproduce.commands(card)[:3] == [cmd["a"], cmd["b"], cmd["c"]]
+    # a parent not on disk: the record stays as it was
+    assert train.resolve_lineage({"checkpoint": str(tmp_path / "gone.pt"), "recipe": "x"}) == {
+        "checkpoint": str(tmp_path / "gone.pt"), "recipe": "x"}
+
+
 @pytest.mark.parametrize("card", CARDS, ids=[c.stem for c in CARDS])
 def test_every_shipped_card_gives_commands_the_current_cli_accepts(card):
     cmds = reproduce.commands(json.loads(card.read_text()))
