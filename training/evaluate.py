@@ -226,6 +226,58 @@ def evaluate(predict, dataset, n: int | None = None, baselines: bool = True,
     return out
 
 
+def error_breakdown(predict, dataset, n: int | None = None, edge_px: int = 2) -> dict:
+    """Where the model's RMSE lives, over the first n samples (same normalisation as
+    image_metrics): per parsing class of the target frame, the share of portrait pixels, the
+    RMSE inside the class and the share of all squared error; the same for a band of ``edge_px``
+    pixels inside the portrait's outline (overlapping the classes); and ``level_fit_rmse``, the
+    RMSE left after each sample's prediction is scaled per channel by the least-squares gain
+    toward the truth (linear, over the portrait): the part of the error a right overall level and
+    colour would remove is ``rmse - level_fit_rmse``."""
+    from addon.contract import PARSING_CLASSES
+
+    n = len(dataset) if n is None else min(n, len(dataset))
+    names = list(PARSING_CLASSES[1:]) + [f"edge ({edge_px} px)"]
+    sq = dict.fromkeys(names, 0.0)
+    count = dict.fromkeys(names, 0)
+    total_sq, total_px, fit_sq = 0.0, 0, 0.0
+    for idx in range(n):
+        s = dataset[idx]
+        mask = np.asarray(s["mask_t"])[0] > 0.5
+        if not mask.any():
+            continue
+        gt = np.asarray(s["gt_t_k"], np.float64)
+        pred, _ = predict(s)
+        pred = np.nan_to_num(np.asarray(pred, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+        w = white_level(gt, mask)
+        err = ((to_unit(pred, w) - to_unit(gt, w)) ** 2).mean(0)
+        gain = (pred[:, mask] * gt[:, mask]).sum(1) / np.maximum((pred[:, mask] ** 2).sum(1), 1e-12)
+        fit = ((to_unit(pred * gain[:, None, None], w) - to_unit(gt, w)) ** 2).mean(0)
+        total_sq += float(err[mask].sum())
+        fit_sq += float(fit[mask].sum())
+        total_px += int(mask.sum())
+        label = np.argmax(np.asarray(s["parsing_t"])[1:], axis=0)  # class channels after fg
+        inner = mask.copy()
+        for _ in range(edge_px):
+            inner = erode4(inner)
+        regions = {name: mask & (label == i) for i, name in enumerate(PARSING_CLASSES[1:])}
+        regions[names[-1]] = mask & ~inner
+        for name, sel in regions.items():
+            sq[name] += float(err[sel].sum())
+            count[name] += int(sel.sum())
+    out = {name: {"pixel_share": count[name] / max(total_px, 1),
+                  "rmse": math.sqrt(sq[name] / count[name]) if count[name] else float("nan"),
+                  "error_share": sq[name] / max(total_sq, 1e-30)} for name in names}
+    return {"regions": out, "rmse_pooled": math.sqrt(total_sq / max(total_px, 1)),
+            "level_fit_rmse": math.sqrt(fit_sq / max(total_px, 1)), "samples": n}
+
+
+def erode4(mask: np.ndarray) -> np.ndarray:
+    """Pixels of a (H, W) bool mask whose four neighbours are in it (outside the image: not)."""
+    m = np.pad(mask, 1, constant_values=False)
+    return m[1:-1, 1:-1] & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]
+
+
 # --------------------------------------------------------------------------------- predictors
 
 def _normalised_inputs(sample: dict):
@@ -276,15 +328,27 @@ def onnx_file_predictor(path, threads: int):
     return onnx_predictor(session, int(card.get("stride", 32))), card
 
 
-def torch_predictor(net):
+def torch_predictor(net, true_source: bool = False):
+    """``true_source``: the decoder gets the sample's true source light (normalised as the
+    network's inputs are) in place of the encoder's estimate: a diagnostic of how much the
+    estimate costs (the ONNX contract always uses the estimate)."""
     import torch
 
     def predict(sample):
         img, light, s, k = _normalised_inputs(sample)
         h, w = img.shape[-2:]
+        x, target = torch.from_numpy(_pad(img, net.cfg.stride)), torch.from_numpy(light)
         with torch.no_grad():
-            relit, src, parsing = net(torch.from_numpy(_pad(img, net.cfg.stride)),
-                                      torch.from_numpy(light))
+            if true_source:
+                from .network import to_channels_first
+
+                _, skips, code = net.encoder(x)
+                src = torch.from_numpy(to_channels_first(np.asarray(sample["light_i"],
+                                                                    np.float32) / s))[None]
+                relit, logits = net.decoder(x, target, skips, code, src)
+                relit, parsing = relit.clamp(min=0.0), torch.sigmoid(logits)
+            else:
+                relit, src, parsing = net(x, target)
         return (_absolute(relit[0, :, :h, :w].numpy(), s, k),
                 {"foreground": parsing[0, 0, :h, :w].numpy(),
                  "source_light": _source_light(src.numpy(), s)})
@@ -316,24 +380,43 @@ def dataset_id(ds) -> dict:
 def main(argv=None):
     p = argparse.ArgumentParser(description="held-out RMSE / PSNR / SSIM on the portrait region")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--run", help="a training run folder (uses its checkpoint.pt)")
+    src.add_argument("--run", help="a training run folder (see --checkpoint)")
     src.add_argument("--onnx", help="an exported model")
     p.add_argument("--n", type=int, default=64)
     p.add_argument("--resolution", type=int, default=128)
     p.add_argument("--split", default="test")
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--checkpoint", default="checkpoint.pt",
+                   help="with --run: checkpoint.pt (last) or best.pt (best on val)")
+    p.add_argument("--true-source", action="store_true",
+                   help="with --run: give the decoder the true source light instead of the "
+                        "encoder's estimate (a diagnostic)")
+    p.add_argument("--breakdown", action="store_true",
+                   help="only where the error lives: per parsing class, the outline, and what "
+                        "a right overall level and colour would remove (error_breakdown)")
     a = p.parse_args(argv)
+    if a.true_source and not a.run:
+        p.error("--true-source needs --run (an ONNX model always uses its own estimate)")
     ds = heldout_dataset(a.resolution, a.seed, a.split)
     if a.run:
         import torch
 
         from .train import load_checkpoint
         torch.set_num_threads(a.threads)
-        net, _ = load_checkpoint(f"{a.run}/checkpoint.pt")
-        predict = torch_predictor(net)
+        net, _ = load_checkpoint(f"{a.run}/{a.checkpoint}")
+        predict = torch_predictor(net, a.true_source)
     else:
         predict, _ = onnx_file_predictor(a.onnx, a.threads)
+    if a.breakdown:
+        b = error_breakdown(predict, ds, a.n)
+        print(f"{b['samples']} samples: RMSE pooled over pixels {b['rmse_pooled']:.4f}, "
+              f"after a per-sample level and colour fit {b['level_fit_rmse']:.4f}")
+        print("region          pixels  RMSE    share of squared error")
+        for name, r in b["regions"].items():
+            print(f"{name:14s}  {r['pixel_share']:6.1%}  {r['rmse']:.4f}  {r['error_share']:6.1%}")
+        print(json.dumps({**b, **dataset_id(ds)}))
+        return
     res = {**evaluate(predict, ds, a.n), "lateral_response": lateral_response(predict, ds),
            "background": background_error(predict, resolution=a.resolution)}
     print(json.dumps({**res, **dataset_id(ds)}, indent=2))

@@ -114,6 +114,22 @@ def test_evaluate_runs_onnx_and_torch_predictors_alike(net, onnx_path):
     assert 0 <= a["model"]["foreground_iou"] <= 1
 
 
+def test_the_true_source_diagnostic_feeds_the_decoder_the_sample_light():
+    """evaluate --true-source: the decoder gets the sample's light; given the encoder's own
+    estimate as the sample's light it reproduces the plain prediction."""
+    import dataclasses
+
+    net = standin.perturbed_net(dataclasses.replace(TINY, relight="ratio"), 0)
+    s = standin.sample(32, 0)
+    plain, extras = evaluate.torch_predictor(net)(s)
+    echoed, _ = evaluate.torch_predictor(net, true_source=True)(
+        {**s, "light_i": extras["source_light"]})
+    assert np.allclose(echoed, plain, rtol=1e-4, atol=1e-6)
+    other, _ = evaluate.torch_predictor(net, true_source=True)(
+        {**s, "light_i": extras["source_light"] * np.array([2.0, 1.0, 0.5], np.float32)})
+    assert np.isfinite(other).all() and not np.allclose(other, plain, rtol=1e-3)
+
+
 def test_empty_mask_is_refused():
     s = standin.sample(32, 0)
     with pytest.raises(ValueError, match="empty"):
@@ -158,3 +174,37 @@ def test_lateral_response_tells_a_light_blind_model_from_one_that_follows_the_la
 
     assert evaluate.lateral_response(blind, ds) == pytest.approx(1.0)
     assert evaluate.lateral_response(follows, ds) > 1.5
+
+
+def test_error_breakdown_splits_the_error_by_region_and_level():
+    """training.evaluate.error_breakdown: a prediction off by one colour gain everywhere has all
+    its error in level (the fit removes it); a patch of wrong pixels puts its error in its class."""
+    rng = np.random.default_rng(0)
+    h = w = 24
+    mask = np.zeros((h, w), bool)
+    mask[4:20, 4:20] = True
+    parsing = np.zeros((9, h, w), np.float32)
+    parsing[0] = mask
+    parsing[1] = mask  # skin ...
+    parsing[1, 4:10] = 0
+    parsing[2, 4:10] = mask[4:10]  # ... and hair on top
+    gt = rng.uniform(0.2, 1.0, (3, h, w)).astype(np.float32)
+    sample = {"mask_t": mask[None].astype(np.float32), "gt_t_k": gt, "parsing_t": parsing}
+    ds = [sample, sample]
+    exact = evaluate.error_breakdown(lambda s: (s["gt_t_k"], {}), ds)
+    assert exact["rmse_pooled"] == 0.0 and exact["level_fit_rmse"] == 0.0
+    tinted = evaluate.error_breakdown(
+        lambda s: (s["gt_t_k"] * np.array([1.3, 0.8, 1.1], np.float32)[:, None, None], {}), ds)
+    assert tinted["rmse_pooled"] > 0.05 and tinted["level_fit_rmse"] < 1e-6
+    shares = tinted["regions"]
+    assert abs(shares["skin"]["pixel_share"] + shares["hair"]["pixel_share"] - 1.0) < 1e-9
+    assert abs(shares["skin"]["pixel_share"] - 10 / 16) < 1e-9
+
+    def hair_wrong(s):
+        p = s["gt_t_k"].copy()
+        p[:, 6:9, 8:12] = 0.0  # inside the hair, away from the outline
+        return p, {}
+    bad = evaluate.error_breakdown(hair_wrong, ds)["regions"]
+    assert bad["hair"]["error_share"] == 1.0 and bad["skin"]["error_share"] == 0.0
+    assert bad["edge (2 px)"]["error_share"] == 0.0
+    assert abs(bad["edge (2 px)"]["pixel_share"] - (256 - 144) / 256) < 1e-9
