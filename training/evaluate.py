@@ -14,6 +14,11 @@ portrait region, between the predicted and the true change of log luminance from
 relit frame, each with its mean over the region removed (so a global change of level
 scores 0, the right spatial pattern of light and shadow scores 1, the opposite -1).
 
+``rmse_level_fit`` is the RMSE after the prediction is scaled per channel by the least-squares
+gain toward the truth (level_fit_rmse): what is left when the overall level and colour, which a
+single image leaves ambiguous (albedo against light power, skin tone against the light's tint),
+are set right. ``error_breakdown`` (``--breakdown``) says which regions the error lives in.
+
 ``lateral_response`` is a blunter check of the same: each sample relit by one lamp from the
 camera's left and by one from its right (90 degrees off the view axis, at eye height); the
 image-left over image-right mean luminance of the portrait under the first, divided by the same
@@ -97,6 +102,22 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
     psnr = 20.0 * math.log10(1.0 / max(rmse, 1e-10))
     ssim = float(np.mean(ssim_map(p, g)[:, mask]))
     return {"rmse": rmse, "psnr": psnr, "ssim": ssim}
+
+
+def level_gain(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(3,) per-channel least-squares gain of ``pred`` toward ``gt`` over the mask (linear)."""
+    p = np.nan_to_num(np.asarray(pred, np.float64)[:, mask], nan=0.0, posinf=0.0, neginf=0.0)
+    g = np.asarray(gt, np.float64)[:, mask]
+    return (p * g).sum(1) / np.maximum((p * p).sum(1), 1e-12)
+
+
+def level_fit_rmse(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """The RMSE left when the prediction's overall level and colour are right: ``pred`` scaled
+    per channel by level_gain first. A single image cannot tell a darker face under a brighter
+    light from a lighter face under a dimmer one, nor a skin tone from a light's tint, so part of
+    any relit level is a guess; this figure leaves that part out."""
+    pred = np.nan_to_num(np.asarray(pred, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    return image_metrics(pred * level_gain(pred, gt, mask)[:, None, None], gt, mask)["rmse"]
 
 
 def shading_correlation(pred: np.ndarray, inp: np.ndarray, gt: np.ndarray,
@@ -207,7 +228,8 @@ def evaluate(predict, dataset, n: int | None = None, baselines: bool = True,
         gt = np.asarray(s["gt_t_k"], np.float32)
         pred, extras = predict(s)
         rows["model"].append({**image_metrics(pred, gt, mask),
-                              "shading_corr": shading_correlation(pred, s["img_t_i"], gt, mask)})
+                              "shading_corr": shading_correlation(pred, s["img_t_i"], gt, mask),
+                              "rmse_level_fit": level_fit_rmse(pred, gt, mask)})
         if "foreground" in extras:
             fg = extras["foreground"] > 0.5
             fg_iou.append(float((fg & mask).sum() / max((fg | mask).sum(), 1)))
@@ -216,7 +238,8 @@ def evaluate(predict, dataset, n: int | None = None, baselines: bool = True,
                                ("irradiance_ratio", baseline_irradiance_ratio(s))):
                 rows[name].append({**image_metrics(base, gt, mask),
                                    "shading_corr": shading_correlation(base, s["img_t_i"], gt,
-                                                                       mask)})
+                                                                       mask),
+                                   "rmse_level_fit": level_fit_rmse(base, gt, mask)})
     out = {name: mean_metrics(r) for name, r in rows.items() if r}
     if fg_iou:
         out["model"]["foreground_iou"] = float(np.mean(fg_iou))
@@ -251,7 +274,7 @@ def error_breakdown(predict, dataset, n: int | None = None, edge_px: int = 2) ->
         pred = np.nan_to_num(np.asarray(pred, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
         w = white_level(gt, mask)
         err = ((to_unit(pred, w) - to_unit(gt, w)) ** 2).mean(0)
-        gain = (pred[:, mask] * gt[:, mask]).sum(1) / np.maximum((pred[:, mask] ** 2).sum(1), 1e-12)
+        gain = level_gain(pred, gt, mask)
         fit = ((to_unit(pred * gain[:, None, None], w) - to_unit(gt, w)) ** 2).mean(0)
         total_sq += float(err[mask].sum())
         fit_sq += float(fit[mask].sum())

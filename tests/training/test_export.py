@@ -208,3 +208,14 @@ def test_error_breakdown_splits_the_error_by_region_and_level():
     assert bad["hair"]["error_share"] == 1.0 and bad["skin"]["error_share"] == 0.0
     assert bad["edge (2 px)"]["error_share"] == 0.0
     assert abs(bad["edge (2 px)"]["pixel_share"] - (256 - 144) / 256) < 1e-9
+
+
+def test_level_fit_rmse_forgives_an_overall_level_and_tint_only():
+    s = standin.sample(48, 0)
+    mask = s["mask_t"][0] > 0.5
+    gt = s["gt_t_k"]
+    tinted = gt * np.array([1.4, 0.9, 0.7], np.float32)[:, None, None]
+    assert evaluate.image_metrics(tinted, gt, mask)["rmse"] > 0.03
+    assert evaluate.level_fit_rmse(tinted, gt, mask) < 1e-6
+    flat = np.broadcast_to(gt[:, mask].mean(1)[:, None, None], gt.shape)  # no spatial pattern
+    assert evaluate.level_fit_rmse(flat, gt, mask) > 0.03
