@@ -3,12 +3,12 @@
     .venv/bin/python bench/lightstage_cycles.py [--res 128] [--samples 64] [--out cache/cycles]
 
 Scope, first: geometry, normals, the cosine term and cast shadows -- the parts every OLAT image
-rests on. Both renderers get the same mesh (an ICT-FaceKit identity with expression, hair shell and torso,
-posed by training.lightstage), a grey Lambertian albedo of 0.5 everywhere, the same pinhole camera
-(our camera frame is Blender's camera frame: +Y up, looking down -Z) and one distant light of
-irradiance 1 from a light-stage direction (a Cycles sun of strength 1, angle 0, no bounces). Ours
-is ``albedo / pi * transfer.diffuse`` (shadow maps + cosine, no subsurface, no specular). Hair is
-Lambertian in Cycles but wrap-lit in ours, so it is reported apart.
+rests on. Both renderers get the same mesh (an ICT-FaceKit identity with expression, hair shell
+and torso, posed by training.lightstage), a grey Lambertian albedo of 0.5 everywhere, the same
+pinhole camera (our camera frame is Blender's camera frame: +Y up, looking down -Z) and one
+distant light of irradiance 1 from a light-stage direction (a Cycles sun of strength 1, angle 0,
+no bounces). Ours is ``albedo / pi * transfer.diffuse`` (shadow maps + cosine, no subsurface, no
+specular). Hair is Lambertian in Cycles but wrap-lit in ours, so it is reported apart.
 
 Then the skin's material (``--materials``, on by default): the skin faces get a Principled BSDF
 with the stage's own parameters (single-scatter GGX; the per-vertex roughness map of
@@ -28,7 +28,8 @@ The skin rows add the red channel's ratio, Cycles' own noise (relative RMS diffe
 renders with different seeds, over sqrt 2) and the error beyond that noise (sqrt(RMSE^2 -
 noise^2)) and the relative RMSE after a 3x3 box filter of both images (what is left when
 sub-pixel placement is forgiven: ours shades the pixel centre, Cycles averages over the pixel,
-which matters for highlights narrower than a pixel); their PNGs (cycles_skin_*.png) show the GGX lobe and the subsurface case, skin only.
+which matters for highlights narrower than a pixel); their PNGs (cycles_skin_*.png) show the GGX
+lobe and the subsurface case, skin only.
 """
 
 from __future__ import annotations
@@ -171,6 +172,19 @@ def vertex_roughness(scene) -> np.ndarray:
     return rough.numpy().astype(np.float64)
 
 
+def erode(mask: np.ndarray) -> np.ndarray:
+    """The pixels of ``mask`` whose four neighbours are in it too."""
+    out = mask.copy()
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        out &= np.roll(mask, (dy, dx), axis=(0, 1))
+    return out
+
+
+def box3(img: np.ndarray) -> np.ndarray:
+    """3x3 box filter of (C, H, W) (wrapping at the border; used away from it)."""
+    return sum(np.roll(img, (dy, dx), axis=(1, 2)) for dy in (-1, 0, 1) for dx in (-1, 0, 1)) / 9
+
+
 def compare(res: int, samples: int, out: pathlib.Path, data_root=None) -> list[dict]:
     torch.set_num_threads(2)
     scene, frame = our_frame(res, data_root=data_root)
@@ -185,9 +199,7 @@ def compare(res: int, samples: int, out: pathlib.Path, data_root=None) -> list[d
             a = ours(scene, frame, j)
             b, alpha = render(sc, sun, layout.directions()[j], tmp)
             both = ours_fg & (alpha > 0.999)
-            inner = both.copy()  # one pixel in from every silhouette
-            for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-                inner &= np.roll(both, (dy, dx), axis=(0, 1))
+            inner = erode(both)  # one pixel in from every silhouette
             row = {"light": name, "stage_light": j}
             for region, sel in (("skin+clothes", inner & (mat != assets.HAIR)),
                                 ("hair", inner & (mat == assets.HAIR))):
@@ -203,19 +215,6 @@ def compare(res: int, samples: int, out: pathlib.Path, data_root=None) -> list[d
             tile = np.concatenate([a, b, 4 * np.abs(a - b) * both], 1)
             write_png(out / f"cycles_{name}.png", to_srgb8(np.repeat(tile[..., None], 3, 2), e))
     return rows
-
-
-def erode(mask: np.ndarray) -> np.ndarray:
-    """The pixels of ``mask`` whose four neighbours are in it too."""
-    out = mask.copy()
-    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        out &= np.roll(mask, (dy, dx), axis=(0, 1))
-    return out
-
-
-def box3(img: np.ndarray) -> np.ndarray:
-    """3x3 box filter of (C, H, W) (wrapping at the border; used away from it)."""
-    return sum(np.roll(img, (dy, dx), axis=(1, 2)) for dy in (-1, 0, 1) for dx in (-1, 0, 1)) / 9
 
 
 def compare_materials(res: int, samples: int, out: pathlib.Path, data_root=None) -> list[dict]:
@@ -257,6 +256,7 @@ def compare_materials(res: int, samples: int, out: pathlib.Path, data_root=None)
                 px2 = light_conversion.render_rgba(sc, pathlib.Path(tmp) / "cycles.exr")
                 sc.cycles.seed = 1
                 b = px[..., :3].transpose(2, 0, 1)
+                b2 = px2[..., :3].transpose(2, 0, 1)
                 a = our_skin(scene, frame, j, alb, **opts)
                 inner = erode(skin_px & (px[..., 3] > 0.999))
                 ra, rb = a[:, inner], b[:, inner]
@@ -267,8 +267,8 @@ def compare_materials(res: int, samples: int, out: pathlib.Path, data_root=None)
                              "rel_rmse": float(np.sqrt(((ra - rb) ** 2).mean())
                                                / max(rb.mean(), 1e-12)),
                              "red_ratio": float(ra[0].mean() / max(rb[0].mean(), 1e-12)),
-                             "cycles_noise": float(np.sqrt(((px2[..., :3][inner].T - rb) ** 2).mean()
-                                                           / 2) / max(rb.mean(), 1e-12)),
+                             "cycles_noise": float(np.sqrt(((b2[:, inner] - rb) ** 2).mean() / 2)
+                                                   / max(rb.mean(), 1e-12)),
                              "rel_rmse_box3": float(np.sqrt(((ba - bb) ** 2).mean())
                                                     / max(bb.mean(), 1e-12)),
                              "cycles_seconds": secs}
@@ -306,17 +306,18 @@ def main(argv=None):
                 print(f"{r['light']:5s}  {r['stage_light']:5d}  {region:12s}  {m['pixels']:6d}  "
                       f"{m['mean_ratio']:11.3f}  {m['rel_rmse']:8.3f}   {r['silhouette_iou']:.3f}")
     if a.materials:
+        albedo = np.round(materials.skin_albedo(SKIN_MELANIN, SKIN_HAEMOGLOBIN), 3)
         print(f"\nskin material (Principled, single-scatter GGX, per-vertex roughness, IOR "
-              f"{SKIN_IOR:.3f}, albedo {np.round(materials.skin_albedo(SKIN_MELANIN, SKIN_HAEMOGLOBIN), 3)}); "
-              "over skin pixels")
+              f"{SKIN_IOR:.3f}, albedo {albedo}); over skin pixels")
         print("light  comparison                  pixels  ours/Cycles  red o/C  rel.RMSE  "
               "Cycles noise  beyond noise  3x3 box  Cycles s")
         for r in compare_materials(a.res, a.samples, pathlib.Path(a.out)):
             for case, m in r.items():
                 if isinstance(m, dict):
-                    print(f"{r['light']:5s}  {case:26s}  {m['pixels']:6d}  {m['mean_ratio']:11.3f}  "
-                          f"{m['red_ratio']:7.3f}  {m['rel_rmse']:8.3f}  {m['cycles_noise']:12.3f}  "
-                          f"{m['rel_rmse_beyond_noise']:12.3f}  {m['rel_rmse_box3']:7.3f}  "
+                    print(f"{r['light']:5s}  {case:26s}  {m['pixels']:6d}  "
+                          f"{m['mean_ratio']:11.3f}  {m['red_ratio']:7.3f}  {m['rel_rmse']:8.3f}  "
+                          f"{m['cycles_noise']:12.3f}  {m['rel_rmse_beyond_noise']:12.3f}  "
+                          f"{m['rel_rmse_box3']:7.3f}  "
                           f"{m['cycles_seconds']:8.1f}")
     print(f"side-by-side PNGs (ours | Cycles | |diff| x4) in {a.out}")
 
