@@ -242,7 +242,7 @@ def main(argv=None):
     net, ck = load_checkpoint(pathlib.Path(a.run) / a.checkpoint)
     recipe = {**ck["recipe"], "init": resolve_lineage(ck["recipe"].get("init")),
               "exported_checkpoint": {"file": a.checkpoint, "step": ck["step"],
-                                                      "val": ck.get("val")}}
+                                      "val": ck.get("val")}}
     final = pathlib.Path(a.run) / "recipe.json"  # a finished run's recipe adds its totals
     if final.is_file():
         done = json.loads(final.read_text())
