@@ -167,7 +167,7 @@ def vertex_roughness(scene) -> np.ndarray:
     """The skin's roughness map at the mesh's vertices (what ours interpolates per pixel)."""
     n = scene.rig.n_vertices
     skin = torch.full((n,), assets.SKIN, dtype=torch.long)
-    _, _, rough, _ = materials.surface(skin, scene.rig.uv, scene.attrs, scene.ident)
+    _, _, rough, _, _ = materials.surface(skin, scene.rig.uv, scene.attrs, scene.ident)
     return rough.numpy().astype(np.float64)
 
 

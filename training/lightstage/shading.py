@@ -118,7 +118,10 @@ class Transfer:
     specular: torch.Tensor  # (N, M) visibility x BRDF x cos (radiance per unit irradiance)
 
 
-def transfer(pos, nrm, tangent, material, f0, rough, dirs, vis) -> Transfer:
+def transfer(pos, nrm, tangent, material, f0, rough, dirs, vis, strands=None) -> Transfer:
+    """``strands`` (N,): how much of each pixel is hair (materials.surface; default: the hair
+    material's pixels wholly): hair's wrap-lit diffuse and Kajiya-Kay lobe there, blended with
+    Lambert and GGX for the skin that shows through where the shell thins."""
     view = -pos / pos.norm(dim=1, keepdim=True).clamp(min=1e-8)
     nl = nrm @ dirs.T                                    # (N, M)
     nv = (nrm * view).sum(1, keepdim=True).clamp(min=1e-3)
@@ -132,7 +135,13 @@ def transfer(pos, nrm, tangent, material, f0, rough, dirs, vis) -> Transfer:
                        + nv * torch.sqrt(cos * cos * (1 - a2) + a2)).clamp(min=1e-6)
     fres = f0[:, None] + (1.0 - f0[:, None]) * (1.0 - lh) ** 5
     spec = d * vis_smith * fres * cos
-    hair = material == HAIR
+    k = (material == HAIR).float() if strands is None else strands.float()
+    # Energy: the light the specular layer reflects does not reach the diffuse below it. The
+    # diffuse is weighted by one minus the lobe's directional albedo toward the viewer, as the
+    # Principled BSDF takes the lobe's energy from its diffuse (bench/lightstage_cycles.py: without
+    # it ours was 2-3% brighter than Cycles with diffuse + GGX).
+    diffuse = cos * (1.0 - ggx_albedo(f0, rough, nv[:, 0]))[:, None]
+    hair = k > 0
     if hair.any():
         # Kajiya-Kay: the highlight lies where the strand tangent makes equal angles with the light
         # and the view; shifted toward the root by tilting the tangent (the cuticle scales).
@@ -140,15 +149,11 @@ def transfer(pos, nrm, tangent, material, f0, rough, dirs, vis) -> Transfer:
         tl = t @ dirs.T
         tv = (t * view[hair]).sum(1, keepdim=True)
         cone = (tl * tv + torch.sqrt((1 - tl * tl).clamp(min=0)) * torch.sqrt((1 - tv * tv).clamp(min=0)))
-        spec[hair] = 0.06 * cone.clamp(min=0.0) ** 60 * cos[hair]
-        cos = cos.clone()
-        cos[hair] = (nl[hair] * 0.7 + 0.3).clamp(min=0.0)  # light wraps around hair's volume
-    # Energy: the light the specular layer reflects does not reach the diffuse below it. The
-    # diffuse is weighted by one minus the lobe's directional albedo toward the viewer, as the
-    # Principled BSDF takes the lobe's energy from its diffuse (bench/lightstage_cycles.py: without
-    # it ours was 2-3% brighter than Cycles with diffuse + GGX).
-    lobe = torch.where(hair, 0.0, ggx_albedo(f0, rough, nv[:, 0]))  # hair: its own lobe above
-    return Transfer(vis * cos * (1.0 - lobe)[:, None], vis * spec)
+        kh = k[hair][:, None]
+        spec[hair] = kh * 0.06 * cone.clamp(min=0.0) ** 60 * cos[hair] + (1 - kh) * spec[hair]
+        wrap = (nl[hair] * 0.7 + 0.3).clamp(min=0.0)  # light wraps around hair's volume
+        diffuse[hair] = kh * wrap + (1 - kh) * diffuse[hair]
+    return Transfer(vis * diffuse, vis * spec)
 
 
 def ggx_albedo(f0: torch.Tensor, rough: torch.Tensor, nv: torch.Tensor) -> torch.Tensor:
