@@ -74,9 +74,11 @@ def our_frame(res: int, identity: int = 3, t: float = 0.8, data_root=None):
 
 
 def ours(scene, frame, light: int) -> np.ndarray:
+    """Plain Lambert (the diffuse keeps what the skin's specular layer would take)."""
     h, w = scene.cam.height, scene.cam.width
     img = torch.zeros(h * w)
-    img[frame.idx] = ALBEDO / math.pi * frame.transfer.diffuse[:, light]
+    lambert = scene.transfer(frame, frame.f0, frame.rough, torch.tensor([light]), layered=False)
+    img[frame.idx] = ALBEDO / math.pi * lambert.diffuse[:, 0]
     return img.view(h, w).numpy().astype(np.float64)
 
 

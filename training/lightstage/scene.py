@@ -109,8 +109,10 @@ class Scene:
         gb.label = torch.where(cloth, assets.LABEL["clothes"],
                                torch.where(bare & was_cloth, assets.LABEL["neck"], gb.label))
 
-    def transfer(self, f: Frame, f0, rough, lights: torch.Tensor | None = None) -> shading.Transfer:
-        """Transfer for all 114 lights (or the subset ``lights``, indices)."""
+    def transfer(self, f: Frame, f0, rough, lights: torch.Tensor | None = None,
+                 layered: bool = True) -> shading.Transfer:
+        """Transfer for all 114 lights (or the subset ``lights``, indices); ``layered``: see
+        shading.transfer."""
         dirs = self.dirs if lights is None else self.dirs[lights]
         v = f.posed.verts
         head = v[: self.rig.n_head]
@@ -122,8 +124,9 @@ class Scene:
         tan = f.gb.tangent.reshape(-1, 3)[f.idx]
         mat = f.gb.material.reshape(-1)[f.idx]
         maps = shading.shadow_maps(v, f.posed.normals, dirs, centre, radius)
-        vis = shading.visibility(pos, maps, dirs, centre, radius)
-        return shading.transfer(pos, nrm, tan, mat, f0, rough, dirs, vis, f.strands)
+        offset = shading.NORMAL_OFFSET * 2 * radius / shading.SHADOW_RES
+        vis = shading.visibility(pos + offset * nrm, maps, dirs, centre, radius)
+        return shading.transfer(pos, nrm, tan, mat, f0, rough, dirs, vis, f.strands, layered)
 
     def shade_inputs(self, f: Frame, tr: shading.Transfer | None = None) -> shading.ShadeInputs:
         """Everything shading needs from a frame (what the frame cache stores)."""
