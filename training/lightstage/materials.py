@@ -152,8 +152,11 @@ def surface(material: torch.Tensor, uv: torch.Tensor, attrs: torch.Tensor, ident
     # Freckles: round spots, denser over the cheeks and nose bridge, rarer and fainter the darker
     # the skin (ephelides are a trait of light skin).
     fair = float(np.clip(1.3 - 0.6 * ident.melanin, 0.0, 1.0))
-    density = (0.35 + 0.6 * a["cheeks"]) * (ident.freckles > 0)
-    freckle = spots(rest, s + 4, FRECKLE_CM, density) * ident.freckles * fair
+    if ident.freckles > 0 and fair > 0:
+        density = 0.35 + 0.6 * a["cheeks"]
+        freckle = spots(rest, s + 4, FRECKLE_CM, density) * ident.freckles * fair
+    else:  # most subjects: simulate only what the subject has
+        freckle = torch.zeros(n)
     # Mottling as an absolute melanin change (at most 0.08), so dark skin is not blotchy.
     # Freckles add melanin (an absolute amount: visible on the light skin that has them).
     mel = (ident.melanin + 0.08 * min(ident.melanin, 1.0) * mottle) * (1.0 - 0.35 * a["lips"]) \
