@@ -75,9 +75,11 @@ def our_frame(res: int, identity: int = 3, t: float = 0.8, data_root=None):
 
 
 def ours(scene, frame, light: int) -> np.ndarray:
+    """Plain Lambert (the diffuse keeps what the skin's specular layer would take)."""
     h, w = scene.cam.height, scene.cam.width
     img = torch.zeros(h * w)
-    img[frame.idx] = ALBEDO / math.pi * frame.transfer.diffuse[:, light]
+    lambert = scene.transfer(frame, frame.f0, frame.rough, torch.tensor([light]), layered=False)
+    img[frame.idx] = ALBEDO / math.pi * lambert.diffuse[:, 0]
     return img.view(h, w).numpy().astype(np.float64)
 
 
@@ -168,7 +170,7 @@ def vertex_roughness(scene) -> np.ndarray:
     """The skin's roughness map at the mesh's vertices (what ours interpolates per pixel)."""
     n = scene.rig.n_vertices
     skin = torch.full((n,), assets.SKIN, dtype=torch.long)
-    _, _, rough, _ = materials.surface(skin, scene.rig.uv, scene.attrs, scene.ident)
+    _, _, rough, _, _ = materials.surface(skin, scene.rig.uv, scene.attrs, scene.ident)
     return rough.numpy().astype(np.float64)
 
 

@@ -44,6 +44,7 @@ class Frame:
     f0: torch.Tensor | None = None      # (N,) specular reflectance
     rough: torch.Tensor | None = None   # (N,) GGX roughness
     cover: torch.Tensor | None = None   # (H, W) sub-pixel coverage where the centre hits
+    strands: torch.Tensor | None = None  # (N,) how much of the pixel is hair (materials.surface)
 
 
 class Scene:
@@ -83,14 +84,14 @@ class Scene:
         mat = gb.material.reshape(-1)[idx]
         uv = gb.uv.reshape(-1, 2)[idx]
         at = gb.attrs.reshape(-1, gb.attrs.shape[-1])[idx]
-        albedo, f0, rough, sss = materials.surface(mat, uv, at, self.ident)
+        albedo, f0, rough, sss, strands = materials.surface(mat, uv, at, self.ident)
         sss_img = torch.zeros(self.cam.height * self.cam.width)
         sss_img[idx] = sss
         depth = float(gb.raster.depth.reshape(-1)[idx].median()) if idx.numel() else self.cam.distance
         # Coverage only where the pixel centre hits: those pixels carry the subject's shading.
         cover = geometry.coverage(posed, self.rig, self.cam) * gb.mask
         f = Frame(t, posed, gb, idx, albedo, sss_img.view(self.cam.height, self.cam.width), None,
-                  self.cam.focal / max(depth, 1e-3), f0, rough, cover)
+                  self.cam.focal / max(depth, 1e-3), f0, rough, cover, strands)
         if with_transfer:
             f.transfer = self.transfer(f, f0, rough)
         return f
@@ -108,8 +109,10 @@ class Scene:
         gb.label = torch.where(cloth, assets.LABEL["clothes"],
                                torch.where(bare & was_cloth, assets.LABEL["neck"], gb.label))
 
-    def transfer(self, f: Frame, f0, rough, lights: torch.Tensor | None = None) -> shading.Transfer:
-        """Transfer for all 114 lights (or the subset ``lights``, indices)."""
+    def transfer(self, f: Frame, f0, rough, lights: torch.Tensor | None = None,
+                 layered: bool = True) -> shading.Transfer:
+        """Transfer for all 114 lights (or the subset ``lights``, indices); ``layered``: see
+        shading.transfer."""
         dirs = self.dirs if lights is None else self.dirs[lights]
         v = f.posed.verts
         head = v[: self.rig.n_head]
@@ -121,8 +124,9 @@ class Scene:
         tan = f.gb.tangent.reshape(-1, 3)[f.idx]
         mat = f.gb.material.reshape(-1)[f.idx]
         maps = shading.shadow_maps(v, f.posed.normals, dirs, centre, radius)
-        vis = shading.visibility(pos, maps, dirs, centre, radius)
-        return shading.transfer(pos, nrm, tan, mat, f0, rough, dirs, vis)
+        offset = shading.NORMAL_OFFSET * 2 * radius / shading.SHADOW_RES
+        vis = shading.visibility(pos + offset * nrm, maps, dirs, centre, radius)
+        return shading.transfer(pos, nrm, tan, mat, f0, rough, dirs, vis, f.strands, layered)
 
     def shade_inputs(self, f: Frame, tr: shading.Transfer | None = None) -> shading.ShadeInputs:
         """Everything shading needs from a frame (what the frame cache stores)."""
