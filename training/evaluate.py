@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import pathlib
 
 import numpy as np
 
@@ -396,8 +397,40 @@ def dataset_id(ds) -> dict:
 
     if isinstance(ds, make_testset.TestSet):
         return {"testset": "training.make_testset", "samples_in_set": len(ds),
-                "testset_sha256": make_testset.content_sha256(ds.arrays)}
+                "testset_sha256": make_testset.content_sha256(ds.arrays),
+                "render_version": make_testset.renderer_version()}
     return {"dataset": type(ds).__name__}
+
+
+def card_metrics(predict, ds, n: int, resolution: int) -> dict:
+    """A model card's ``metrics``: evaluate's figures on ``n`` held-out samples, the lateral
+    response, the painted background, what the figures mean and what they were measured on."""
+    metrics = evaluate(predict, ds, n)
+    metrics["model"]["lateral_response"] = lateral_response(predict, ds)
+    metrics["background"] = background_error(predict, resolution=resolution)
+    metrics.update(split="test", resolution=resolution,
+                   definition="\n\n".join(__doc__.split("\n\n")[2:6]), **dataset_id(ds))
+    return metrics
+
+
+def update_card(onnx_path, metrics: dict) -> pathlib.Path:
+    """Write ``metrics`` into the card beside ``onnx_path`` (re-measuring a shipped model on
+    today's test set; its training record stays as it was). The card must describe that file."""
+    import hashlib
+
+    onnx_path = pathlib.Path(onnx_path)
+    card_path = onnx_path.with_suffix(".json")
+    if not card_path.is_file():
+        raise SystemExit(f"--update-card: no card at {card_path}; export the model with "
+                         "training.export, which writes one")
+    card = json.loads(card_path.read_text())
+    digest = hashlib.sha256(onnx_path.read_bytes()).hexdigest()
+    if card.get("sha256") != digest:
+        raise SystemExit(f"--update-card: {card_path} describes another file than {onnx_path} "
+                         "(sha256 differs); re-export the model instead")
+    card["metrics"] = metrics
+    card_path.write_text(json.dumps(card, indent=2) + "\n")
+    return card_path
 
 
 def main(argv=None):
@@ -418,9 +451,14 @@ def main(argv=None):
     p.add_argument("--breakdown", action="store_true",
                    help="only where the error lives: per parsing class, the outline, and what "
                         "a right overall level and colour would remove (error_breakdown)")
+    p.add_argument("--update-card", action="store_true",
+                   help="with --onnx: write the figures into the model's card (its metrics; "
+                        "after the test set changed, e.g. a new light stage render version)")
     a = p.parse_args(argv)
     if a.true_source and not a.run:
         p.error("--true-source needs --run (an ONNX model always uses its own estimate)")
+    if a.update_card and (not a.onnx or a.breakdown or a.split != "test" or a.seed != 12345):
+        p.error("--update-card needs --onnx and the fixed test set (default --split and --seed)")
     ds = heldout_dataset(a.resolution, a.seed, a.split)
     if a.run:
         import torch
@@ -439,6 +477,11 @@ def main(argv=None):
         for name, r in b["regions"].items():
             print(f"{name:14s}  {r['pixel_share']:6.1%}  {r['rmse']:.4f}  {r['error_share']:6.1%}")
         print(json.dumps({**b, **dataset_id(ds)}))
+        return
+    if a.update_card:
+        metrics = card_metrics(predict, ds, a.n, a.resolution)
+        print(json.dumps(metrics, indent=2))
+        print("card:", update_card(a.onnx, metrics))
         return
     res = {**evaluate(predict, ds, a.n), "lateral_response": lateral_response(predict, ds),
            "background": background_error(predict, resolution=a.resolution)}

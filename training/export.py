@@ -235,7 +235,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None):
     from . import evaluate
-    from .train import load_checkpoint, resolve_lineage
+    from .train import load_checkpoint, resolve_lineage, samples_version
 
     a = parser().parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -255,17 +255,14 @@ def main(argv=None):
     print("verified:", json.dumps(check))
     ds = evaluate.heldout_dataset(res)
     predict = evaluate.onnx_predictor(session(onnx_path, a.threads), net.cfg.stride)
-    metrics = evaluate.evaluate(predict, ds, a.eval)
-    metrics["model"]["lateral_response"] = evaluate.lateral_response(predict, ds)
-    metrics["background"] = evaluate.background_error(predict, resolution=res)
-    metrics.update(split="test", resolution=res, definition="\n\n".join(
-        evaluate.__doc__.split("\n\n")[2:6]), **evaluate.dataset_id(ds))
+    metrics = evaluate.card_metrics(predict, ds, a.eval, res)
     print("metrics:", json.dumps(metrics))
     cost = {"cpu": measure_cost(onnx_path, threads=a.threads),
             "machine": "2-core x86-64 CPU (AMD EPYC, AVX-512 VNNI), shared and noisy"}
     training = {"data": "synthetic dynamic light stage (training.dataset, ICT-FaceKit heads, "
                         "CC0 HDRIs); held-out identities for metrics",
-                "recipe": recipe, "note": a.note, "onnx_check": check}
+                "render_version": samples_version(recipe), "recipe": recipe, "note": a.note,
+                "onnx_check": check}
     card = make_card(a.name, recipe["args"]["preset"], onnx_path, net, training, metrics, cost,
                      working)
     print("card:", write_card(card, onnx_path))
@@ -283,9 +280,8 @@ def export_int8(a, net, fp32_path, ds, training, res, working, fp32_cost):
     q_path = quantize_int8(fp32_path, fp32_path.with_name(f"{a.name}-int8.onnx"),
                            calibration_feeds(calib, net.cfg.stride))
     cost = {"cpu": measure_cost(q_path, threads=a.threads), "machine": fp32_cost["machine"]}
-    metrics = evaluate.evaluate(evaluate.onnx_predictor(session(q_path, a.threads),
-                                                        net.cfg.stride), ds, a.eval)
-    metrics.update(split="test", resolution=res)
+    metrics = evaluate.card_metrics(evaluate.onnx_predictor(session(q_path, a.threads),
+                                                            net.cfg.stride), ds, a.eval, res)
     speedup = fp32_cost["cpu"]["per_size"]["512"]["ms"] / cost["cpu"]["per_size"]["512"]["ms"]
     print(f"int8: {json.dumps(metrics)} speed-up at 512: {speedup:.2f}x")
     if speedup < 1.1:

@@ -23,15 +23,33 @@ import sys
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
+def chain(card: dict) -> list[dict]:
+    """The training runs behind ``card``, first to last: each a record with ``recipe`` (the
+    command) and ``render_version`` (of the light stage samples it trained on; runs recorded before
+    versions were kept trained on v1)."""
+    recipe = card["training"]["recipe"]
+    runs, init = [], recipe.get("init")
+    while init:  # the run it started from, that run's own start, ... (training.train lineage)
+        if init.get("recipe"):
+            runs.append({"recipe": init["recipe"],
+                         "render_version": init.get("render_version") or "v1"})
+        init = init.get("init")
+    last = {"recipe": recipe["command"], "render_version": recipe.get("render_version") or "v1"}
+    return runs[::-1] + [last]
+
+
+def version_notes(card: dict, current: str) -> list[str]:
+    """One line per run whose samples were of another render version than this code renders:
+    those runs re-run with today's samples, so they reproduce the recipe, not the same weights."""
+    return [f"reproduce: run {i + 1} trained on light stage {r['render_version']} samples; this "
+            f"code renders {current}, so it reproduces that run's recipe, not its weights"
+            for i, r in enumerate(chain(card)) if r["render_version"] != current]
+
+
 def commands(card: dict) -> list[str]:
     """The shell commands that made the model of ``card``, in order."""
     recipe = card["training"]["recipe"]
-    chain, init = [], recipe.get("init")
-    while init:  # the run it started from, that run's own start, ... (training.train lineage)
-        if init.get("recipe"):
-            chain.append(init["recipe"])
-        init = init.get("init")
-    out = chain[::-1] + [recipe["command"]]
+    out = [r["recipe"] for r in chain(card)]
     name, int8 = card["name"], str(card.get("preset", "")).endswith("-int8")
     if int8 and name.endswith("-int8"):
         name = name[: -len("-int8")]
@@ -50,9 +68,14 @@ def main(argv=None) -> int:
     if not path.is_file():
         print(f"reproduce: no model card at {path}; pass models/<name>.json", file=sys.stderr)
         return 2
-    cmds = commands(json.loads(path.read_text()))
+    from .dataset import renderer_version
+
+    card = json.loads(path.read_text())
+    cmds = commands(card)
     for c in cmds:
         print(c)
+    for line in version_notes(card, renderer_version()):
+        print(line, file=sys.stderr)
     if a.run:
         for c in cmds:
             args = shlex.split(c)

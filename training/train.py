@@ -170,6 +170,13 @@ def make_dataset(split: str, resolution: int, seed: int, sampling: bool = True, 
     return LightStageDataset(split, resolution, seed, **kwargs)
 
 
+def renderer_version() -> str:
+    """training.dataset's render version (imported late, like the dataset)."""
+    from .dataset import renderer_version as version
+
+    return version()
+
+
 # Samples are costly to render (~0.5 s at 128 px on one core) and a pure function of
 # (seed, split, idx), so a renderer process can fill a folder while training reads what is there.
 _HALF = ("img_t_i", "img_t1_j", "gt_t_k", "gt_t1_k", "flow_fw", "flow_bw")
@@ -183,7 +190,8 @@ def render_cache(folder, split: str, resolution: int, seed: int, start: int, cou
     ds = make_dataset(split, resolution, seed, sampling=sampling)
     (folder / "cache.json").write_text(json.dumps(
         {"split": split, "resolution": resolution, "seed": seed, "sampling": sampling,
-         "dataset": "training.dataset.LightStageDataset", "git_commit": git_commit()}, indent=2))
+         "dataset": "training.dataset.LightStageDataset", "git_commit": git_commit(),
+         "renderer": renderer_version()}, indent=2))
     for idx in range(start, start + count):
         path = folder / f"{idx:07d}.npz"
         if path.exists():
@@ -313,7 +321,13 @@ def load_init(net, path) -> dict:
     net.load_state_dict(ck["state_dict"])
     recipe = ck.get("recipe") or {}
     return {"checkpoint": str(path), "step": ck.get("step"), "recipe": recipe.get("command"),
-            "init": resolve_lineage(recipe.get("init"))}
+            "render_version": samples_version(recipe), "init": resolve_lineage(recipe.get("init"))}
+
+
+def samples_version(recipe: dict) -> str:
+    """The light stage render version a run's samples had (training.dataset.RENDER_VERSION).
+    Runs recorded before the field was kept all trained on v1 samples: v2 came with it."""
+    return recipe.get("render_version") or "v1"
 
 
 def resolve_lineage(init: dict | None) -> dict | None:
@@ -364,11 +378,13 @@ def train(args) -> pathlib.Path:
     recipe = {"command": "python -m training.train " + " ".join(sys.argv[1:]), "args": vars(args),
               "switches": sw.to_dict(), "net": net.cfg.to_dict(), "git_commit": git_commit(),
               "data_seed": args.seed, "machine": machine(), "device": str(device),
-              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "init": init}
+              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "init": init,
+              "render_version": renderer_version()}
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
     if args.cache:
         ds = CachedSamples(args.cache)
         recipe["data_cache"] = json.loads((pathlib.Path(args.cache) / "cache.json").read_text())
+        recipe["render_version"] = recipe["data_cache"].get("renderer", "v1")
     elif args.data_cache:
         ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling,
                           cache_dir=args.data_cache, transport=sw.transport,

@@ -219,3 +219,21 @@ def test_level_fit_rmse_forgives_an_overall_level_and_tint_only():
     assert evaluate.level_fit_rmse(tinted, gt, mask) < 1e-6
     flat = np.broadcast_to(gt[:, mask].mean(1)[:, None, None], gt.shape)  # no spatial pattern
     assert evaluate.level_fit_rmse(flat, gt, mask) > 0.03
+
+
+def test_update_card_rewrites_only_the_metrics_of_the_card_that_describes_the_file(tmp_path):
+    """evaluate --update-card: re-measuring a shipped model (a new test set) replaces the card's
+    metrics and nothing else, and refuses a card written for another file or a missing card."""
+    onnx_path = tmp_path / "m.onnx"
+    onnx_path.write_bytes(b"model bytes")
+    with pytest.raises(SystemExit, match="no card"):
+        evaluate.update_card(onnx_path, {"rmse": 1})
+    card = {"name": "m", "sha256": hashlib.sha256(b"model bytes").hexdigest(),
+            "training": {"recipe": {"command": "x"}}, "metrics": {"rmse": 0.5}}
+    (tmp_path / "m.json").write_text(json.dumps(card))
+    evaluate.update_card(onnx_path, {"rmse": 0.25, "render_version": "v2"})
+    assert json.loads((tmp_path / "m.json").read_text()) == {
+        **card, "metrics": {"rmse": 0.25, "render_version": "v2"}}
+    onnx_path.write_bytes(b"other bytes")
+    with pytest.raises(SystemExit, match="sha256 differs"):
+        evaluate.update_card(onnx_path, {"rmse": 0.1})

@@ -74,3 +74,26 @@ def test_every_shipped_card_gives_commands_the_current_cli_accepts(card):
 def test_a_missing_card_says_what_to_pass(tmp_path, capsys):
     assert reproduce.main([str(tmp_path / "nope.json")]) == 2
     assert "models/<name>.json" in capsys.readouterr().err
+
+
+def test_each_run_in_the_chain_says_which_light_stage_samples_it_trained_on(tmp_path):
+    """A chain that began on v1 samples and went on under v2: load_init records each parent's
+    render version (v1 where the record predates the field), and reproduce names the runs that
+    today's renderer cannot repeat weight for weight."""
+    from training import network
+
+    net = network.build("draft")
+    train.save_checkpoint(tmp_path / "a.pt", net, {"command": "python -m training.train a"}, 5)
+    init = train.load_init(network.build("draft"), tmp_path / "a.pt")
+    assert init["render_version"] == "v1"
+    train.save_checkpoint(tmp_path / "b.pt", net, {"command": "python -m training.train b",
+                                                   "init": init, "render_version": "v2"}, 5)
+    init_b = train.load_init(network.build("draft"), tmp_path / "b.pt")
+    assert init_b["render_version"] == "v2" and init_b["init"]["render_version"] == "v1"
+    card = {"name": "relight-draft", "preset": "draft", "training": {"recipe": {
+        "command": "python -m training.train c", "args": {"out": "runs/c"}, "init": init_b,
+        "render_version": "v2"}}}
+    assert [r["render_version"] for r in reproduce.chain(card)] == ["v1", "v2", "v2"]
+    notes = reproduce.version_notes(card, "v2")
+    assert len(notes) == 1 and notes[0].startswith("reproduce: run 1 trained on light stage v1")
+    assert reproduce.version_notes(card, "v1") and len(reproduce.version_notes(card, "v1")) == 2
