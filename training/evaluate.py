@@ -369,8 +369,7 @@ def torch_predictor(net, true_source: bool = False):
                 _, skips, code = net.encoder(x)
                 src = torch.from_numpy(to_channels_first(np.asarray(sample["light_i"],
                                                                     np.float32) / s))[None]
-                relit, logits = net.decoder(x, target, skips, code, src)
-                relit, parsing = relit.clamp(min=0.0), torch.sigmoid(logits)
+                relit, src, parsing = net.relight_from(x, target, skips, code, src)
             else:
                 relit, src, parsing = net(x, target)
         return (_absolute(relit[0, :, :h, :w].numpy(), s, k),

@@ -144,10 +144,10 @@ def _decode_many(net: RelightNet, image, skips, code, source, lights, scales):
     one)."""
     n = len(lights)
     rep = lambda t: t.repeat(n, *([1] * (t.dim() - 1)))  # noqa: E731
-    relit, logits = net.decode(rep(image), torch.cat(lights, 0), [rep(s) for s in skips], rep(code),
-                               rep(source))
+    relit, logits, transport = net.decode(rep(image), torch.cat(lights, 0),
+                                          [rep(s) for s in skips], rep(code), rep(source),
+                                          with_transport=True)
     scales = torch.cat(scales, 0)[:, None, None, None]
-    transport = net.decoder.last_transport if net.decoder.ratio else None
     return list((relit * scales).chunk(n, 0)), logits.chunk(n, 0)[0], transport
 
 

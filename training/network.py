@@ -211,7 +211,9 @@ class Decoder(nn.Module):
             nn.init.zeros_(m.bias)
         nn.init.constant_(self.gain.bias, 1.0)  # start as relit = image
 
-    def forward(self, image, light, skips, code, source=None):
+    def forward(self, image, light, skips, code, source=None, with_transport: bool = False):
+        """Relit image and parsing logits; ``with_transport`` adds the ratio head's transport
+        (N, 9, h, w) at the decoder's resolution (training supervises it; None without the head)."""
         films = self.light(light)
         x = self.bottleneck(torch.cat([skips[-1], code], dim=1))
         for j, block in enumerate(self.blocks):
@@ -223,12 +225,11 @@ class Decoder(nn.Module):
                 x = self.merge[j - 1](torch.cat([x, skip], dim=1))
             x = block(film(x, films[j]))
         size = image.shape[-2:]
-        g = self.gain(x)
+        g, t = self.gain(x), None
         if self.ratio:
             if source is None:
                 raise ValueError("the ratio head needs the source light (the encoder's estimate)")
             t = self.transport(x)
-            self.last_transport = t  # read by training.losses (transport supervision)
             g = g * (self._irradiance(t, light) / self._irradiance(t, source)).clamp(max=RATIO_MAX)
         gain = F.interpolate(g, size=size, mode="bilinear", align_corners=False)
         if self.shuffle:
@@ -238,7 +239,8 @@ class Decoder(nn.Module):
                                      align_corners=False)
         relit = gain * image.clamp(0.0, INPUT_CEILING) + residual
         parsing = F.interpolate(self.parsing(x), size=size, mode="bilinear", align_corners=False)
-        return relit, parsing  # parsing as logits: the BCE loss is stabler on logits
+        # parsing as logits: the BCE loss is stabler on logits
+        return (relit, parsing, t) if with_transport else (relit, parsing)
 
     def _irradiance(self, transport, light):
         """E_c(x) = softplus(sum_j T_j(x) L_cj): (N,9,h,w) transport, (N,3,16,16) light ->
@@ -264,11 +266,12 @@ class RelightNet(nn.Module):
     def encode(self, image):
         return self.encoder(image)
 
-    def decode(self, image, light, skips, code, source=None):
+    def decode(self, image, light, skips, code, source=None, with_transport: bool = False):
         """Relit image (same units as ``image / k(light)``; may be slightly negative while
         training) and parsing logits, for a unit-power light; ``source`` is the encoder's
-        estimate of the image's own light (needed by the ratio head)."""
-        return self.decoder(image, light, skips, code, source)
+        estimate of the image's own light (needed by the ratio head); ``with_transport`` adds
+        the ratio head's transport (Decoder.forward)."""
+        return self.decoder(image, light, skips, code, source, with_transport)
 
     def relight_by(self, image, light, skips, code, source=None):
         """Relit image under a light given in the normalised image's units (e.g. the estimated
@@ -281,6 +284,11 @@ class RelightNet(nn.Module):
         """The ONNX contract: image [N,3,H,W] (normalised), target_light [N,3,16,16] (unit power)
         -> relit [N,3,H,W], source_light [N,3,16,16], parsing [N,K,H,W] in [0,1]."""
         source, skips, code = self.encoder(image)
+        return self.relight_from(image, target_light, skips, code, source)
+
+    def relight_from(self, image, target_light, skips, code, source):
+        """``forward`` after the encoder, with the source light given: the contract's estimate,
+        or (a diagnostic, training.evaluate --true-source) the true one."""
         relit, logits = self.decoder(image, target_light, skips, code, source)
         return relit.clamp(min=0.0), source, torch.sigmoid(logits)
 
