@@ -22,6 +22,7 @@ import torch
 from addon import colour, hdri
 from addon.hdri_io import read_hdri
 
+from .dataset import renderer_version
 from .lightstage import assets
 from .lightstage.png import to_srgb8, write_png
 from .lightstage.scene import Scene
@@ -64,7 +65,7 @@ def render_clip(out: pathlib.Path, frames: int = 48, size: int = 256, supersampl
     meta = {"frames": frames, "fps": FPS, "width": size, "height": size, "colour": "sRGB 8-bit",
             "exposure": exposure, "light": "light.npy: (16,16,3) linear, camera frame, "
             "radiance before exposure", "hdri": HDRI, "hdri_yaw_degrees": YAW,
-            "identity": IDENTITY, "performance": PERFORMANCE,
+            "identity": IDENTITY, "performance": PERFORMANCE, "render_version": renderer_version(),
             "command": ".venv/bin/python -m training.make_demo_clip"}
     (out / "clip.json").write_text(json.dumps(meta, indent=1) + "\n")
     write_notice(out, root)

@@ -10,6 +10,7 @@ from training import export, reproduce, train
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 CARDS = sorted((ROOT / "models").glob("*.json"))
+ALL_CARDS = CARDS + sorted((ROOT / "models" / "research").glob("*.json"))
 
 
 def _card(init=None, preset="draft", name="relight-draft"):
@@ -97,3 +98,22 @@ def test_each_run_in_the_chain_says_which_light_stage_samples_it_trained_on(tmp_
     notes = reproduce.version_notes(card, "v2")
     assert len(notes) == 1 and notes[0].startswith("reproduce: run 1 trained on light stage v1")
     assert reproduce.version_notes(card, "v1") and len(reproduce.version_notes(card, "v1")) == 2
+
+
+@pytest.mark.parametrize("card", ALL_CARDS, ids=[c.stem for c in ALL_CARDS])
+def test_every_committed_card_was_measured_on_the_current_light_stage(card):
+    """A card's held-out figures come from the test set of today's render version (bumping
+    training.dataset.RENDER_VERSION means re-measuring the cards: evaluate --update-card)."""
+    from training.dataset import renderer_version
+
+    metrics = json.loads(card.read_text())["metrics"]
+    assert metrics.get("render_version") == renderer_version(), (
+        f"{card.name} was measured on light stage {metrics.get('render_version', 'v1')} samples; "
+        f"re-measure: python -m training.evaluate --onnx {card.with_suffix('.onnx').relative_to(ROOT)}"
+        " --update-card")
+    assert metrics["testset"] == "training.make_testset" and len(metrics["testset_sha256"]) == 64
+
+
+def test_all_committed_cards_were_measured_on_one_and_the_same_test_set():
+    sets = {json.loads(c.read_text())["metrics"].get("testset_sha256") for c in ALL_CARDS}
+    assert len(sets) == 1, f"cards measured on different test sets: {sorted(map(str, sets))}"
