@@ -176,6 +176,14 @@ def test_progressive_schedule():
     assert train.lr_at(1.0, 0.0) == pytest.approx(1.0) and train.lr_at(1.0, 1.0) == pytest.approx(0.05)
 
 
+def test_warmup_ramps_the_rate_up_to_the_cosine_then_leaves_it():
+    ramp = [train.lr_at(1.0, 0.0, step, warmup=4) for step in range(6)]
+    assert ramp == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0, 1.0])
+    assert train.lr_at(1.0, 0.5, 10, warmup=4) == pytest.approx(train.lr_at(1.0, 0.5))
+    assert train.lr_at(2.0, 0.3, 0, warmup=0) == train.lr_at(2.0, 0.3)  # off by default
+    assert train.parser().parse_args(["--warmup-steps", "200"]).warmup_steps == 200
+
+
 def test_init_loads_a_checkpoint_of_the_same_network_and_refuses_another(tmp_path):
     cfg = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,
                             light_embed=16, relight="ratio")
