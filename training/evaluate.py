@@ -257,7 +257,10 @@ def error_breakdown(predict, dataset, n: int | None = None, edge_px: int = 2) ->
     pixels inside the portrait's outline (overlapping the classes); and ``level_fit_rmse``, the
     RMSE left after each sample's prediction is scaled per channel by the least-squares gain
     toward the truth (linear, over the portrait): the part of the error a right overall level and
-    colour would remove is ``rmse - level_fit_rmse``."""
+    colour would remove is ``rmse - level_fit_rmse``; and ``level_gain``, the mean and standard
+    deviation over the samples of the log of that gain (brightness: the mean of the three
+    channels; colour: each channel less that mean). A mean far from 0 would be a bias that one
+    fixed correction removes; a spread is a per-image guess that no fixed correction can."""
     from addon.contract import PARSING_CLASSES
 
     n = len(dataset) if n is None else min(n, len(dataset))
@@ -265,6 +268,7 @@ def error_breakdown(predict, dataset, n: int | None = None, edge_px: int = 2) ->
     sq = dict.fromkeys(names, 0.0)
     count = dict.fromkeys(names, 0)
     total_sq, total_px, fit_sq = 0.0, 0, 0.0
+    log_gains = []
     for idx in range(n):
         s = dataset[idx]
         mask = np.asarray(s["mask_t"])[0] > 0.5
@@ -276,7 +280,9 @@ def error_breakdown(predict, dataset, n: int | None = None, edge_px: int = 2) ->
         w = white_level(gt, mask)
         g = to_unit(gt, w)
         err = ((to_unit(pred, w) - g) ** 2).mean(0)
-        fit = ((to_unit(pred * level_gain(pred, gt, mask)[:, None, None], w) - g) ** 2).mean(0)
+        gain = level_gain(pred, gt, mask)
+        fit = ((to_unit(pred * gain[:, None, None], w) - g) ** 2).mean(0)
+        log_gains.append(np.log(np.maximum(gain, 1e-6)))
         total_sq += float(err[mask].sum())
         fit_sq += float(fit[mask].sum())
         total_px += int(mask.sum())
@@ -292,8 +298,14 @@ def error_breakdown(predict, dataset, n: int | None = None, edge_px: int = 2) ->
     out = {name: {"pixel_share": count[name] / max(total_px, 1),
                   "rmse": math.sqrt(sq[name] / count[name]) if count[name] else float("nan"),
                   "error_share": sq[name] / max(total_sq, 1e-30)} for name in names}
+    lg = np.array(log_gains).reshape(-1, 3)
+    bright, colour_ = lg.mean(1), lg - lg.mean(1, keepdims=True)
+    level = {"log_brightness_mean": float(bright.mean()) if len(lg) else float("nan"),
+             "log_brightness_sd": float(bright.std()) if len(lg) else float("nan"),
+             "log_colour_mean": colour_.mean(0).tolist(), "log_colour_sd": colour_.std(0).tolist()}
     return {"regions": out, "rmse_pooled": math.sqrt(total_sq / max(total_px, 1)),
-            "level_fit_rmse": math.sqrt(fit_sq / max(total_px, 1)), "samples": n}
+            "level_fit_rmse": math.sqrt(fit_sq / max(total_px, 1)), "level_gain": level,
+            "samples": n}
 
 
 def erode4(mask: np.ndarray) -> np.ndarray:
@@ -470,8 +482,13 @@ def main(argv=None):
         predict, _ = onnx_file_predictor(a.onnx, a.threads)
     if a.breakdown:
         b = error_breakdown(predict, ds, a.n)
+        lv = b["level_gain"]
         print(f"{b['samples']} samples: RMSE pooled over pixels {b['rmse_pooled']:.4f}, "
               f"after a per-sample level and colour fit {b['level_fit_rmse']:.4f}")
+        print(f"that fit's log gain: brightness {lv['log_brightness_mean']:+.3f} mean, "
+              f"{lv['log_brightness_sd']:.3f} sd; colour (R, G, B less brightness) mean "
+              + " ".join(f"{v:+.3f}" for v in lv["log_colour_mean"]) + ", sd "
+              + " ".join(f"{v:.3f}" for v in lv["log_colour_sd"]))
         print("region          pixels  RMSE    share of squared error")
         for name, r in b["regions"].items():
             print(f"{name:14s}  {r['pixel_share']:6.1%}  {r['rmse']:.4f}  {r['error_share']:6.1%}")

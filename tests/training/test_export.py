@@ -196,6 +196,13 @@ def test_error_breakdown_splits_the_error_by_region_and_level():
     tinted = evaluate.error_breakdown(
         lambda s: (s["gt_t_k"] * np.array([1.3, 0.8, 1.1], np.float32)[:, None, None], {}), ds)
     assert tinted["rmse_pooled"] > 0.05 and tinted["level_fit_rmse"] < 1e-6
+    # the fit's gain is 1 / tint: brightness and colour split in log space, no spread (a bias)
+    g = -np.log([1.3, 0.8, 1.1])
+    level = tinted["level_gain"]
+    assert level["log_brightness_mean"] == pytest.approx(g.mean(), abs=1e-6)
+    assert level["log_colour_mean"] == pytest.approx(g - g.mean(), abs=1e-6)
+    assert level["log_brightness_sd"] < 1e-6 and max(level["log_colour_sd"]) < 1e-6
+    assert exact["level_gain"]["log_brightness_mean"] == pytest.approx(0.0, abs=1e-9)
     shares = tinted["regions"]
     assert abs(shares["skin"]["pixel_share"] + shares["hair"]["pixel_share"] - 1.0) < 1e-9
     assert abs(shares["skin"]["pixel_share"] - 10 / 16) < 1e-9
