@@ -30,8 +30,6 @@ import json
 import pathlib
 import time
 
-import numpy as np
-
 from . import evaluate
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -69,10 +67,7 @@ def run(paths: dict, dataset, n: int, threads: int) -> dict:
     return {"variants": out, "baselines": baselines or {}}
 
 
-def paired(a_rows, b_rows, key="rmse") -> tuple[float, float]:
-    """Mean of b - a over the same samples and its standard error."""
-    d = np.array([b[key] - a[key] for a, b in zip(a_rows, b_rows)], np.float64)
-    return float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+paired = evaluate.paired_difference  # mean of b - a over the same samples, its standard error
 
 
 def table(result: dict) -> str:

@@ -413,6 +413,12 @@ def dataset_id(ds) -> dict:
     return {"dataset": type(ds).__name__}
 
 
+def paired_difference(a_rows, b_rows, key: str = "rmse") -> tuple[float, float]:
+    """Mean of b - a over the same samples (per-sample metric rows) and its standard error."""
+    d = np.array([b[key] - a[key] for a, b in zip(a_rows, b_rows)], np.float64)
+    return float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+
+
 def card_metrics(predict, ds, n: int, resolution: int) -> dict:
     """A model card's ``metrics``: evaluate's figures on ``n`` held-out samples, the lateral
     response, the painted background, what the figures mean and what they were measured on."""
@@ -462,12 +468,19 @@ def main(argv=None):
     p.add_argument("--breakdown", action="store_true",
                    help="only where the error lives: per parsing class, the outline, and what "
                         "a right overall level and colour would remove (error_breakdown)")
+    p.add_argument("--compare", metavar="ONNX",
+                   help="with --onnx: also evaluate this model on the same samples and print the "
+                        "paired difference (this one minus --onnx) of each figure with its "
+                        "standard error over the samples (is a new model better beyond the test "
+                        "set's sampling noise?)")
     p.add_argument("--update-card", action="store_true",
                    help="with --onnx: write the figures into the model's card (its metrics; "
                         "after the test set changed, e.g. a new light stage render version)")
     a = p.parse_args(argv)
     if a.true_source and not a.run:
         p.error("--true-source needs --run (an ONNX model always uses its own estimate)")
+    if a.compare and (not a.onnx or a.breakdown or a.update_card):
+        p.error("--compare needs --onnx (and neither --breakdown nor --update-card)")
     if a.update_card and (not a.onnx or a.breakdown or a.split != "test" or a.seed != 12345):
         p.error("--update-card needs --onnx and the fixed test set (default --split and --seed)")
     ds = heldout_dataset(a.resolution, a.seed, a.split)
@@ -493,6 +506,20 @@ def main(argv=None):
         for name, r in b["regions"].items():
             print(f"{name:14s}  {r['pixel_share']:6.1%}  {r['rmse']:.4f}  {r['error_share']:6.1%}")
         print(json.dumps({**b, **dataset_id(ds)}))
+        return
+    if a.compare:
+        other, _ = onnx_file_predictor(a.compare, a.threads)
+        base = evaluate(predict, ds, a.n, baselines=False, per_sample=True)
+        new = evaluate(other, ds, a.n, baselines=False, per_sample=True)
+        print(f"{a.compare} minus {a.onnx}, {base['samples']} samples (mean ± standard error):")
+        rows = {}
+        for key in ("rmse", "psnr", "ssim", "shading_corr", "rmse_level_fit"):
+            d = paired_difference(base["per_sample"]["model"], new["per_sample"]["model"], key)
+            rows[key] = {"mean": d[0], "se": d[1], "base": base["model"][key],
+                         "other": new["model"][key]}
+            print(f"  {key:15s} {base['model'][key]:8.4f} -> {new['model'][key]:8.4f}   "
+                  f"{d[0]:+.4f} ± {d[1]:.4f}")
+        print(json.dumps({"compare": rows, **dataset_id(ds)}))
         return
     if a.update_card:
         metrics = card_metrics(predict, ds, a.n, a.resolution)
