@@ -250,7 +250,8 @@ def test_paired_difference_is_the_mean_change_over_the_same_samples_with_its_err
     a = [{"rmse": 0.1}, {"rmse": 0.2}, {"rmse": 0.3}]
     b = [{"rmse": 0.1}, {"rmse": 0.1}, {"rmse": 0.4}]
     d, se = evaluate.paired_difference(a, b)
-    assert d == pytest.approx(0.0) and se == pytest.approx(np.std([0, -0.1, 0.1], ddof=1) / 3 ** 0.5)
+    assert d == pytest.approx(0.0)
+    assert se == pytest.approx(np.std([0, -0.1, 0.1], ddof=1) / 3 ** 0.5)
     assert evaluate.paired_difference(a, a) == (0.0, 0.0)
     with pytest.raises(SystemExit):  # --compare needs --onnx
         evaluate.main(["--run", "runs/x", "--compare", "m.onnx"])

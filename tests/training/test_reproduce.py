@@ -107,10 +107,10 @@ def test_every_committed_card_was_measured_on_the_current_light_stage(card):
     from training.dataset import renderer_version
 
     metrics = json.loads(card.read_text())["metrics"]
+    onnx = card.with_suffix(".onnx").relative_to(ROOT)
     assert metrics.get("render_version") == renderer_version(), (
         f"{card.name} was measured on light stage {metrics.get('render_version', 'v1')} samples; "
-        f"re-measure: python -m training.evaluate --onnx {card.with_suffix('.onnx').relative_to(ROOT)}"
-        " --update-card")
+        f"re-measure: python -m training.evaluate --onnx {onnx} --update-card")
     assert metrics["testset"] == "training.make_testset" and len(metrics["testset_sha256"]) == 64
 
 
