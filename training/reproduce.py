@@ -25,16 +25,17 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def chain(card: dict) -> list[dict]:
     """The training runs behind ``card``, first to last: each a record with ``recipe`` (the
-    command) and ``render_version`` (of the light stage samples it trained on; runs recorded before
+    command), ``git_commit`` (the code it ran, where recorded) and ``render_version`` (of the light stage samples it trained on; runs recorded before
     versions were kept trained on v1)."""
     recipe = card["training"]["recipe"]
     runs, init = [], recipe.get("init")
     while init:  # the run it started from, that run's own start, ... (training.train lineage)
         if init.get("recipe"):
-            runs.append({"recipe": init["recipe"],
+            runs.append({"recipe": init["recipe"], "git_commit": init.get("git_commit"),
                          "render_version": init.get("render_version") or "v1"})
         init = init.get("init")
-    last = {"recipe": recipe["command"], "render_version": recipe.get("render_version") or "v1"}
+    last = {"recipe": recipe["command"], "git_commit": recipe.get("git_commit"),
+            "render_version": recipe.get("render_version") or "v1"}
     return runs[::-1] + [last]
 
 
@@ -43,6 +44,7 @@ def version_notes(card: dict, current: str) -> list[str]:
     those runs re-run with today's samples, so they reproduce the recipe, not the same weights."""
     return [f"reproduce: run {i + 1} trained on light stage {r['render_version']} samples; this "
             f"code renders {current}, so it reproduces that run's recipe, not its weights"
+            + (f" (the code it ran: git checkout {r['git_commit']})" if r.get("git_commit") else "")
             for i, r in enumerate(chain(card)) if r["render_version"] != current]
 
 

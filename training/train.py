@@ -329,7 +329,8 @@ def load_init(net, path) -> dict:
     net.load_state_dict(ck["state_dict"])
     recipe = ck.get("recipe") or {}
     return {"checkpoint": str(path), "step": ck.get("step"), "recipe": recipe.get("command"),
-            "render_version": samples_version(recipe), "init": resolve_lineage(recipe.get("init"))}
+            "render_version": samples_version(recipe), "git_commit": recipe.get("git_commit"),
+            "init": resolve_lineage(recipe.get("init"))}
 
 
 def samples_version(recipe: dict) -> str:

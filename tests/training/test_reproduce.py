@@ -84,9 +84,10 @@ def test_each_run_in_the_chain_says_which_light_stage_samples_it_trained_on(tmp_
     from training import network
 
     net = network.build("draft")
-    train.save_checkpoint(tmp_path / "a.pt", net, {"command": "python -m training.train a"}, 5)
+    train.save_checkpoint(tmp_path / "a.pt", net, {"command": "python -m training.train a",
+                                                   "git_commit": "abc123"}, 5)
     init = train.load_init(network.build("draft"), tmp_path / "a.pt")
-    assert init["render_version"] == "v1"
+    assert init["render_version"] == "v1" and init["git_commit"] == "abc123"
     train.save_checkpoint(tmp_path / "b.pt", net, {"command": "python -m training.train b",
                                                    "init": init, "render_version": "v2"}, 5)
     init_b = train.load_init(network.build("draft"), tmp_path / "b.pt")
@@ -97,6 +98,7 @@ def test_each_run_in_the_chain_says_which_light_stage_samples_it_trained_on(tmp_
     assert [r["render_version"] for r in reproduce.chain(card)] == ["v1", "v2", "v2"]
     notes = reproduce.version_notes(card, "v2")
     assert len(notes) == 1 and notes[0].startswith("reproduce: run 1 trained on light stage v1")
+    assert notes[0].endswith("(the code it ran: git checkout abc123)")
     assert reproduce.version_notes(card, "v1") and len(reproduce.version_notes(card, "v1")) == 2
 
 
