@@ -25,18 +25,19 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def chain(card: dict) -> list[dict]:
     """The training runs behind ``card``, first to last: each a record with ``recipe`` (the
-    command), ``git_commit`` (the code it ran, where recorded) and ``render_version`` (of the light stage samples it trained on; runs recorded before
-    versions were kept trained on v1)."""
+    command), ``git_commit`` (the code it ran, where recorded) and ``render_version`` (of the
+    light stage samples it trained on; runs recorded before versions were kept trained on v1)."""
+    def run(command: str, record: dict) -> dict:
+        return {"recipe": command, "git_commit": record.get("git_commit"),
+                "render_version": record.get("render_version") or "v1"}
+
     recipe = card["training"]["recipe"]
     runs, init = [], recipe.get("init")
     while init:  # the run it started from, that run's own start, ... (training.train lineage)
         if init.get("recipe"):
-            runs.append({"recipe": init["recipe"], "git_commit": init.get("git_commit"),
-                         "render_version": init.get("render_version") or "v1"})
+            runs.append(run(init["recipe"], init))
         init = init.get("init")
-    last = {"recipe": recipe["command"], "git_commit": recipe.get("git_commit"),
-            "render_version": recipe.get("render_version") or "v1"}
-    return runs[::-1] + [last]
+    return runs[::-1] + [run(recipe["command"], recipe)]
 
 
 def version_notes(card: dict, current: str) -> list[str]:

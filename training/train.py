@@ -384,16 +384,19 @@ def train(args) -> pathlib.Path:
     net = network.build(args.preset, **net_overrides(args))
     init = load_init(net, args.init) if args.init else None
     net = net.to(device)
+    # pre-rendered samples (--cache) keep the render version they were made with
+    rendered = (json.loads((pathlib.Path(args.cache) / "cache.json").read_text())
+                if args.cache else None)
     recipe = {"command": "python -m training.train " + " ".join(sys.argv[1:]), "args": vars(args),
               "switches": sw.to_dict(), "net": net.cfg.to_dict(), "git_commit": git_commit(),
               "data_seed": args.seed, "machine": machine(), "device": str(device),
               "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "init": init,
-              "render_version": renderer_version()}
+              "render_version": (rendered.get("renderer", "v1") if rendered
+                                 else renderer_version())}
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
     if args.cache:
         ds = CachedSamples(args.cache)
-        recipe["data_cache"] = json.loads((pathlib.Path(args.cache) / "cache.json").read_text())
-        recipe["render_version"] = recipe["data_cache"].get("renderer", "v1")
+        recipe["data_cache"] = rendered
     elif args.data_cache:
         ds = make_dataset("train", args.resolution, args.seed, sampling=sw.sampling,
                           cache_dir=args.data_cache, transport=sw.transport,
