@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import dataclasses
 import inspect
 import json
@@ -306,6 +307,30 @@ class Trainer:
         return parts
 
 
+class WeightAverage:
+    """An exponential moving average of the generator's weights (``--ema DECAY``): with batch 8 the
+    weights after any one step carry that step's noise, and a val-selected checkpoint picks the
+    luckiest of them (the "dip" of continued runs, models/README.md). The average is what gets
+    validated, chosen as ``best.pt`` and exported; the raw weights keep training. Early in a run
+    from scratch the decay is held at (1 + n) / (10 + n) so the average is not dominated by the
+    random start; a run from ``--init`` starts its average at the loaded weights."""
+
+    def __init__(self, net, decay: float, warm: bool):
+        self.decay, self.updates = float(decay), 0 if not warm else 10 ** 9
+        self.net = copy.deepcopy(net).eval()
+        for p in self.net.parameters():
+            p.requires_grad_(False)
+
+    @torch.no_grad()
+    def update(self, net):
+        self.updates += 1
+        d = min(self.decay, (1 + self.updates) / (10 + self.updates))
+        for a, b in zip(self.net.parameters(), net.parameters()):
+            a.lerp_(b.detach(), 1.0 - d)
+        for a, b in zip(self.net.buffers(), net.buffers()):
+            a.copy_(b)
+
+
 def net_overrides(args) -> dict:
     """Width / depth overrides of the preset (the extra points of the accuracy/time frontier)."""
     out = {}
@@ -412,6 +437,8 @@ def train(args) -> pathlib.Path:
         val = validation_samples(args.resolution, args.val_n)
     batches = Batches(ds, args.batch, args.seed, device)
     trainer = Trainer(net, sw, args, device)
+    ema = WeightAverage(net, args.ema, warm=init is not None) if args.ema else None
+    scored = ema.net if ema else net  # the weights validated, chosen and exported
     stages = parse_stages(args.progressive)
     budget, start, step = args.minutes * 60.0, time.monotonic(), 0
     next_val, best = 0.0, math.inf
@@ -425,11 +452,11 @@ def train(args) -> pathlib.Path:
                 val_due = time.monotonic() - start >= next_val
             done = frac >= 1.0 or (args.max_steps and step >= args.max_steps)
             if val and (done or val_due):
-                row = {"val": validate(net, val), "step": step,
+                row = {"val": validate(scored, val), "step": step,
                        "minutes": round((time.monotonic() - start) / 60, 2)}
                 if row["val"]["model"]["rmse"] < best:  # chosen on val, never on the test set
                     best = row["val"]["model"]["rmse"]
-                    save_checkpoint(out / "best.pt", net, recipe, step, {"val": row["val"]})
+                    save_checkpoint(out / "best.pt", scored, recipe, step, {"val": row["val"]})
                 log.write(json.dumps(row) + "\n")
                 log.flush()
                 print(json.dumps(row), flush=True)
@@ -440,6 +467,8 @@ def train(args) -> pathlib.Path:
             parts = trainer.step(b, lr_at(args.lr, frac, step, args.warmup_steps),
                                  adv_on=frac >= args.adv_start,
                                  temporal_on=frac >= args.temporal_start)
+            if ema:
+                ema.update(net)
             step += 1
             if step % args.log_every == 0 or step == 1:
                 parts.update(step=step, minutes=round((time.monotonic() - start) / 60, 2),
@@ -448,12 +477,18 @@ def train(args) -> pathlib.Path:
                 log.flush()
                 print(json.dumps(parts), flush=True)
             if step % args.save_every == 0:
-                save_checkpoint(out / "checkpoint.pt", net, recipe, step)
+                save_checkpoint(out / "checkpoint.pt", scored, recipe, step, _raw(ema, net))
     recipe["steps"] = step
     recipe["trained_minutes"] = round((time.monotonic() - start) / 60, 2)
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
-    save_checkpoint(out / "checkpoint.pt", net, recipe, step)
+    save_checkpoint(out / "checkpoint.pt", scored, recipe, step, _raw(ema, net))
     return out
+
+
+def _raw(ema, net) -> dict:
+    """With --ema, checkpoint.pt holds the average (what export and --init read) and, beside it,
+    the raw training weights."""
+    return {"raw_state_dict": net.state_dict()} if ema else {}
 
 
 # ------------------------------------------------------------------------------------ validation
@@ -561,6 +596,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--optim", default="adam", choices=["adam", "rmsprop"],
                    help="network optimiser; the paper's is rmsprop at 5e-5 (the critic always is)")
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="validate, choose best.pt and export an exponential moving average of "
+                        "the weights with this decay per step (e.g. 0.999); 0: the raw weights")
     p.add_argument("--warmup-steps", type=int, default=0,
                    help="ramp the learning rate up linearly over these first steps (for runs "
                         "continued with --init, whose optimiser starts afresh)")

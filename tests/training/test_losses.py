@@ -197,3 +197,26 @@ def test_init_loads_a_checkpoint_of_the_same_network_and_refuses_another(tmp_pat
     other = network.RelightNet(network.NetConfig(**{**cfg.to_dict(), "widths": (8, 8, 16, 24)}))
     with pytest.raises(SystemExit, match="same --preset"):
         train.load_init(other, tmp_path / "a.pt")
+
+
+def test_weight_average_follows_the_weights_at_its_decay():
+    net = network.RelightNet(TINY)
+    start = [p.detach().clone() for p in net.parameters()]
+    ema = train.WeightAverage(net, 0.9, warm=True)  # a run from --init: the average starts there
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(1.0)
+    for _ in range(3):
+        ema.update(net)
+    for a, s in zip(ema.net.parameters(), start):  # 0.9^3 of the start, the rest of start + 1
+        assert torch.allclose(a, s + (1 - 0.9 ** 3), atol=1e-5)
+        assert not a.requires_grad
+    for p, s in zip(net.parameters(), start):  # the trained weights are left alone
+        assert torch.allclose(p, s + 1.0)
+    cold = train.WeightAverage(network.RelightNet(TINY), 0.999, warm=False)
+    rand = [a.detach().clone() for a in cold.net.parameters()]
+    cold.update(net)  # from scratch the random start weighs 2/11 at the first update, not 0.999
+    for a, r, p in zip(cold.net.parameters(), rand, net.parameters()):
+        assert torch.allclose(a, r * (2 / 11) + p.detach() * (9 / 11), atol=1e-5)
+    assert train.parser().parse_args(["--ema", "0.999"]).ema == 0.999
+    assert train.parser().parse_args([]).ema == 0.0
