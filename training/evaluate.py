@@ -462,6 +462,9 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--checkpoint", default="checkpoint.pt",
                    help="with --run: checkpoint.pt (last) or best.pt (best on val)")
+    p.add_argument("--raw", action="store_true",
+                   help="with --run: the raw training weights of a run trained with --ema "
+                        "(checkpoint.pt keeps them beside the average), not the average")
     p.add_argument("--true-source", action="store_true",
                    help="with --run: give the decoder the true source light instead of the "
                         "encoder's estimate (a diagnostic)")
@@ -477,6 +480,8 @@ def main(argv=None):
                    help="with --onnx: write the figures into the model's card (its metrics; "
                         "after the test set changed, e.g. a new light stage render version)")
     a = p.parse_args(argv)
+    if a.raw and not a.run:
+        p.error("--raw needs --run (an exported model holds one set of weights)")
     if a.true_source and not a.run:
         p.error("--true-source needs --run (an ONNX model always uses its own estimate)")
     if a.compare and (not a.onnx or a.breakdown or a.update_card):
@@ -489,7 +494,7 @@ def main(argv=None):
 
         from .train import load_checkpoint
         torch.set_num_threads(a.threads)
-        net, _ = load_checkpoint(f"{a.run}/{a.checkpoint}")
+        net, _ = load_checkpoint(f"{a.run}/{a.checkpoint}", raw=a.raw)
         predict = torch_predictor(net, a.true_source)
     else:
         predict, _ = onnx_file_predictor(a.onnx, a.threads)

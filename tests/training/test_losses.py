@@ -220,3 +220,21 @@ def test_weight_average_follows_the_weights_at_its_decay():
         assert torch.allclose(a, r * (2 / 11) + p.detach() * (9 / 11), atol=1e-5)
     assert train.parser().parse_args(["--ema", "0.999"]).ema == 0.999
     assert train.parser().parse_args([]).ema == 0.0
+
+
+def test_checkpoint_of_an_averaged_run_loads_the_average_or_the_raw_weights(tmp_path):
+    net = network.RelightNet(TINY)
+    ema = train.WeightAverage(net, 0.5, warm=True)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(1.0)
+    ema.update(net)
+    train.save_checkpoint(tmp_path / "c.pt", ema.net, {"command": "x"}, 7, train._raw(ema, net))
+    avg, _ = train.load_checkpoint(tmp_path / "c.pt")
+    raw, _ = train.load_checkpoint(tmp_path / "c.pt", raw=True)
+    for a, r, e, p in zip(avg.parameters(), raw.parameters(), ema.net.parameters(),
+                          net.parameters()):
+        assert torch.equal(a, e) and torch.equal(r, p) and not torch.equal(a, r)
+    train.save_checkpoint(tmp_path / "plain.pt", net, {"command": "x"}, 7, train._raw(None, net))
+    with pytest.raises(SystemExit, match="leave out --raw"):
+        train.load_checkpoint(tmp_path / "plain.pt", raw=True)
