@@ -762,8 +762,12 @@ def main(argv=None) -> int:
         p.error("give at least one --onnx model (or --check-data)")
     started = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     m = machine()
-    res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
-              progress=lambda msg: print(msg, file=sys.stderr))
+    try:
+        res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
+                  progress=lambda msg: print(msg, file=sys.stderr))
+    except InputError as e:  # bad data or models: the message says what to do
+        print(f"yale_eval: {e}", file=sys.stderr)
+        return 2
     models = list(res["models"])
     table = markdown(res["results"], models, res["paired"])
     res.update({"table_markdown": table, "date": started, "machine": m,

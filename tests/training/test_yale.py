@@ -267,3 +267,11 @@ def test_command_line_quick_run_writes_the_table_and_sheet(toy, shared_data, yal
     assert set(paired) == set(ye.REFERENCES)
     assert all(0.0 <= c["win_share"] <= 1.0 and c["se_subjects"] >= 0 for c in paired.values())
     assert sheet.stat().st_size > 1000 and "| identity |" in capsys.readouterr().out
+
+
+def test_command_line_says_what_to_do_with_two_models_of_one_name(toy, shared_data, yale_root,
+                                                                  tmp_path, capsys):
+    rc = ye.main(["--onnx", str(toy), "--onnx", str(toy), "--quick", "--data", str(shared_data),
+                  "--json", str(tmp_path / "y.json"), "--sheet", ""])
+    assert rc == 2 and "its own name" in capsys.readouterr().err
+    assert not (tmp_path / "y.json").exists()
