@@ -318,7 +318,7 @@ class WeightAverage:
     random start; a run from ``--init`` starts its average at the loaded weights."""
 
     def __init__(self, net, decay: float, warm: bool):
-        self.decay, self.updates = float(decay), 0 if not warm else 10 ** 9
+        self.decay, self.warm, self.updates = float(decay), warm, 0
         self.net = copy.deepcopy(net).eval()
         for p in self.net.parameters():
             p.requires_grad_(False)
@@ -326,7 +326,7 @@ class WeightAverage:
     @torch.no_grad()
     def update(self, net):
         self.updates += 1
-        d = min(self.decay, (1 + self.updates) / (10 + self.updates))
+        d = self.decay if self.warm else min(self.decay, (1 + self.updates) / (10 + self.updates))
         for a, b in zip(self.net.parameters(), net.parameters()):
             a.lerp_(b.detach(), 1.0 - d)
         for a, b in zip(self.net.buffers(), net.buffers()):
