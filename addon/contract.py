@@ -5,13 +5,20 @@ does not know. training/ imports these names so the two sides cannot drift apart
 """
 
 CONTRACT_VERSION = "relight-onnx/1"
-KNOWN_CONTRACTS = (CONTRACT_VERSION,)
+# Intrinsic models (addon/intrinsic.py renders their buffers): input ``image`` only, outputs the
+# buffers below and ``parsing`` with the classes INTRINSIC_CLASSES.
+INTRINSIC_CONTRACT = "relight-intrinsic/1"
+KNOWN_CONTRACTS = (CONTRACT_VERSION, INTRINSIC_CONTRACT)
 
 INPUT_IMAGE = "image"            # float32 [N, 3, H, W], linear Rec.709, normalised (normalise.py)
 INPUT_LIGHT = "target_light"     # float32 [N, 3, 16, 16], light vector channels-first, unit power
 OUTPUT_RELIT = "relit"           # float32 [N, 3, H, W], same units as the input image
 OUTPUT_SOURCE_LIGHT = "source_light"  # float32 [N, 3, 16, 16], in the normalised image's units
 OUTPUT_PARSING = "parsing"       # float32 [N, K, H, W] in [0, 1], one sigmoid per class
+OUTPUT_NORMAL = "normal"         # intrinsic: float32 [N, 3, H, W] unit normals, camera frame
+OUTPUT_HEIGHT = "height"         # intrinsic: float32 [N, 1, H, W] pixels toward the camera
+OUTPUT_ALBEDO = "albedo"         # intrinsic: float32 [N, 3, H, W] albedo up to a gain per channel
+INTRINSIC_CLASSES = ("foreground", "skin")
 
 # Parsing classes, in channel order. Channel 0 is the portrait foreground (the matte); the others
 # are semantic regions (multi-label: each its own sigmoid). Models list theirs in the card.

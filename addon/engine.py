@@ -243,9 +243,58 @@ class RelightSession:
         return self.postprocess_planar(self.process(prepared), prepared)
 
 
+@dataclass(frozen=True)
+class IntrinsicResult:
+    """An intrinsic model's buffers for one image, channels first, cropped to the input's size."""
+    normal: np.ndarray   # (3, H, W)
+    height: np.ndarray   # (H, W)
+    albedo: np.ndarray   # (3, H, W)
+    parsing: np.ndarray  # (K, H, W), channel order = card.classes
+
+
+class IntrinsicSession:
+    """A loaded intrinsic model (contract.INTRINSIC_CONTRACT): ``run_planar(image)`` gives the
+    buffers that addon/intrinsic.py renders; the light never enters the network."""
+
+    OUTPUTS = (contract.OUTPUT_NORMAL, contract.OUTPUT_HEIGHT, contract.OUTPUT_ALBEDO,
+               contract.OUTPUT_PARSING)
+
+    def __init__(self, session, card: ModelCard, providers: list[str]):
+        self.session = session
+        self.card = card
+        self.providers = providers
+        ins = {i.name for i in session.get_inputs()}
+        outs = {o.name for o in session.get_outputs()}
+        if contract.INPUT_IMAGE not in ins or not set(self.OUTPUTS) <= outs:
+            raise ModelError(
+                f"The model {card.onnx_path.name} does not follow contract {card.contract}: it "
+                f"needs input {contract.INPUT_IMAGE!r} and outputs {sorted(self.OUTPUTS)}, it has "
+                f"{sorted(ins)} and {sorted(outs)}. Reinstall it.")
+
+    def run_planar(self, image: np.ndarray) -> IntrinsicResult:
+        """(3, H, W) normalised linear image (addon.intrinsic.exposure_scale) -> buffers; the
+        image is reflect-padded to the model's stride and the buffers cropped back."""
+        img = np.asarray(image, dtype=np.float32)
+        if img.ndim != 3 or img.shape[0] != 3 or img.shape[1] < 1 or img.shape[2] < 1:
+            raise ValueError(f"image must be (3, H, W), got {img.shape}")
+        h, w = img.shape[1:]
+        s = self.card.stride
+        ph, pw = -h % s, -w % s
+        if ph or pw:
+            img = np.pad(img, ((0, 0), (0, ph), (0, pw)), mode="reflect" if min(h, w) > 1 else "edge")
+        outs = self.session.run(list(self.OUTPUTS), {contract.INPUT_IMAGE: np.ascontiguousarray(img[None])})
+        n, hgt, alb, par = (np.ascontiguousarray(o[0, :, :h, :w], dtype=np.float32) for o in outs)
+        k = len(self.card.classes)
+        if n.shape[0] != 3 or hgt.shape[0] != 1 or alb.shape[0] != 3 or par.shape[0] != k:
+            raise ModelError(f"The model {self.card.onnx_path.name} returned buffers of the wrong "
+                             "shape for its card; reinstall it.")
+        return IntrinsicResult(n, hgt[0], alb, par)
+
+
 def new_session(model_path, providers=None, threads: int | None = None, spin: bool = True,
-                verify: bool = True) -> RelightSession:
-    """Load a model after checking its card and checksum. Raises ModelError / DependencyError."""
+                verify: bool = True):
+    """Load a model after checking its card and checksum: a RelightSession, or an
+    IntrinsicSession for an intrinsic model. Raises ModelError / DependencyError."""
     card = load_card(model_path)
     if verify:
         verify_checksum(card)
@@ -257,4 +306,5 @@ def new_session(model_path, providers=None, threads: int | None = None, spin: bo
     except Exception as err:  # onnxruntime raises its own untyped errors for bad files
         raise ModelError(f"onnxruntime cannot load {card.onnx_path.name} ({err}). The file is "
                          "damaged or made for a newer onnxruntime; reinstall the model.") from err
-    return RelightSession(sess, card, sess.get_providers())
+    kind = IntrinsicSession if card.contract == contract.INTRINSIC_CONTRACT else RelightSession
+    return kind(sess, card, sess.get_providers())

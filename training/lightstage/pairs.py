@@ -118,11 +118,11 @@ def save(rec: PairRecord, path: pathlib.Path) -> int:
         arrs[f"label{n}"] = lab.numpy().astype(np.uint8)
         arrs[f"backdrop{n}"] = s.backdrop.numpy()
         arrs[f"px_per_cm{n}"] = np.float64(s.px_per_cm)
-    _write_arrays(path, arrs)
+    write_arrays(path, arrs)
     return path.stat().st_size
 
 
-def _write_arrays(path: pathlib.Path, arrs: dict) -> None:
+def write_arrays(path: pathlib.Path, arrs: dict) -> None:
     entries, offset = [], 0
     for k, v in arrs.items():
         v = np.ascontiguousarray(v)
@@ -139,7 +139,7 @@ def _write_arrays(path: pathlib.Path, arrs: dict) -> None:
     tmp.rename(path)  # a reader never sees half a file
 
 
-def _read_arrays(path: pathlib.Path) -> dict:
+def read_arrays(path: pathlib.Path) -> dict:
     buf = bytearray(path.stat().st_size)  # writable, so the arrays below are views, not copies
     with open(path, "rb") as fh:
         fh.readinto(buf)
@@ -158,7 +158,7 @@ def _read_arrays(path: pathlib.Path) -> dict:
 
 
 def load(path: pathlib.Path) -> PairRecord:
-    a = _read_arrays(path)
+    a = read_arrays(path)
     t = torch.from_numpy
     frames, labels = [], []
     for n in range(2):

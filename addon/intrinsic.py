@@ -1,0 +1,261 @@
+"""The physical renderer of the intrinsic presets: shade a target light from predicted buffers.
+
+The network (training/intrinsic) predicts, for a square crop around the portrait, per-pixel
+normals, height toward the camera, albedo variations, the matte and face skin. This module turns
+those buffers and a light vector into a per-pixel change of the footage:
+
+    relit = footage * E_target / E_source + specular
+
+* ``E_source``: the footage's own diffuse shading, an order-2 spherical-harmonic irradiance
+  fitted to the crop's luminance over the predicted normals (divided by the albedo variations, so
+  brows and lips do not read as shadow). Fitted on luminance: the footage keeps its own colour,
+  and the target light alone sets the colour change (a white light keeps skin colour).
+* ``E_target``: the exact irradiance sum over the light vector's 256 cells on the predicted
+  normals.
+* Effects on demand (``plan``): the light's strong, compact components (a lamp, a sun) get a
+  screen-space cast shadow marched over the predicted height and a GGX highlight on skin; soft
+  light (an overcast sky, a uniform world) gets neither, and pays nothing for them.
+
+Everything is numpy, channels first, at the working size; ``apply`` brings the change to the
+footage's full resolution as a ratio, so the footage keeps its identity and detail.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import colour, lightvec
+
+LUMA = tuple(float(x) for x in colour.REC709_LUMA)
+# A crop is scaled so its 90th luminance percentile sits at this level before the network (the
+# same rule in training: training/intrinsic/train.py normalise_batch).
+INPUT_QUANTILE = 0.9
+INPUT_LEVEL = 0.6
+
+# A component is "compact and strong" when the 3 x 3 cells around its brightest texel carry at
+# least this share of the light's power: only such components can cast a visible shadow or a
+# highlight. Up to MAX_COMPONENTS are simulated.
+COMPONENT_SHARE = 0.12
+MAX_COMPONENTS = 3
+SHADOW_STEPS = 40           # march length in working-size pixels
+SHADOW_SOFTNESS = 1.5       # pixels of height over which an occluder fades in
+SKIN_ROUGHNESS = 0.38
+SKIN_F0 = 0.028
+RATIO_MAX = 16.0            # a region the footage had in deep shadow is not amplified without bound
+
+
+def luminance(chw: np.ndarray) -> np.ndarray:
+    return np.tensordot(np.asarray(LUMA, np.float32), chw, axes=(0, 0))
+
+
+def exposure_scale(image_chw: np.ndarray) -> float:
+    """The scale that puts the crop's 90th luminance percentile at INPUT_LEVEL (1 for black)."""
+    lum = luminance(image_chw)
+    finite = lum[np.isfinite(lum)]
+    q = float(np.quantile(finite, INPUT_QUANTILE)) if finite.size else 0.0
+    return INPUT_LEVEL / q if q > 1e-8 else 1.0
+
+
+@dataclass(frozen=True)
+class Buffers:
+    """The network's buffers at the working size, channels first."""
+    normal: np.ndarray   # (3, h, w) unit, camera frame
+    height: np.ndarray   # (h, w) pixels toward the camera, up to a constant
+    albedo: np.ndarray   # (3, h, w) up to a gain per channel
+    matte: np.ndarray    # (h, w) portrait foreground in [0, 1]
+    face: np.ndarray     # (h, w) face skin in [0, 1]
+
+
+@dataclass(frozen=True)
+class Component:
+    direction: np.ndarray   # (3,) unit, camera frame
+    irradiance: np.ndarray  # (3,) W/m2 at normal incidence
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What the light calls for: the compact components that get shadows and highlights."""
+    components: tuple[Component, ...] = ()
+    shadows: bool = True
+    specular: bool = True
+    notes: tuple[str, ...] = field(default=())
+
+
+def plan(light: np.ndarray, shadows: bool = True, specular: bool = True,
+         share: float = COMPONENT_SHARE) -> Plan:
+    """Find the light's compact, strong components (greedy: brightest cell, its 3 x 3
+    neighbourhood, removed, repeat). A uniform or overcast light has none."""
+    light = np.asarray(light, np.float64)
+    omega = lightvec.solid_angles()
+    dirs = lightvec.directions()
+    power = (light @ np.asarray(LUMA)) * omega  # (16, 16) luminous power per cell
+    total = float(power.sum())
+    comps = []
+    if total > 0 and (shadows or specular):
+        left = power.copy()
+        rows, cols = power.shape
+        for _ in range(MAX_COMPONENTS):
+            r, c = np.unravel_index(int(np.argmax(left)), left.shape)
+            rr = np.clip(np.arange(r - 1, r + 2), 0, rows - 1)
+            cc = np.arange(c - 1, c + 2) % cols
+            sel = np.zeros_like(left, bool)
+            sel[np.ix_(rr, cc)] = True
+            sel &= left > 0
+            p = float(left[sel].sum())
+            if p < share * total:
+                break
+            w = left[sel]
+            d = (dirs[sel] * w[:, None]).sum(0)
+            d /= max(np.linalg.norm(d), 1e-12)
+            irr = (light[sel] * omega[sel][:, None]).sum(0)
+            comps.append(Component(d.astype(np.float32), irr.astype(np.float32)))
+            left[sel] = 0.0
+    return Plan(tuple(comps), shadows and bool(comps), specular and bool(comps))
+
+
+# ----------------------------------------------------------------------------- shading pieces
+
+def sh_basis(normal: np.ndarray) -> np.ndarray:
+    """(9, ...) real order-2 spherical harmonics of unit normals (3, ...)."""
+    x, y, z = normal
+    one = np.ones_like(x)
+    return np.stack([0.282095 * one, 0.488603 * y, 0.488603 * z, 0.488603 * x,
+                     1.092548 * x * y, 1.092548 * y * z, 0.315392 * (3 * z * z - 1),
+                     1.092548 * x * z, 0.546274 * (x * x - y * y)]).astype(np.float32)
+
+
+def irradiance(light: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """(3, h, w) exact irradiance sum_t L_t max(0, n.d_t) Omega_t on normals (3, h, w)."""
+    d = lightvec.directions().reshape(-1, 3).astype(np.float32)
+    lw = (np.asarray(light, np.float32).reshape(-1, 3)
+          * lightvec.solid_angles().reshape(-1, 1).astype(np.float32))
+    keep = lw.max(1) > 0  # cells with no light cost nothing
+    n = normal.reshape(3, -1)
+    cos = np.maximum(d[keep] @ n, 0.0)  # (cells, h*w)
+    return (lw[keep].T @ cos).reshape(3, *normal.shape[1:])
+
+
+def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
+    """Nine SH coefficients of the footage's shading, luminance only: least squares of
+    lum / albedo_variation ~ SH(n) . c over the confident foreground, robustly reweighted
+    twice (specular highlights and cast shadows are outliers to a smooth irradiance)."""
+    alb = luminance(bufs.albedo)
+    fg = (bufs.matte > 0.5) & (alb > 0.02) & np.isfinite(image_lum) & (image_lum > 0)
+    if int(fg.sum()) < 16:
+        return np.array([1.0] + [0.0] * 8, np.float32)
+    a_med = float(np.median(alb[fg]))
+    y = image_lum[fg] / (alb[fg] / a_med)
+    basis = sh_basis(bufs.normal[:, fg]).T.astype(np.float64)  # (N, 9)
+    w = np.ones(len(y))
+    ridge = 1e-3 * np.eye(9)
+    ridge[0, 0] = 0.0
+    c = np.zeros(9)
+    for _ in range(3):
+        bw = basis * w[:, None]
+        c = np.linalg.solve(basis.T @ bw + ridge * float(w.sum()), bw.T @ y)
+        r = y - basis @ c
+        s = 1.4826 * float(np.median(np.abs(r))) + 1e-12
+        w = 1.0 / np.maximum(1.0, np.abs(r) / (2.0 * s))  # Huber weights
+    return c.astype(np.float32)
+
+
+def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
+           steps: int = SHADOW_STEPS) -> np.ndarray:
+    """(h, w) visibility in [0, 1] toward a distant light: march from each pixel toward the
+    light in the image plane and compare the ray's height with the predicted height there."""
+    h, w = height.shape
+    dx, dy, dz = (float(v) for v in direction)
+    lat = math.hypot(dx, dy)
+    vis = np.ones((h, w), np.float32)
+    if lat < 1e-3:  # light along the view axis: its shadows hide behind the subject
+        return vis
+    ux, uy = dx / lat, -dy / lat         # image x right, image y down
+    rise = dz / lat                       # height gained per pixel travelled toward the light
+    hh = np.where(matte > 0.5, height, -1e6).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    h0 = hh
+    occl = np.zeros((h, w), np.float32)
+    for t in range(2, steps + 1):
+        x = xx + ux * t
+        y = yy + uy * t
+        inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+        xi = np.clip(np.rint(x).astype(np.int32), 0, w - 1)
+        yi = np.clip(np.rint(y).astype(np.int32), 0, h - 1)
+        ray = h0 + rise * t + 0.5 + 0.05 * t  # bias grows with distance: height is approximate
+        above = (hh[yi, xi] - ray) / SHADOW_SOFTNESS
+        occl = np.maximum(occl, np.where(inside, np.clip(above, 0.0, 1.0), 0.0))
+    return vis - occl
+
+
+def specular(normal: np.ndarray, direction: np.ndarray,
+             roughness: float = SKIN_ROUGHNESS, f0: float = SKIN_F0) -> np.ndarray:
+    """(h, w) GGX reflectance x cosine toward a distant light, viewer along +Z (orthographic
+    portrait crop): radiance per unit irradiance, as the light stage's skin."""
+    v = np.array([0.0, 0.0, 1.0], np.float32)
+    d = np.asarray(direction, np.float32)
+    hv = d + v
+    hv = hv / max(float(np.linalg.norm(hv)), 1e-8)
+    nl = np.maximum(np.tensordot(d, normal, axes=(0, 0)), 0.0)
+    nv = np.maximum(normal[2], 1e-3)
+    nh = np.maximum(np.tensordot(hv, normal, axes=(0, 0)), 0.0)
+    lh = max(float(d @ hv), 0.0)
+    a2 = (roughness * roughness) ** 2
+    dist = a2 / (math.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
+    smith = 0.5 / np.maximum(nl * np.sqrt(nv * nv * (1 - a2) + a2) + nv * np.sqrt(nl * nl * (1 - a2) + a2),
+                             1e-6)
+    fres = f0 + (1.0 - f0) * (1.0 - lh) ** 5
+    return (dist * smith * fres * nl).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Shading:
+    """The change to apply, at the working size."""
+    ratio: np.ndarray     # (3, h, w) multiplies the footage
+    highlight: np.ndarray  # (3, h, w) added, in the footage's units
+    plan: Plan
+
+
+def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan | None = None,
+          keep_exposure: bool = True) -> Shading:
+    """The ratio and highlight that relight ``image_chw`` (the crop at the working size, linear)
+    to ``light``. ``keep_exposure``: the subject keeps the footage's mean luminance, so the light
+    sets direction, colour and contrast (the artist's default); without it the ratio is left as
+    the light's power makes it (twice the light, twice the output)."""
+    light = np.asarray(light, np.float32)
+    effects = plan(light) if effects is None else effects
+    lum = luminance(image_chw)
+    c = fit_source(lum, bufs)
+    e_src = np.tensordot(c, sh_basis(bufs.normal), axes=(0, 0))  # (h, w) luminance shading
+    fg = bufs.matte > 0.5
+    floor = 0.05 * float(np.percentile(e_src[fg], 90)) if fg.any() else 1e-6
+    e_src = np.maximum(e_src, max(floor, 1e-8))
+    e_t = irradiance(light, bufs.normal)  # (3, h, w)
+    spec = np.zeros_like(e_t)
+    for comp in effects.components:
+        lam = np.maximum(np.tensordot(comp.direction, bufs.normal, axes=(0, 0)), 0.0)
+        e_c = comp.irradiance[:, None, None] * lam[None]
+        vis = None
+        if effects.shadows:
+            vis = shadow(bufs.height, bufs.matte, comp.direction)
+            e_t = e_t - (1.0 - vis)[None] * e_c
+        if effects.specular:
+            s = specular(bufs.normal, comp.direction) * (vis if vis is not None else 1.0)
+            spec += comp.irradiance[:, None, None] * (s * bufs.face)[None]
+    e_t = np.maximum(e_t, 0.0)
+    ratio = np.minimum(e_t / e_src[None], RATIO_MAX)
+    # The highlight in the footage's units: the footage's radiance per unit of irradiance on skin
+    # is lum / e_src there (albedo / pi of the skin, in whatever exposure the footage has).
+    skin = fg & (bufs.face > 0.5)
+    unit = float(np.median((lum / e_src)[skin])) if skin.sum() > 8 else float(
+        np.median((lum / e_src)[fg])) if fg.any() else 1.0
+    highlight = spec * (unit * math.pi * 0.35)  # GGX radiance scaled from skin albedo ~0.35
+    if keep_exposure and fg.any():
+        w = bufs.matte
+        before = float((lum * w).sum())
+        after = float(((luminance(ratio) * lum + luminance(highlight)) * w).sum())
+        k = before / after if after > 1e-12 else 1.0
+        ratio, highlight = ratio * k, highlight * k
+    return Shading(ratio.astype(np.float32), highlight.astype(np.float32), effects)

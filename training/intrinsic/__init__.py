@@ -1,0 +1,1 @@
+"""The intrinsic model: buffers supervised by the light stage, relit by the renderer in addon/."""

@@ -1,0 +1,245 @@
+"""Intrinsic samples: a light-stage frame under a random light, with its exact buffers as targets.
+
+The intrinsic model is supervised by what the light stage knows exactly per pixel: the surface
+normal (camera frame: +X right, +Y up, +Z toward the camera, as the light vector), the height
+toward the camera in pixels (relative to the subject's median), the albedo, the subject's matte
+(sub-pixel coverage) and the face-skin label. The picture itself is any light's weighted sum of
+the frame's 114 one-light-at-a-time transfers, so one rendered frame serves every lighting.
+
+    .venv/bin/python -m training.intrinsic.data --res 128 --frames 1024 --jobs 2
+
+writes ``cache/intrinsic/<split>_<res>/frame_NNNNNN.bin`` (git-ignored). A frame is a pure
+function of (split, resolution, index): frames are the light stage's pool pairs' first frames
+(``LightStageDataset.pair_scene``), so the build resumes and can be deleted at any time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import pathlib
+import time
+
+import numpy as np
+import torch
+
+from addon.contract import PARSING_CLASSES
+
+from .. import lighting_sampling
+from ..dataset import SPLITS, LightStageDataset, renderer_version
+from ..lightstage import backdrops as backdrops_mod
+from ..lightstage import layout, pairs, shading
+from ..lightstage.scene import stage_dirs
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+DEFAULT_OUT = ROOT / "cache" / "intrinsic"
+MAGIC_FORMAT = 1
+SKIN = PARSING_CLASSES.index("skin")
+# Buffers in the order the network predicts them (channels of the target tensor).
+TARGETS = ("normal", "height", "albedo", "matte", "face")
+
+
+def folder_for(out, split: str, res: int) -> pathlib.Path:
+    return pathlib.Path(out or DEFAULT_OUT) / f"{split}_{int(res)}"
+
+
+def frame_path(folder: pathlib.Path, i: int) -> pathlib.Path:
+    return folder / f"frame_{i:06d}.bin"
+
+
+def render_frame(ds: LightStageDataset, i: int) -> dict:
+    """Arrays of one frame: the transfer (float16) and the exact buffers of its foreground."""
+    scene, t = ds.pair_scene(i)
+    f = scene.frame(t)
+    gb = f.gb
+    pos = gb.position.reshape(-1, 3)[f.idx]
+    nrm = gb.normal.reshape(-1, 3)[f.idx]
+    z = pos[:, 2]
+    height = (z - z.median()) * f.px_per_cm if len(z) else z
+    for name in ("diffuse", "specular"):
+        x = getattr(f.transfer, name)
+        big = float(x.abs().max()) if x.numel() else 0.0
+        if not bool(torch.isfinite(x).all()) or big > 6e4:
+            raise ValueError(f"{name} transfer out of float16 range in frame {i}")
+    return {"idx": f.idx.numpy().astype(np.int32),
+            "diffuse": f.transfer.diffuse.numpy().astype(np.float16),
+            "specular": f.transfer.specular.numpy().astype(np.float16),
+            "albedo": f.albedo.numpy().astype(np.float32),
+            "sss": f.sss.numpy().astype(np.float32),
+            "mask": gb.mask.numpy(),
+            "cover": (f.cover if f.cover is not None else gb.mask.float()).numpy(),
+            "label": gb.label.numpy().astype(np.uint8),
+            "backdrop": scene.backdrop.numpy(),
+            "normal": nrm.numpy().astype(np.float32),
+            "height": height.numpy().astype(np.float32),
+            "px_per_cm": np.float64(f.px_per_cm)}
+
+
+def load_frame(path: pathlib.Path) -> dict:
+    return pairs.read_arrays(path)
+
+
+def shade_inputs(a: dict, backdrop: torch.Tensor | None = None) -> shading.ShadeInputs:
+    t = torch.from_numpy
+    return shading.ShadeInputs(t(a["idx"]).long(), t(a["diffuse"]), t(a["specular"]),
+                               t(a["albedo"]), t(a["sss"]), float(np.reshape(a["px_per_cm"], -1)[0]),
+                               t(a["mask"]), t(a["backdrop"]) if backdrop is None else backdrop,
+                               t(a["cover"]))
+
+
+def sample_light(rng: np.random.Generator, bank, pool) -> np.ndarray:
+    """A lighting as the product meets it: an environment, one to three lamps, or both (so hard
+    shadows and highlights are as common in training as soft light)."""
+    kind = rng.random()
+    if kind < 0.35:
+        return lighting_sampling.sample_g(rng, bank, pool)
+    lamps = lighting_sampling.sample_h(rng)
+    if kind < 0.6:
+        return (lamps + 0.02 * lighting_sampling.sample_g(rng, bank, pool)).astype(np.float32)
+    return (rng.uniform(0.1, 1.0) * lighting_sampling.sample_g(rng, bank, pool) + lamps).astype(
+        np.float32)
+
+
+def dense(a: dict, values: np.ndarray, fill=0.0) -> np.ndarray:
+    """(C, H, W) map of per-foreground-pixel values (N, C)."""
+    h, w = a["mask"].shape
+    out = np.full((values.shape[1], h * w), fill, np.float32)
+    out[:, a["idx"]] = values.T
+    return out.reshape(-1, h, w)
+
+
+def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo_pool=None) -> dict:
+    """``image`` (3, H, W) linear radiance and ``target`` (len(TARGETS) buffers stacked: 3 normal,
+    1 height, 3 albedo, 1 matte, 1 face = 9 channels), ``fg`` (1, H, W) where normal/height/albedo
+    are defined. A random horizontal flip (normal x negated) doubles the poses."""
+    h, w = a["mask"].shape
+    backdrop = None
+    if photo_bank is not None:
+        backdrop = backdrops_mod.sample(rng, h, w, torch.from_numpy(a["backdrop"]), photo_bank,
+                                        photo_pool)
+    light = sample_light(rng, bank, pool)
+    wts = torch.from_numpy(layout.weights(light)).float()[None]
+    img = shading.relight(shade_inputs(a, backdrop), wts, stage_dirs())[0].numpy()
+    normal = dense(a, a["normal"].astype(np.float32))
+    height = dense(a, a["height"][:, None])
+    albedo = dense(a, a["albedo"])
+    fg = a["mask"].astype(np.float32)[None]
+    matte = a["cover"].astype(np.float32)[None]
+    face = (a["label"] == SKIN).astype(np.float32)[None]
+    target = np.concatenate([normal, height, albedo, matte, face], 0)
+    if rng.random() < 0.5:
+        img, target, fg = img[..., ::-1], target[..., ::-1].copy(), fg[..., ::-1]
+        target[0] *= -1.0
+    return {"image": np.ascontiguousarray(img, np.float32), "target": np.ascontiguousarray(target),
+            "fg": np.ascontiguousarray(fg), "light": light}
+
+
+class IntrinsicFrames:
+    """Map-style dataset over a built frame folder: sample ``idx`` is a pure function of
+    (seed, split, idx). Frames stay in memory once read (a 128-px frame is about 3 MB)."""
+
+    def __init__(self, split: str, res: int, seed: int = 0, cache_dir=None, data_root=None,
+                 varied_backdrops: bool = True, length: int = 10 ** 7):
+        self.folder = folder_for(cache_dir, split, res)
+        man = self.folder / "manifest.json"
+        if not man.is_file():
+            raise FileNotFoundError(f"No intrinsic frames at {self.folder}; build them with "
+                                    f"`python -m training.intrinsic.data --split {split} --res {res}`.")
+        info = json.loads(man.read_text())
+        self.n = int(info["frames"])
+        self.split, self.seed, self.length = split, int(seed), int(length)
+        root = pathlib.Path(data_root) if data_root else None
+        from ..lightstage import assets
+        root = root or assets.default_data_root()
+        names, self.bank = lighting_sampling.environment_bank(root)
+        self.pool = lighting_sampling.hdri_pool(names, split)
+        self.photo_bank = self.photo_pool = None
+        if varied_backdrops:
+            pnames, self.photo_bank = backdrops_mod.photo_bank(root)
+            self.photo_pool = backdrops_mod.pool_for(pnames, split)
+        self._frames: dict[int, dict] = {}
+
+    def __len__(self) -> int:
+        return self.length
+
+    def frame(self, i: int) -> dict:
+        if i not in self._frames:
+            self._frames[i] = load_frame(frame_path(self.folder, i))
+        return self._frames[i]
+
+    def __getitem__(self, idx: int) -> dict:
+        rng = np.random.default_rng([self.seed, SPLITS[self.split], int(idx), 77])
+        a = self.frame(int(rng.integers(self.n)))
+        return sample(a, rng, self.bank, self.pool, self.photo_bank, self.photo_pool)
+
+    def batch(self, indices) -> dict:
+        items = [self[i] for i in indices]
+        return {k: torch.from_numpy(np.stack([it[k] for it in items])) for k in items[0]}
+
+
+# ---------------------------------------------------------------------------------- building
+
+_ds = None
+
+
+def _init(split, res, data_root):
+    global _ds
+    torch.set_num_threads(1)
+    _ds = LightStageDataset(split, res, data_root=data_root)
+
+
+def _render(job):
+    i, folder = job
+    path = frame_path(folder, i)
+    if not path.is_file():
+        pairs.write_arrays(path, render_frame(_ds, i))
+    return path.stat().st_size
+
+
+def build(split: str, res: int, n: int, out=None, jobs: int = 1, data_root=None, progress=print):
+    folder = folder_for(out, split, res)
+    folder.mkdir(parents=True, exist_ok=True)
+    info = {"format": MAGIC_FORMAT, "split": split, "resolution": int(res), "frames": int(n),
+            "renderer": renderer_version(),
+            "command": f"python -m training.intrinsic.data --split {split} --res {res} --frames {n}"}
+    old = folder / "manifest.json"
+    if old.is_file():
+        prev = json.loads(old.read_text())
+        if prev.get("renderer") != info["renderer"] or prev.get("format") != MAGIC_FORMAT:
+            for p in folder.glob("frame_*.bin"):  # another renderer's frames: render them again
+                p.unlink()
+    t0, total = time.perf_counter(), 0
+    work = [(i, folder) for i in range(n)]
+    if jobs > 1:
+        with multiprocessing.get_context("fork").Pool(jobs, _init, (split, res, data_root)) as pool:
+            for k, size in enumerate(pool.imap(_render, work, chunksize=4), 1):
+                total += size
+                if progress and (k % 32 == 0 or k == n):
+                    progress(f"{k}/{n} frames, {total / 1e9:.2f} GB, {time.perf_counter() - t0:.0f} s")
+    else:
+        _init(split, res, data_root)
+        for k, job in enumerate(work, 1):
+            total += _render(job)
+            if progress and (k % 32 == 0 or k == n):
+                progress(f"{k}/{n} frames, {total / 1e9:.2f} GB, {time.perf_counter() - t0:.0f} s")
+    tmp = folder / "manifest.json.tmp"
+    tmp.write_text(json.dumps({**info, "bytes": int(total)}, indent=2))
+    tmp.rename(folder / "manifest.json")
+    return folder
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description="Render the intrinsic model's light-stage frames.")
+    ap.add_argument("--split", default="train", choices=sorted(SPLITS))
+    ap.add_argument("--res", type=int, default=128)
+    ap.add_argument("--frames", type=int, default=1024)
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--out", help=f"cache root (default {DEFAULT_OUT})")
+    ap.add_argument("--data-root")
+    a = ap.parse_args(argv)
+    print(build(a.split, a.res, a.frames, a.out, a.jobs, a.data_root))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,165 @@
+"""Export a trained intrinsic network to ONNX with its model card.
+
+    .venv/bin/python -m training.intrinsic.export --run runs/intrinsic-standard \
+        --name relight-intrinsic --preset intrinsic
+
+Writes models/<name>.onnx (opset 17, dynamic N/H/W) and models/<name>.json (contract
+``relight-intrinsic/1``), after checking onnxruntime against PyTorch on two sizes and measuring
+the per-buffer errors on held-out val identities. Held-out quality on real faces is measured by
+``python -m training.yale_eval`` through ``addon.relight_image``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+
+import numpy as np
+import torch
+
+from addon import contract, engine
+
+from . import data
+from .model import CLASSES, STRIDE, IntrinsicNet
+from .train import prepare
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+
+
+class _Export(torch.nn.Module):
+    def __init__(self, net):
+        super().__init__()
+        self.net = net
+
+    def forward(self, image):
+        return self.net(image)
+
+
+def export_onnx(net: IntrinsicNet, path: pathlib.Path) -> None:
+    net.eval()
+    names = [contract.OUTPUT_NORMAL, contract.OUTPUT_HEIGHT, contract.OUTPUT_ALBEDO,
+             contract.OUTPUT_PARSING]
+    dyn = {"image": {0: "N", 2: "H", 3: "W"}, **{n: {0: "N", 2: "H", 3: "W"} for n in names}}
+    torch.onnx.export(_Export(net), (torch.rand(1, 3, 128, 128),), str(path),
+                      input_names=[contract.INPUT_IMAGE], output_names=names, opset_version=17,
+                      dynamic_axes=dyn, dynamo=False)
+
+
+def check_against_torch(net: IntrinsicNet, path: pathlib.Path) -> float:
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    worst = 0.0
+    for h, w in ((128, 128), (96, 160)):
+        x = torch.rand(1, 3, h, w) * 0.8
+        with torch.no_grad():
+            ref = net(x)
+        got = sess.run(None, {contract.INPUT_IMAGE: x.numpy()})
+        for r, g in zip(ref, got):
+            worst = max(worst, float(np.abs(r.numpy() - g).max()))
+    if worst > 1e-3:
+        raise RuntimeError(f"onnxruntime differs from PyTorch by {worst}")
+    return worst
+
+
+@torch.no_grad()
+def val_metrics(net: IntrinsicNet, n: int = 96, res: int = 128) -> dict:
+    """Per-buffer errors on held-out val identities (through the simulated camera)."""
+    vds = data.IntrinsicFrames("val", res, 4321)
+    b = vds.batch(range(n))
+    x = prepare(b, torch.Generator().manual_seed(7))
+    normal, height, albedo, parsing = net(x)
+    fg = b["fg"] > 0.5
+    t = b["target"]
+    cos = (normal * t[:, 0:3]).sum(1, keepdim=True).clamp(-1, 1)
+    ang = torch.rad2deg(torch.acos(cos))[fg]
+    d = (height - t[:, 3:4])
+    dm = torch.stack([d[i][fg[i]].median() for i in range(len(d))]).view(-1, 1, 1, 1)
+    la = torch.log(albedo + 0.02) - torch.log(t[:, 4:7] + 0.02)
+    la_m = torch.stack([la[i][:, fg[i, 0]].mean(1) for i in range(len(la))])[..., None, None]
+    pm = parsing[:, 0:1] > 0.5
+    tm = t[:, 7:8] > 0.5
+    iou = float((pm & tm).sum() / (pm | tm).sum().clamp(min=1))
+    pf, tf_ = parsing[:, 1:2] > 0.5, t[:, 8:9] > 0.5
+    return {"normal_angle_deg_mean": float(ang.mean()), "normal_angle_deg_median": float(ang.median()),
+            "height_abs_px": float((d - dm)[fg].abs().mean()),
+            "albedo_log_abs": float((la - la_m).abs().permute(1, 0, 2, 3)[:, fg[:, 0]].mean()),
+            "matte_iou": iou,
+            "face_iou": float((pf & tf_).sum() / (pf | tf_).sum().clamp(min=1)),
+            "samples": n, "split": "val (held-out identities)", "resolution": res}
+
+
+def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20) -> float:
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(path), sess_options=engine.session_options(ort, threads),
+                                providers=["CPUExecutionProvider"])
+    x = {contract.INPUT_IMAGE: np.random.default_rng(0).random((1, 3, size, size), np.float32)}
+    sess.run(None, x)
+    t = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        sess.run(None, x)
+        t.append(time.perf_counter() - t0)
+    return float(np.median(t) * 1000)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--run", required=True)
+    ap.add_argument("--checkpoint", default="best.pt")
+    ap.add_argument("--name", default="relight-intrinsic")
+    ap.add_argument("--preset", default="intrinsic")
+    ap.add_argument("--out", default=str(ROOT / "models"))
+    ap.add_argument("--working-size", type=int, default=128)
+    a = ap.parse_args(argv)
+    run = pathlib.Path(a.run)
+    state = torch.load(run / a.checkpoint, map_location="cpu")
+    net = IntrinsicNet(state["width"])
+    net.load_state_dict(state["state_dict"])
+    net.eval()
+    out = pathlib.Path(a.out)
+    onnx_path = out / f"{a.name}.onnx"
+    export_onnx(net, onnx_path)
+    worst = check_against_torch(net, onnx_path)
+    recipe = json.loads((run / "recipe.json").read_text())
+    ms = {str(t): time_onnx(onnx_path, t, a.working_size) for t in (1, 2)}
+    card = {
+        "contract": contract.INTRINSIC_CONTRACT, "name": a.name, "preset": a.preset,
+        "onnx": onnx_path.name, "sha256": engine.file_sha256(onnx_path),
+        "inputs": [{"name": contract.INPUT_IMAGE, "shape": ["N", 3, "H", "W"], "dtype": "float32"}],
+        "outputs": [{"name": contract.OUTPUT_NORMAL, "shape": ["N", 3, "H", "W"]},
+                    {"name": contract.OUTPUT_HEIGHT, "shape": ["N", 1, "H", "W"]},
+                    {"name": contract.OUTPUT_ALBEDO, "shape": ["N", 3, "H", "W"]},
+                    {"name": contract.OUTPUT_PARSING, "shape": ["N", len(CLASSES), "H", "W"]}],
+        "stride": STRIDE, "working_size": a.working_size,
+        "colour": {"space": "linear Rec.709 scene-referred, channels first",
+                   "image": "a square crop around the portrait (addon.framing), scaled so its 90th "
+                            "luminance percentile is 0.6 (addon.intrinsic.exposure_scale)"},
+        "classes": list(CLASSES),
+        "training": {"data": "synthetic light stage frames (training.intrinsic.data: ICT-FaceKit "
+                             "heads, CC0 HDRIs and backdrops) through a simulated camera "
+                             "(training.intrinsic.camera); exact per-pixel buffers as targets",
+                     "render_version": recipe.get("render_version"),
+                     "recipe": {"command": "python -m training.intrinsic.train " + " ".join(
+                         f"--{k.replace('_', '-')} {v}" for k, v in recipe.items()
+                         if k in ("width", "res", "minutes", "steps", "batch", "lr", "ema", "seed",
+                                  "threads", "out") and v is not None),
+                                "git_commit": recipe.get("git_commit"), "step": state.get("step")}},
+        "metrics": {"val_buffers": val_metrics(net)},
+        "cost": {"cpu": {"provider": "CPUExecutionProvider", "batch": 1,
+                         "network_ms_at_working_size": {f"{t} thread(s)": round(v, 2)
+                                                        for t, v in ms.items()}},
+                 "machine": "2-core x86-64 CPU (AMD EPYC, AVX-512), shared and noisy"},
+        "architecture": {"kind": "U-Net, dense 3x3", "width": state["width"],
+                         "parameters": sum(p.numel() for p in net.parameters())},
+        "onnx_check_max_abs": worst,
+    }
+    (out / f"{a.name}.json").write_text(json.dumps(card, indent=1) + "\n")
+    print(json.dumps(card["metrics"], indent=1), ms)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,89 @@
+"""The intrinsic network: one image in, the buffers the renderer needs out.
+
+A U-Net built for a CPU (dense 3x3 convolutions, which run well in bf16 here, bilinear upsampling,
+five levels). Input: the normalised linear image (addon/intrinsic.py scales a crop so its 90th
+luminance percentile is 0.6); the first operation encodes it with a 1/2.2 power, the way the
+camera data it must generalise to is distributed. Outputs, all at the input's size:
+
+* ``normal`` (3): unit surface normal in the camera frame (+X right, +Y up, +Z toward the camera);
+* ``height`` (1): height toward the camera in pixels, up to a constant (only differences matter);
+* ``albedo`` (3): reflectance in (0, 1), up to a per-channel gain (one image cannot tell albedo
+  from light power; the renderer only uses its variations);
+* ``parsing`` (2): sigmoid probabilities of the portrait foreground (the matte) and face skin.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as tf
+
+WIDTHS = {"small": (16, 32, 64, 96, 128), "standard": (24, 48, 96, 128, 192)}
+STRIDE = 16
+OUTPUTS = ("normal", "height", "albedo", "parsing")
+CLASSES = ("foreground", "skin")
+
+
+def block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
+        nn.Conv2d(cout, cout, 3, 1, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class IntrinsicNet(nn.Module):
+    def __init__(self, width: str = "standard"):
+        super().__init__()
+        w = WIDTHS[width]
+        self.width = width
+        self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i - 1], w[i], 2)
+                                                     for i in range(1, len(w))])
+        self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in range(len(w) - 1)])
+        self.head = nn.Conv2d(w[0], 3 + 1 + 3 + 2, 1)
+
+    def forward(self, image: torch.Tensor):
+        x = image.clamp(0.0, 1.0).clamp(min=1e-6) ** (1 / 2.2) - 0.5
+        skips = []
+        for enc in self.enc:
+            x = enc(x)
+            skips.append(x)
+        x = skips.pop()
+        for i in reversed(range(len(self.dec))):
+            s = skips[i]
+            x = tf.interpolate(x, size=s.shape[-2:], mode="bilinear", align_corners=False)
+            x = self.dec[i](torch.cat([x, s], 1))
+        out = self.head(x).float()
+        normal = tf.normalize(out[:, 0:3], dim=1, eps=1e-6)
+        height = out[:, 3:4] * 10.0
+        albedo = torch.sigmoid(out[:, 4:7])
+        parsing = torch.sigmoid(out[:, 7:9])
+        return normal, height, albedo, parsing
+
+
+def losses(pred, target: torch.Tensor, fg: torch.Tensor) -> dict:
+    """Per-buffer losses against the light stage's exact buffers (data.TARGETS order: normal 3,
+    height 1, albedo 3, matte 1, face 1); ``fg`` (B, 1, H, W) where the subject's buffers exist."""
+    normal, height, albedo, parsing = pred
+    n = fg.sum((2, 3)).clamp(min=1.0)  # (B, 1)
+
+    def mean_fg(x):  # (B, C, H, W) -> (B, C) mean over the foreground
+        return (x * fg).sum((2, 3)) / n
+
+    t_n, t_h, t_a = target[:, 0:3], target[:, 3:4], target[:, 4:7]
+    t_m, t_f = target[:, 7:8], target[:, 8:9]
+    cos = (normal * t_n).sum(1, keepdim=True)
+    l_normal = mean_fg(1.0 - cos).mean() + 0.5 * mean_fg((normal - t_n).abs()).mean()
+    d = height - t_h
+    d = d - mean_fg(d)[..., None, None]
+    l_height = mean_fg(d.abs()).mean() / 10.0
+    la = torch.log(albedo + 0.02) - torch.log(t_a + 0.02)
+    la = la - mean_fg(la)[..., None, None]  # albedo up to a gain per channel
+    l_albedo = mean_fg(la.abs()).mean()
+    p = parsing.clamp(1e-5, 1 - 1e-5)
+    l_matte = tf.binary_cross_entropy(p[:, 0:1], t_m)
+    l_face = tf.binary_cross_entropy(p[:, 1:2], t_f)
+    total = l_normal + l_height + 0.5 * l_albedo + 0.5 * l_matte + 0.5 * l_face
+    with torch.no_grad():
+        ang = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
+        angle = mean_fg(ang).mean()
+    return {"total": total, "normal": l_normal, "height": l_height, "albedo": l_albedo,
+            "matte": l_matte, "face": l_face, "normal_deg": angle}

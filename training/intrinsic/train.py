@@ -1,0 +1,168 @@
+"""Train the intrinsic network on light-stage frames (training/intrinsic/data.py).
+
+    .venv/bin/python -m training.intrinsic.train --minutes 60 --out runs/intrinsic-standard
+
+Each step relights random frames under random lights, passes them through a simulated camera
+(training/intrinsic/camera.py: exposure, white balance, tone curve, sRGB, noise, blur, JPEG, the
+product's decode back to linear), normalises them as the product does (addon.intrinsic), and
+supervises every buffer with the light stage's exact values. bf16 autocast on the CPU (dense 3x3
+convolutions run about twice as fast in bf16 on processors with AVX-512 bf16). The run keeps an
+exponential moving average of the weights and chooses ``best.pt`` on held-out val identities.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+import platform
+import subprocess
+import time
+
+import numpy as np
+import torch
+
+from addon import intrinsic as renderer
+
+from . import camera, data
+from .model import IntrinsicNet, losses
+
+
+def normalise_batch(img: torch.Tensor) -> torch.Tensor:
+    """The product's crop normalisation (addon.intrinsic.exposure_scale), per image."""
+    lum = (img * torch.tensor(renderer.LUMA).view(1, 3, 1, 1)).sum(1).flatten(1)
+    q = torch.quantile(lum, renderer.INPUT_QUANTILE, dim=1)
+    scale = renderer.INPUT_LEVEL / q.clamp(min=1e-8)
+    scale = torch.where(q > 1e-8, scale, torch.ones_like(scale))
+    return img * scale.view(-1, 1, 1, 1)
+
+
+def prepare(batch: dict, gen: torch.Generator, strength: float = 1.0) -> torch.Tensor:
+    img = camera.camera_pipeline(batch["image"], gen, strength)
+    img = camera.greyscale(img, gen, 0.15)
+    return normalise_batch(img)
+
+
+class EMA:
+    def __init__(self, model: torch.nn.Module, decay: float):
+        self.decay = decay
+        self.shadow = {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module, step: int):
+        d = min(self.decay, (1 + step) / (10 + step))
+        for k, v in model.state_dict().items():
+            if v.dtype.is_floating_point:
+                self.shadow[k].mul_(d).add_(v.detach(), alpha=1 - d)
+            else:
+                self.shadow[k].copy_(v)
+
+
+@torch.no_grad()
+def validate(model: torch.nn.Module, val: dict, inputs: torch.Tensor) -> dict:
+    model.eval()
+    out = {}
+    for i in range(0, len(inputs), 16):
+        pred = model(inputs[i:i + 16])
+        part = losses(pred, val["target"][i:i + 16], val["fg"][i:i + 16])
+        for k, v in part.items():
+            out[k] = out.get(k, 0.0) + float(v) * len(pred[0])
+    model.train()
+    return {k: v / len(inputs) for k, v in out.items()}
+
+
+def git_commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                              cwd=pathlib.Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def train(a) -> pathlib.Path:
+    torch.set_num_threads(a.threads)
+    torch.manual_seed(a.seed)
+    out = pathlib.Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    recipe = {**vars(a), "git_commit": git_commit(), "machine": platform.processor() or platform.machine(),
+              "cpus": os.cpu_count(), "render_version": data.renderer_version()}
+    (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
+    ds = data.IntrinsicFrames("train", a.res, a.seed, a.cache)
+    vds = data.IntrinsicFrames("val", a.res, 1234, a.cache)
+    val = vds.batch(range(a.val_n))
+    vgen = torch.Generator().manual_seed(99)
+    val_in = prepare(val, vgen)
+    model = IntrinsicNet(a.width)
+    if a.init:
+        model.load_state_dict(torch.load(a.init, map_location="cpu")["state_dict"])
+    opt = torch.optim.AdamW(model.parameters(), lr=a.lr, weight_decay=1e-4)
+    ema = EMA(model, a.ema)
+    gen = torch.Generator().manual_seed(a.seed)
+    t0 = time.time()
+    budget = a.minutes * 60 if a.minutes else None
+    step, best, log = 0, math.inf, []
+    while True:
+        elapsed = time.time() - t0
+        frac = elapsed / budget if budget else step / a.steps
+        if frac >= 1.0:
+            break
+        lr = a.lr * (min(1.0, (step + 1) / 200) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        batch = ds.batch(range(step * a.batch, (step + 1) * a.batch))
+        inp = prepare(batch, gen)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=a.bf16):
+            pred = model(inp)
+        ls = losses(pred, batch["target"], batch["fg"])
+        opt.zero_grad(set_to_none=True)
+        ls["total"].backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        opt.step()
+        ema.update(model, step)
+        step += 1
+        if step % a.log_every == 0:
+            print(f"step {step} {time.time() - t0:.0f}s lr {lr:.2e} " + " ".join(
+                f"{k} {float(v):.4f}" for k, v in ls.items()), flush=True)
+        if step % a.val_every == 0:
+            live = {k: v.clone() for k, v in model.state_dict().items()}
+            model.load_state_dict(ema.shadow)
+            v = validate(model, val, val_in)
+            score = v["normal_deg"] + 10 * v["albedo"] + 10 * v["height"]
+            log.append({"step": step, "seconds": round(time.time() - t0), **v, "score": score})
+            print("val", json.dumps(log[-1]), flush=True)
+            state = {"state_dict": ema.shadow, "width": a.width, "step": step, "val": v}
+            if score < best:
+                best = score
+                torch.save(state, out / "best.pt")
+            torch.save({**state, "raw_state_dict": live}, out / "checkpoint.pt")
+            model.load_state_dict(live)
+            (out / "val.json").write_text(json.dumps(log, indent=1))
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--width", default="standard", choices=["small", "standard"])
+    ap.add_argument("--res", type=int, default=128)
+    ap.add_argument("--cache", help="intrinsic frame cache root (default cache/intrinsic)")
+    ap.add_argument("--minutes", type=float, help="time box (else --steps)")
+    ap.add_argument("--steps", type=int, default=4000)
+    ap.add_argument("--batch", type=int, default=12)
+    ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--ema", type=float, default=0.998)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--val-n", type=int, default=48)
+    ap.add_argument("--val-every", type=int, default=250)
+    ap.add_argument("--log-every", type=int, default=50)
+    ap.add_argument("--init", help="start from this checkpoint's weights")
+    ap.add_argument("--no-bf16", dest="bf16", action="store_false")
+    a = ap.parse_args(argv)
+    print(train(a))
+
+
+if __name__ == "__main__":
+    main()
