@@ -34,11 +34,12 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from . import colour, detail, engine, frames, lightvec, normalise
+from . import colour, detail, engine, framing, frames, lightvec, normalise, portrait
 from .errors import Cancelled, InputError, LightingError, ModelError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
 
 RUN_FILE = "relight_run.json"
+BOXES_FILE = "relight_boxes.json"  # intrinsic models: the clip's smoothed portrait boxes
 RUN_FORMAT = "relight-run/1"
 
 
@@ -360,12 +361,25 @@ def coefficients_planar(x_low: np.ndarray, relit_low, k: float, plan: Plan,
     return np.zeros_like(b), b
 
 
+@dataclass(frozen=True)
+class Direct:
+    """A frame an intrinsic model relit at full resolution already (addon/portrait.py), in the
+    exposure-normalised units of x_full."""
+    relit: np.ndarray  # (3, H, W) float32
+    scale: float       # back to the footage's units
+
+
 def finish_planar(x_full: np.ndarray, ab, x_max: float,
                   fullres: detail.FullRes) -> tuple[np.ndarray, int]:
     """The full-resolution half-float frame (3, H, W) and how many values were clamped to the
     half range."""
     if ab is None:
         return np.zeros(x_full.shape, np.float16), 0
+    if isinstance(ab, Direct):
+        y = np.nan_to_num(ab.relit * np.float32(ab.scale), nan=0.0, posinf=detail.HALF_MAX, neginf=0.0)
+        big = y > detail.HALF_MAX
+        clamped = int(np.count_nonzero(big))
+        return np.clip(y, 0.0, detail.HALF_MAX).astype(np.float16), clamped
     y, may_clamp = fullres.finish_planar(x_full, *ab, x_max)
     return y, _count_clamped(y) if may_clamp else 0
 
@@ -421,6 +435,8 @@ def matte_full(fg, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
     w, h = plan.size
     if fg is None:
         return np.zeros((h, w), np.float16)
+    if fg.shape == (h, w):  # full resolution already (an intrinsic model's, or working = full)
+        return np.clip(np.nan_to_num(fg, nan=0.0), 0.0, 1.0).astype(np.float16)
     return fullres.upsample_half_planar(np.asarray(fg, np.float32)[None], h, w, 0.0, 1.0)[0]
 
 
@@ -489,6 +505,36 @@ def clip_exposure(clip: ClipSpec, plan: Plan, fullres: detail.FullRes) -> float:
             for d in frames.iter_frames(clip.kind, clip.path, clip.files,
                                         [clip.first + i for i in idx], plan.size, planar=True)]
     return normalise.exposure_scale(lows)
+
+
+# ---- portrait framing (intrinsic models) ----------------------------------------------------
+
+def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: dict,
+                   should_cancel=None) -> list:
+    """The portrait's box in every frame of the clip (None where none was found), smoothed over
+    the whole clip (never the chunk, so farm chunks agree) and kept in BOXES_FILE so a resumed
+    run frames exactly as the first did."""
+    path = os.path.join(out_dir, BOXES_FILE)
+    if os.path.isfile(path):
+        try:
+            stored = json.loads(pathlib.Path(path).read_text(encoding="utf-8"))
+            if stored.get("identity") == identity and len(stored["boxes"]) == clip.count:
+                return [None if b is None else framing.Box(*b) for b in stored["boxes"]]
+        except (OSError, ValueError, TypeError, KeyError):
+            pass  # unreadable: framed again below
+    raw = []
+    for d in frames.iter_frames(clip.kind, clip.path, clip.files,
+                                [clip.first + i for i in range(clip.count)], plan.size,
+                                planar=True):
+        if should_cancel and should_cancel():
+            raise Cancelled("Cancelled while framing the portrait; nothing was written, run "
+                            "again to start.")
+        raw.append(portrait.find_box(session, linearise(d.pixels, plan)[0]))
+    boxes = framing.smooth_boxes(raw)
+    _atomic_write_text(path, json.dumps(
+        {"identity": identity, "found": sum(b is not None for b in raw),
+         "boxes": [None if b is None else list(b.to_tuple()) for b in boxes]}))
+    return boxes
 
 
 # ---- the run ------------------------------------------------------------------------------
@@ -573,15 +619,22 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
     resumed = len(selected) - len(todo)
     if resumed:
         out.info(f"Resuming: {resumed} of {len(selected)} frames are already done.")
+    boxes = None
+    if isinstance(session, engine.IntrinsicSession) and todo:
+        boxes = portrait_boxes(clip, plan, session, out_dir, identity, should_cancel)
+        missing = sum(boxes[i] is None for i in todo)
+        if missing:
+            out.warn(f"No portrait was found in {missing} frame(s); they are written unchanged. "
+                     "The subject's face must be visible and at least a few pixels across.")
     written = _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed,
-                          len(selected), on_progress, should_cancel, out)
+                          len(selected), on_progress, should_cancel, out, boxes)
     return RunResult(out_dir, [relit_path(out_dir, i) for i in selected],
                      [matte_path(out_dir, i) for i in selected] if options.write_matte else [],
                      written, resumed, scale, out.warnings)
 
 
 def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, total,
-                on_progress, should_cancel, out: Log) -> int:
+                on_progress, should_cancel, out: Log, boxes=None) -> int:
     """Decode, linearise and shrink (worker thread) -> network and low-resolution coefficients
     (this thread) -> full-resolution finish and write (worker thread), each frame channels-first.
 
@@ -601,8 +654,8 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                     return
                 x_full, bad, x_max = linearise(d.pixels, plan)
                 counts["bad_in"] += bad
-                _put(decoded, (d.index - clip.first, x_full, x_max,
-                               shrink_planar(x_full, plan, fullres)), stop)
+                low = None if boxes is not None else shrink_planar(x_full, plan, fullres)
+                _put(decoded, (d.index - clip.first, x_full, x_max, low), stop)
         finally:
             _put(decoded, _DONE, stop, force=True)
 
@@ -645,10 +698,15 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 break
             i, x_full, x_max, x_low = item
             light = lights[min(i, len(lights) - 1)]
-            relit_low, source, fg, k = infer_planar(session, x_low, light)
-            ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
-            source = source * np.float32(plan.scale)  # the source light in the footage's units
-            ab = with_background(ab, fg, light, source, plan)
+            if boxes is not None:  # intrinsic: framing, buffers, renderer, all at full size
+                res = portrait.relight_frame(session, x_full, light, boxes[i])
+                ab, fg, source = Direct(res.relit, plan.scale), res.matte, np.zeros(
+                    lightvec.SHAPE, np.float32)
+            else:
+                relit_low, source, fg, k = infer_planar(session, x_low, light)
+                ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
+                source = source * np.float32(plan.scale)  # the source light in footage units
+                ab = with_background(ab, fg, light, source, plan)
             _put(results, (i, x_full, x_max, ab, fg, source), stop, alive=writer)
             _raise_if_failed(writer)
     finally:

@@ -47,11 +47,12 @@ The light vector fed to the network is the same weights splatted with ``lightvec
 (equal RGB, irradiance = weight), so the network's light and the ground truth agree exactly. Both
 lightings of a pair are of the same kind; pairs take the kinds in turn.
 
-Relighting follows the shipped pipeline per frame (addon/pipeline.py: exposure scale s of the
-input, area shrink to the card's working size, stride padding, network fed light / k, guided
-full-resolution transfer, output times k as the card's relit_scale says). The grayscale image is
-replicated to three channels on the way in and the output turned back to gray by Rec.709
-luminance (normalise.luminance).
+Relighting is ``addon.relight_image``, exactly what the pipeline does to one frame (for the
+end-to-end presets: exposure scale s of the input, area shrink to the card's working size, network
+fed light / k, guided full-resolution transfer; for the intrinsic presets: portrait framing,
+buffers, the renderer's effects, the ratio at full resolution). The grayscale image is replicated
+to three channels on the way in and the output turned back to gray by Rec.709 luminance
+(normalise.luminance).
 
 Metrics: training/evaluate.py's image_metrics on the single gray channel (white level = the
 ground truth's 99th percentile, clipped, sRGB-encoded; RMSE, PSNR, SSIM), over a centred ellipse
@@ -91,7 +92,7 @@ import time
 
 import numpy as np
 
-from addon import colour, detail, engine, hdri, lightvec, normalise, pipeline
+from addon import api, hdri, lightvec, normalise
 from addon.errors import InputError
 
 from . import evaluate
@@ -113,7 +114,6 @@ NEIGHBOUR_DEG = 35.0     # failed-strobe test: neighbours within this angle
 FAILED_RATIO = 0.1       # ... an image darker than this share of its neighbours' median
 SATURATED_SHARE = 0.1    # mask out pixels whose ground truth owes more than this to clipped codes
 ELLIPSE = (0.40, 0.46)   # mask semi-axes as shares of width and height
-LINEAR = colour.lookup("Linear Rec.709")
 
 _LIGHT = re.compile(r"^yaleB(\d{2})_P00A([+-]\d{3})E([+-]\d{2})\.pgm$")
 _AMBIENT = re.compile(r"^yaleB(\d{2})_P00_Ambient\.pgm$")
@@ -396,28 +396,19 @@ def face_mask(shape, subject: Subject | None = None, weights=None) -> np.ndarray
 # --------------------------------------------------------------------------------- relighting
 
 class PipelineRelighter:
-    """A shipped model run through the pipeline's per-frame stages on a gray image."""
+    """A shipped model run exactly as the product runs it (``addon.relight_image``) on a gray
+    image replicated to three channels; the output goes back to gray by Rec.709 luminance."""
 
     def __init__(self, onnx_path, threads: int = 1):
-        self.session = engine.new_session(onnx_path, providers=["CPUExecutionProvider"],
-                                          threads=threads, spin=False)
-        self.fullres = detail.FullRes(threads)
-        self.card = self.session.card
+        self.onnx_path = onnx_path
+        self.threads = threads
+        self.card = api.session(onnx_path, threads).card
         self.name = self.card.name
 
     def __call__(self, gray: np.ndarray, light: np.ndarray) -> np.ndarray:
         """(H, W) linear gray under some light -> (H, W) linear gray under ``light``."""
         rgb = np.repeat(np.asarray(gray, np.float32)[..., None], 3, axis=2)
-        s = normalise.exposure_scale([rgb])
-        x = np.ascontiguousarray(rgb / np.float32(s))
-        h, w = gray.shape
-        plan = pipeline.Plan(LINEAR, s, (w, h),
-                             detail.working_shape(h, w, self.card.working_size), True, False,
-                             "none", relit_times_s=pipeline.relit_times_s(self.card))
-        x_low = pipeline.shrink(x, plan, self.fullres)
-        relit_low, _, _, k = pipeline.infer(self.session, x_low, light)
-        ab = pipeline.coefficients(x_low, relit_low, k, plan, self.fullres)
-        y = pipeline.finish(x, ab, float(x.max()), self.fullres)[0]
+        y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads)
         return normalise.luminance(y.astype(np.float32))
 
 
@@ -502,6 +493,38 @@ def best_gain(pairs) -> float:
     return float(min(fine, key=lambda c: mean_rmse(pairs, c)))
 
 
+def balance(img: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """(left/right, top/bottom) balance of an image over the mask: (right - left) / (right +
+    left) of the two halves' means (and bottom - top): where the light comes from, independent
+    of the image's gain."""
+    h, w = img.shape
+    out = []
+    for first, second in ((mask & (np.arange(w)[None, :] < w / 2), mask & (np.arange(w)[None, :] >= w / 2)),
+                          (mask & (np.arange(h)[:, None] < h / 2), mask & (np.arange(h)[:, None] >= h / 2))):
+        a = float(img[first].mean()) if first.any() else 0.0
+        b = float(img[second].mean()) if second.any() else 0.0
+        out.append((b - a) / (a + b) if a + b > 0 else 0.0)
+    return out[0], out[1]
+
+
+def balance_correlation(rows: list[tuple]) -> dict:
+    """Per method, the Pearson correlation over pairs of its output's balance with the ground
+    truth's, left/right and top/bottom (rows: (kind, scores, subject, balances))."""
+    out = {}
+    truth = np.array([r[3]["ground_truth"] for r in rows], np.float64)
+    for m in rows[0][3] if rows else ():
+        if m == "ground_truth":
+            continue
+        pred = np.array([r[3][m] for r in rows], np.float64)
+        cors = []
+        for axis in (0, 1):
+            a, b = pred[:, axis], truth[:, axis]
+            ok = np.std(a) > 0 and np.std(b) > 0
+            cors.append(float(np.corrcoef(a, b)[0, 1]) if ok else 0.0)
+        out[m] = {"left_right": cors[0], "top_bottom": cors[1], "pairs": len(rows)}
+    return out
+
+
 def score_pair(r: PairResult, gains: dict) -> dict:
     """{view: {method: metrics}} for one pair."""
     out = {v: {} for v in VIEWS}
@@ -576,8 +599,8 @@ def paired_comparison(rows: list[tuple], models: list[str]) -> dict:
         for m in models:
             out[view][m] = {}
             for ref in REFERENCES:
-                d = np.array([s[view][m]["rmse"] - s[view][ref]["rmse"] for _, s, _ in rows])
-                subj = np.array([name for _, _, name in rows])
+                d = np.array([s[view][m]["rmse"] - s[view][ref]["rmse"] for _, s, *_ in rows])
+                subj = np.array([row[2] for row in rows])
                 means = np.array([d[subj == n].mean() for n in dict.fromkeys(subj)])
                 se = float(means.std(ddof=1) / math.sqrt(len(means))) if len(means) > 1 else None
                 out[view][m][ref] = {"win_share": float(np.mean(d < 0)),
@@ -706,7 +729,9 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         dropped[name] = [list(a) for a, _ in s.dropped]
         ambient[name] = s.ambient
         for r in iter_pairs([s], relighters, n_pairs, seed, bank):
-            rows.append((r.kind, score_pair(r, gains), r.subject))
+            bal = {name: balance(y, r.mask) for name, y in r.outputs.items()}
+            bal["ground_truth"] = balance(r.gt, r.mask)
+            rows.append((r.kind, score_pair(r, gains), r.subject, bal))
             if sheet_path and len(sheet) < sheet_rows and r.kind == KINDS[len(sheet) % 3]:
                 sheet.append(r)  # one pair of each kind in turn, from the first subjects
         progress(f"{name}: {len(rows)} pairs so far, {time.perf_counter() - t0:.0f} s")
@@ -725,6 +750,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         "gains": gains, "results": summary, "beats_both_baselines": verdict(summary, models),
         "beats_flattened_ratio": verdict(summary, models, (FLATTENED,)),
         "paired": paired_comparison(rows, models) if rows else {},
+        "balance_correlation": balance_correlation(rows),
         "data": {"dropped_failed_strobes": {k: v for k, v in dropped.items() if v},
                  "ambient": ambient},
         "seconds": round(time.perf_counter() - t0, 1),
@@ -776,6 +802,9 @@ def main(argv=None) -> int:
     print(table)
     print("beats both baselines (overall RMSE, test subjects):", res["beats_both_baselines"])
     print("beats the light-blind flattened_ratio:", res["beats_flattened_ratio"])
+    print("balance correlation with the ground truth (left/right, top/bottom):")
+    for name, c in res["balance_correlation"].items():
+        print(f"  {name}: {c['left_right']:.3f}, {c['top_bottom']:.3f}")
     print(f"{res['seconds']} s; gains {res['gains']}")
     out = pathlib.Path(a.json)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,82 @@
+"""``relight_image``: what the pipeline does to one frame, for one image.
+
+Every evaluation (CroppedYale, the footage sheets, benchmarks) goes through this function, so
+every figure is the product's: the same framing, normalisation, network, effects, full-resolution
+transfer and default exposure mode as a relit clip, with the clip-level exposure computed from
+the one image.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+from . import colour, detail, engine, lightvec, normalise, pipeline, portrait
+from .errors import InputError, ModelError
+
+MODELS_DIR = pathlib.Path(__file__).resolve().parents[1] / "models"
+LINEAR = colour.lookup("Linear Rec.709")
+_SESSIONS: dict = {}
+
+
+def find_model(preset: str, models_dir=None) -> pathlib.Path:
+    """The .onnx of the model whose card names ``preset`` in ``models_dir`` (default: the
+    extension's models/). ModelError lists the presets there when none matches."""
+    folder = pathlib.Path(models_dir) if models_dir else MODELS_DIR
+    found = []
+    for path in sorted(folder.glob("*.onnx")) if folder.is_dir() else ():
+        try:
+            card = engine.load_card(path)
+        except ModelError:
+            continue
+        if card.preset == preset:
+            return path
+        found.append(card.preset)
+    raise ModelError(f"No model for the preset '{preset}' in {folder}; available: "
+                     f"{', '.join(found) or 'none'}.")
+
+
+def session(model_path, threads: int | None = None):
+    """A loaded model, kept for the next call (loading checks the file's checksum)."""
+    key = (str(pathlib.Path(model_path).resolve()), threads)
+    if key not in _SESSIONS:
+        _SESSIONS[key] = engine.new_session(model_path, providers=["CPUExecutionProvider"],
+                                            threads=threads, spin=False)
+    return _SESSIONS[key]
+
+
+def relight_image(image, light, preset: str = "standard", models_dir=None, *, model=None,
+                  threads: int | None = None) -> np.ndarray:
+    """Relight ``image`` ((H, W, 3) float32 scene-linear Rec.709) to ``light`` ((16, 16, 3), the
+    light-vector convention) with the preset's model and return (H, W, 3) scene linear.
+    ``model``: a path to an .onnx (with its card) instead of a preset. NaN, infinite and negative
+    pixels are taken as 0, as the pipeline does."""
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
+        raise InputError(f"The image must be (H, W, 3), got shape {img.shape}.")
+    img = np.where(np.isfinite(img) & (img > 0), img, np.float32(0.0))
+    light = lightvec.validate(light)
+    sess = session(model or find_model(preset, models_dir), threads)
+    x = np.ascontiguousarray(img.transpose(2, 0, 1))
+    if isinstance(sess, engine.IntrinsicSession):
+        res = portrait.relight_frame(sess, x, light, portrait.find_box(sess, x))
+        return np.ascontiguousarray(res.relit.transpose(1, 2, 0))
+    return _network_frame(sess, x, light)
+
+
+def _network_frame(sess, x: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """The end-to-end network's path through the pipeline's per-frame stages."""
+    h, w = x.shape[1:]
+    s = normalise.exposure_scale([x.transpose(1, 2, 0)])
+    plan = pipeline.Plan(LINEAR, s, (w, h), detail.working_shape(h, w, sess.card.working_size),
+                         True, False, "none", pipeline.relit_times_s(sess.card),
+                         pipeline.DEFAULT_BACKGROUND)
+    fullres = detail.FullRes(threads=1)
+    xn = np.ascontiguousarray(x / np.float32(s))
+    x_low = pipeline.shrink_planar(xn, plan, fullres)
+    relit_low, source, fg, k = pipeline.infer_planar(sess, x_low, light)
+    ab = pipeline.coefficients_planar(x_low, relit_low, k, plan, fullres)
+    ab = pipeline.with_background(ab, fg, light, source * np.float32(s), plan)
+    y = pipeline.finish_planar(xn, ab, float(xn.max()) if xn.size else 0.0, fullres)[0]
+    return np.ascontiguousarray(y.astype(np.float32).transpose(1, 2, 0))
