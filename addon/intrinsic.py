@@ -118,6 +118,10 @@ def plan(light: np.ndarray, shadows: bool = True, specular: bool = True,
 
 # ----------------------------------------------------------------------------- shading pieces
 
+# Lambert's cosine lobe in SH bands 0, 1, 2 (pi, 2 pi / 3, pi / 4), per coefficient.
+SH_BAND = np.array([math.pi] + [2 * math.pi / 3] * 3 + [math.pi / 4] * 5, np.float32)
+
+
 def sh_basis(normal: np.ndarray) -> np.ndarray:
     """(9, ...) real order-2 spherical harmonics of unit normals (3, ...)."""
     x, y, z = normal
@@ -127,15 +131,29 @@ def sh_basis(normal: np.ndarray) -> np.ndarray:
                      1.092548 * x * z, 0.546274 * (x * x - y * y)]).astype(np.float32)
 
 
-def irradiance(light: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """(3, h, w) exact irradiance sum_t L_t max(0, n.d_t) Omega_t on normals (3, h, w)."""
+EXACT_CELLS = 24  # the brightest cells are summed exactly; the rest (soft light) through SH
+
+
+def irradiance(light: np.ndarray, normal: np.ndarray, exact_cells: int = EXACT_CELLS) -> np.ndarray:
+    """(3, h, w) irradiance sum_t L_t max(0, n.d_t) Omega_t on normals (3, h, w): the
+    ``exact_cells`` brightest cells exactly (a lamp's terminator stays sharp), the others through
+    their order-2 spherical-harmonic projection (Ramamoorthi and Hanrahan: about 1% error for
+    smooth light, at the cost of nine products per pixel instead of one per cell)."""
     d = lightvec.directions().reshape(-1, 3).astype(np.float32)
     lw = (np.asarray(light, np.float32).reshape(-1, 3)
           * lightvec.solid_angles().reshape(-1, 1).astype(np.float32))
-    keep = lw.max(1) > 0  # cells with no light cost nothing
+    power = lw @ np.asarray(LUMA, np.float32)
+    order = np.argsort(-power)
+    exact = order[:exact_cells]
+    exact = exact[power[exact] > 0]
+    rest = order[exact_cells:]
     n = normal.reshape(3, -1)
-    cos = np.maximum(d[keep] @ n, 0.0)  # (cells, h*w)
-    return (lw[keep].T @ cos).reshape(3, *normal.shape[1:])
+    cos = np.maximum(d[exact] @ n, 0.0)  # (cells, h*w)
+    out = lw[exact].T @ cos
+    if len(rest) and float(np.abs(lw[rest]).max(initial=0.0)) > 0:
+        coeff = sh_basis(d[rest].T) @ lw[rest] * SH_BAND[:, None]  # (9, 3)
+        out += coeff.T @ sh_basis(n)
+    return out.reshape(3, *normal.shape[1:])
 
 
 def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
@@ -163,9 +181,10 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
 
 
 def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
-           steps: int = SHADOW_STEPS) -> np.ndarray:
-    """(h, w) visibility in [0, 1] toward a distant light: march from each pixel toward the
-    light in the image plane and compare the ray's height with the predicted height there."""
+           steps: int = SHADOW_STEPS, lit: np.ndarray | None = None) -> np.ndarray:
+    """(h, w) visibility in [0, 1] toward a distant light: march from each subject pixel toward
+    the light in the image plane and compare the ray's height with the predicted height there.
+    ``lit`` (h, w): march only where it is positive (pixels facing the light)."""
     h, w = height.shape
     dx, dy, dz = (float(v) for v in direction)
     lat = math.hypot(dx, dy)
@@ -175,9 +194,13 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
     ux, uy = dx / lat, -dy / lat         # image x right, image y down
     rise = dz / lat                       # height gained per pixel travelled toward the light
     hh = np.where(matte > 0.5, height, -1e6).astype(np.float32)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    h0 = hh
-    occl = np.zeros((h, w), np.float32)
+    yy, xx = np.nonzero(matte > 0.5)  # only the subject receives shadows here
+    if lit is not None:
+        keep = lit[yy, xx] > 0
+        yy, xx = yy[keep], xx[keep]
+    h0 = hh[yy, xx]
+    xx, yy = xx.astype(np.float32), yy.astype(np.float32)
+    occl = np.zeros(len(h0), np.float32)
     for t in range(2, steps + 1):
         x = xx + ux * t
         y = yy + uy * t
@@ -185,9 +208,10 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
         xi = np.clip(np.rint(x).astype(np.int32), 0, w - 1)
         yi = np.clip(np.rint(y).astype(np.int32), 0, h - 1)
         ray = h0 + rise * t + 0.5 + 0.05 * t  # bias grows with distance: height is approximate
-        above = (hh[yi, xi] - ray) / SHADOW_SOFTNESS
-        occl = np.maximum(occl, np.where(inside, np.clip(above, 0.0, 1.0), 0.0))
-    return vis - occl
+        above = (hh[yi, xi] - ray) * (inside / SHADOW_SOFTNESS)
+        np.maximum(occl, above, out=occl)
+    vis[yy.astype(np.int64), xx.astype(np.int64)] = 1.0 - np.clip(occl, 0.0, 1.0)
+    return vis
 
 
 def specular(normal: np.ndarray, direction: np.ndarray,
@@ -239,7 +263,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         e_c = comp.irradiance[:, None, None] * lam[None]
         vis = None
         if effects.shadows:
-            vis = shadow(bufs.height, bufs.matte, comp.direction)
+            vis = shadow(bufs.height, bufs.matte, comp.direction, lit=lam)
             e_t = e_t - (1.0 - vis)[None] * e_c
         if effects.specular:
             s = specular(bufs.normal, comp.direction) * (vis if vis is not None else 1.0)

@@ -1,0 +1,160 @@
+"""What each effect of the intrinsic renderer buys and costs, against the light stage's truth.
+
+    .venv/bin/python -m bench.intrinsic_effects [--frames 24] [--model models/relight-intrinsic.onnx]
+
+Held-out val frames (training/intrinsic/data.py, identities never trained on) are rendered under
+a soft source light, then relit by ``addon.intrinsic.shade`` to five target lights and compared
+with the light stage's own render under each target (its shadows, GGX skin, subsurface
+scattering). Two kinds of buffers: the light stage's exact ones (the renderer's own error) and,
+with ``--model``, the network's predictions from the camera-degraded picture (the product's
+error). Error: relative RMSE over the subject after one least-squares gain (exposure is the
+artist's choice), so it measures where the light falls. Effects: diffuse only, + cast shadows,
++ highlights, and "auto" (``intrinsic.plan``: shadows and highlights only for compact, strong
+components). Time: the renderer's milliseconds per 128 x 128 crop, median over the frames, on
+this machine. Writes ``bench/results/intrinsic_effects.{md,json}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import time
+
+import numpy as np
+import torch
+
+from addon import intrinsic, lightvec
+from training import lighting_sampling
+from training.intrinsic import data
+from training.lightstage import layout, shading
+from training.lightstage.scene import stage_dirs
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def lamp(direction, power=3.0, fill=0.03) -> np.ndarray:
+    d = np.asarray(direction, float)
+    return (lightvec.splat_direction(d / np.linalg.norm(d), [power] * 3)
+            + fill * lightvec.uniform()).astype(np.float32)
+
+
+def targets(bank) -> dict:
+    """Three lamps, the softest and the most sun-like HDRI of the val split's bank (by the share
+    of power in the brightest 3 x 3 cells), and a uniform world."""
+    envs = [np.clip(lighting_sampling.environment(bank, i, 0.0), 0, None) for i in range(len(bank))]
+
+    def peak_share(lv):
+        p = (lv @ np.asarray(intrinsic.LUMA)) * lightvec.solid_angles()
+        r, c = np.unravel_index(int(np.argmax(p)), p.shape)
+        return float(p[max(r - 1, 0):r + 2, :].take(np.arange(c - 1, c + 2) % 16, axis=1).sum() / p.sum())
+
+    shares = [peak_share(e) for e in envs]
+    return {"key left": lamp([-1, 0.3, 0.5]), "key right": lamp([1, 0.2, 0.6]),
+            "top": lamp([0, 1, 0.35]),
+            "softest HDRI": envs[int(np.argmin(shares))].astype(np.float32),
+            "sunniest HDRI": envs[int(np.argmax(shares))].astype(np.float32),
+            "uniform": lightvec.uniform().astype(np.float32)}
+
+
+EFFECTS = {"diffuse only": dict(shadows=False, specular=False),
+           "+ shadows": dict(shadows=True, specular=False),
+           "+ highlights": dict(shadows=False, specular=True),
+           "auto (both where called for)": dict(shadows=True, specular=True)}
+
+
+def render(a: dict, light: np.ndarray) -> np.ndarray:
+    w = torch.from_numpy(layout.weights(light)).float()[None]
+    return shading.relight(data.shade_inputs(a), w, stage_dirs())[0].numpy()
+
+
+def exact_buffers(a: dict) -> intrinsic.Buffers:
+    return intrinsic.Buffers(data.dense(a, a["normal"]), data.dense(a, a["height"][:, None])[0],
+                             data.dense(a, a["albedo"]), a["cover"].astype(np.float32),
+                             (a["label"] == data.SKIN).astype(np.float32))
+
+
+def predicted_buffers(session, img: np.ndarray) -> intrinsic.Buffers:
+    from addon import portrait
+
+    return portrait._buffers(session, img)
+
+
+def error(out: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    o, g = out[:, mask].astype(np.float64), gt[:, mask].astype(np.float64)
+    gain = float((o * g).sum() / max((o * o).sum(), 1e-20))
+    return float(np.sqrt(((gain * o - g) ** 2).mean()) / np.sqrt((g ** 2).mean()))
+
+
+def run(n_frames: int, model=None) -> dict:
+    torch.set_num_threads(1)
+    ds = data.IntrinsicFrames("val", 128, 0, varied_backdrops=False)
+    lights = targets(ds.bank)
+    session = None
+    if model:
+        from addon import api
+
+        session = api.session(model, 1)
+    rows: dict = {}
+    source = (0.7 * lightvec.uniform() + lamp([0.3, 0.5, 1.0], 1.0, 0.0)).astype(np.float32)
+    for f in range(min(n_frames, ds.n)):
+        a = ds.frame(f)
+        src = render(a, source)
+        kinds = {"exact buffers": exact_buffers(a)}
+        if session is not None:
+            kinds["network buffers"] = predicted_buffers(session, src)
+        for lname, light in lights.items():
+            gt = render(a, light)
+            auto = intrinsic.plan(light)
+            for kind, bufs in kinds.items():
+                for ename, flags in EFFECTS.items():
+                    p = intrinsic.Plan(auto.components, flags["shadows"] and bool(auto.components),
+                                       flags["specular"] and bool(auto.components))
+                    t0 = time.perf_counter()
+                    sh = intrinsic.shade(src, bufs, light, p)
+                    ms = (time.perf_counter() - t0) * 1000
+                    out = src * sh.ratio + sh.highlight
+                    r = rows.setdefault((kind, lname, ename), {"err": [], "ms": [], "components": len(auto.components)})
+                    r["err"].append(error(out, gt, a["mask"]))
+                    r["ms"].append(ms)
+            r = rows.setdefault(("input (no relighting)", lname, "-"), {"err": [], "ms": [], "components": 0})
+            r["err"].append(error(src, gt, a["mask"]))
+            r["ms"].append(0.0)
+    return {f"{k[0]} | {k[1]} | {k[2]}": {"rel_rmse": float(np.mean(v["err"])),
+                                           "ms_median": float(np.median(v["ms"])),
+                                           "components": v["components"], "frames": len(v["err"])}
+            for k, v in rows.items()}
+
+
+def markdown(res: dict, command: str, machine: str) -> str:
+    lines = [f"Produced by `{command}` on {machine}.", "",
+             "| buffers | target light | effects | relative RMSE (gain-fitted) | renderer ms / crop | compact components |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for k, v in res.items():
+        kind, light, eff = k.split(" | ")
+        lines.append(f"| {kind} | {light} | {eff} | {v['rel_rmse']:.4f} | {v['ms_median']:.1f} | {v['components']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--model", help="an intrinsic .onnx: also measure with its predicted buffers")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "intrinsic_effects"))
+    a = ap.parse_args(argv)
+    res = run(a.frames, a.model)
+    command = "python -m bench.intrinsic_effects " + " ".join(argv if argv is not None else
+                                                               __import__("sys").argv[1:])
+    machine = (f"{platform.machine()} {os.cpu_count()}-core CPU (one thread), load "
+               f"{os.getloadavg()[0]:.1f}")
+    md = markdown(res, command.strip(), machine)
+    print(md)
+    pathlib.Path(a.out + ".md").write_text(md)
+    pathlib.Path(a.out + ".json").write_text(json.dumps({"command": command, "machine": machine,
+                                                         "results": res}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
