@@ -28,21 +28,12 @@ from .train import prepare
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
-class _Export(torch.nn.Module):
-    def __init__(self, net):
-        super().__init__()
-        self.net = net
-
-    def forward(self, image):
-        return self.net(image)
-
-
 def export_onnx(net: IntrinsicNet, path: pathlib.Path) -> None:
     net.eval()
     names = [contract.OUTPUT_NORMAL, contract.OUTPUT_HEIGHT, contract.OUTPUT_ALBEDO,
              contract.OUTPUT_PARSING]
     dyn = {"image": {0: "N", 2: "H", 3: "W"}, **{n: {0: "N", 2: "H", 3: "W"} for n in names}}
-    torch.onnx.export(_Export(net), (torch.rand(1, 3, 128, 128),), str(path),
+    torch.onnx.export(net, (torch.rand(1, 3, 128, 128),), str(path),
                       input_names=[contract.INPUT_IMAGE], output_names=names, opset_version=17,
                       dynamic_axes=dyn, dynamo=False)
 
@@ -51,6 +42,7 @@ def check_against_torch(net: IntrinsicNet, path: pathlib.Path) -> float:
     import onnxruntime as ort
 
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    net.eval()  # batch statistics would differ from the exported running ones
     worst = 0.0
     for h, w in ((128, 128), (96, 160)):
         x = torch.rand(1, 3, h, w) * 0.8

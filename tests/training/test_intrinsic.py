@@ -1,0 +1,109 @@
+"""The intrinsic model's data, network, losses and export, and the renderer against the light
+stage: with the light stage's exact buffers the renderer must put the light where the light
+stage does (this is what pins the normal, image and light-vector axes to each other)."""
+
+import numpy as np
+import pytest
+import torch
+
+from addon import contract, intrinsic, lightvec
+
+RES = 64
+
+
+@pytest.fixture(scope="module")
+def frames(shared_data, tmp_path_factory):
+    from training.intrinsic import data
+
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("intrinsic")
+    data.build("val", RES, 2, out, data_root=shared_data, progress=None)
+    return data.IntrinsicFrames("val", RES, 0, out, shared_data)
+
+
+def test_samples_hold_the_exact_buffers(frames):
+    from training.intrinsic import data
+
+    s = frames[0]
+    assert s["image"].shape == (3, RES, RES) and s["target"].shape == (9, RES, RES)
+    assert np.isfinite(s["image"]).all() and (s["image"] >= 0).all()
+    fg = s["fg"][0] > 0
+    assert fg.mean() > 0.1
+    n = s["target"][0:3][:, fg]
+    np.testing.assert_allclose(np.linalg.norm(n, axis=0), 1.0, atol=1e-3)
+    assert (n[2] > -1e-3).all()  # every visible normal faces the camera
+    assert set(np.unique(s["target"][8])) <= {0.0, 1.0} and s["target"][8].max() == 1.0  # face
+    assert (s["target"][0:3][:, ~fg] == 0).all()  # no buffers where there is no subject
+    # Deterministic per index, different across indices.
+    np.testing.assert_array_equal(frames[5]["image"], frames[5]["image"])
+    assert not np.array_equal(frames[5]["image"], frames[6]["image"])
+    assert data.TARGETS == ("normal", "height", "albedo", "matte", "face")
+
+
+def test_the_flip_mirrors_normals(frames):
+    """A flipped sample's normals point the other way in x: the flip must not teach the network
+    that a face turned left has normals of one turned right."""
+    for i in range(40):
+        s = frames[i]
+        fg = s["fg"][0] > 0
+        # the mirrored image's normals: the mean x of the right-facing half is positive
+        n = s["target"][0:3]
+        cols = np.nonzero(fg.any(0))[0]
+        mid = (cols.min() + cols.max()) / 2
+        right = fg & (np.arange(RES)[None, :] > mid + 4)
+        left = fg & (np.arange(RES)[None, :] < mid - 4)
+        assert n[0][right].mean() > n[0][left].mean()
+
+
+def test_renderer_with_exact_buffers_puts_the_light_where_the_light_stage_does(frames):
+    from bench.intrinsic_effects import error, exact_buffers, lamp, render
+
+    a = frames.frame(0)
+    src = render(a, (0.7 * lightvec.uniform() + lamp([0.3, 0.5, 1.0], 1.0, 0.0)).astype(np.float32))
+    for d in ([-1, 0.3, 0.5], [1, 0.2, 0.6]):
+        light = lamp(d)
+        gt = render(a, light)
+        sh = intrinsic.shade(src, exact_buffers(a), light)
+        out = src * sh.ratio + sh.highlight
+        assert error(out, gt, a["mask"]) < 0.5 * error(src, gt, a["mask"])
+        # The mirrored lamp would be much worse: the axes line up.
+        mirrored = lamp([-d[0], d[1], d[2]])
+        sh_m = intrinsic.shade(src, exact_buffers(a), mirrored)
+        assert error(out, gt, a["mask"]) < error(src * sh_m.ratio + sh_m.highlight, gt, a["mask"])
+
+
+def test_losses_vanish_for_the_truth_and_the_network_gives_unit_normals(frames):
+    from training.intrinsic.model import IntrinsicNet, losses
+
+    b = frames.batch(range(3))
+    t = b["target"]
+    truth = (t[:, 0:3], t[:, 3:4] + 5.0, t[:, 4:7], t[:, 7:9])
+    ls = losses(truth, t, b["fg"])
+    assert float(ls["normal"]) < 1e-4 and float(ls["height"]) < 1e-4  # height up to a constant
+    assert float(ls["albedo"]) < 1e-5
+    # Albedo counts up to a gain (nearly: log(a + 0.02) keeps dark texels from dominating).
+    gained = losses((truth[0], truth[1], t[:, 4:7] * 1.7, truth[3]), t, b["fg"])["albedo"]
+    shuffled = losses((truth[0], truth[1], t[:, 4:7].flip(2), truth[3]), t, b["fg"])["albedo"]
+    assert float(gained) < 0.3 * float(shuffled)
+    net = IntrinsicNet("small")
+    normal, height, albedo, parsing = net(b["image"] / b["image"].amax())
+    assert normal.shape == (3, 3, RES, RES) and parsing.shape == (3, 2, RES, RES)
+    np.testing.assert_allclose(normal.norm(dim=1).detach().numpy(), 1.0, atol=1e-4)
+    assert float(losses((normal, height, albedo, parsing), t, b["fg"])["normal"]) > 0.05
+
+
+def test_export_matches_torch_and_follows_the_contract(tmp_path):
+    import onnxruntime as ort
+
+    from training.intrinsic.export import check_against_torch, export_onnx
+    from training.intrinsic.model import IntrinsicNet
+
+    torch.manual_seed(0)
+    net = IntrinsicNet("small").eval()
+    path = tmp_path / "m.onnx"
+    export_onnx(net, path)
+    assert check_against_torch(net, path) < 1e-3
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    assert [i.name for i in sess.get_inputs()] == [contract.INPUT_IMAGE]
+    assert [o.name for o in sess.get_outputs()] == [contract.OUTPUT_NORMAL, contract.OUTPUT_HEIGHT,
+                                                    contract.OUTPUT_ALBEDO, contract.OUTPUT_PARSING]
