@@ -61,7 +61,8 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
     x = np.ascontiguousarray(img.transpose(2, 0, 1))
     if isinstance(sess, engine.IntrinsicSession):
         res = portrait.relight_frame(sess, x, light, portrait.find_box(sess, x))
-        return np.ascontiguousarray(res.relit.transpose(1, 2, 0))
+        y = detail.FullRes(threads=1).finish_planar(x, res.a, res.b, float(x.max(initial=0.0)))[0]
+        return np.ascontiguousarray(y.astype(np.float32).transpose(1, 2, 0))
     return _network_frame(sess, x, light)
 
 

@@ -361,25 +361,12 @@ def coefficients_planar(x_low: np.ndarray, relit_low, k: float, plan: Plan,
     return np.zeros_like(b), b
 
 
-@dataclass(frozen=True)
-class Direct:
-    """A frame an intrinsic model relit at full resolution already (addon/portrait.py), in the
-    exposure-normalised units of x_full."""
-    relit: np.ndarray  # (3, H, W) float32
-    scale: float       # back to the footage's units
-
-
 def finish_planar(x_full: np.ndarray, ab, x_max: float,
                   fullres: detail.FullRes) -> tuple[np.ndarray, int]:
     """The full-resolution half-float frame (3, H, W) and how many values were clamped to the
     half range."""
     if ab is None:
         return np.zeros(x_full.shape, np.float16), 0
-    if isinstance(ab, Direct):
-        y = np.nan_to_num(ab.relit * np.float32(ab.scale), nan=0.0, posinf=detail.HALF_MAX, neginf=0.0)
-        big = y > detail.HALF_MAX
-        clamped = int(np.count_nonzero(big))
-        return np.clip(y, 0.0, detail.HALF_MAX).astype(np.float16), clamped
     y, may_clamp = fullres.finish_planar(x_full, *ab, x_max)
     return y, _count_clamped(y) if may_clamp else 0
 
@@ -435,8 +422,6 @@ def matte_full(fg, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
     w, h = plan.size
     if fg is None:
         return np.zeros((h, w), np.float16)
-    if fg.shape == (h, w):  # full resolution already (an intrinsic model's, or working = full)
-        return np.clip(np.nan_to_num(fg, nan=0.0), 0.0, 1.0).astype(np.float16)
     return fullres.upsample_half_planar(np.asarray(fg, np.float32)[None], h, w, 0.0, 1.0)[0]
 
 
@@ -698,10 +683,11 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 break
             i, x_full, x_max, x_low = item
             light = lights[min(i, len(lights) - 1)]
-            if boxes is not None:  # intrinsic: framing, buffers, renderer, all at full size
+            if boxes is not None:  # intrinsic: framing, buffers, renderer (addon/portrait.py)
                 res = portrait.relight_frame(session, x_full, light, boxes[i])
-                ab, fg, source = Direct(res.relit, plan.scale), res.matte, np.zeros(
-                    lightvec.SHAPE, np.float32)
+                s = np.float32(plan.scale)  # x_full is the footage / s
+                ab, fg = (res.a * s, res.b * s), res.matte
+                source = np.zeros(lightvec.SHAPE, np.float32)
             else:
                 relit_low, source, fg, k = infer_planar(session, x_low, light)
                 ab = coefficients_planar(x_low, relit_low, k, plan, fullres)

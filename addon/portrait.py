@@ -23,11 +23,17 @@ from .engine import IntrinsicSession
 MARGIN = 2.2  # box side over the face's extent: room for hair, chin and a little shoulder
 
 
+FEATHER = 0.12  # share of the crop's side over which the face crop fades into the coarse pass
+
+
 @dataclass(frozen=True)
 class FrameResult:
-    relit: np.ndarray   # (3, H, W) float32, the footage's units
-    matte: np.ndarray   # (H, W) float32 in [0, 1]
-    found: bool         # a portrait was found (else the frame is returned unchanged)
+    """out = up(a) * x + up(b), with (a, b) on a grid of the frame (the pipeline's finish applies
+    them at full resolution, as for the end-to-end models)."""
+    a: np.ndarray       # (3, gh, gw) float32
+    b: np.ndarray       # (3, gh, gw) float32, in the units of x
+    matte: np.ndarray   # (gh, gw) float32 in [0, 1]
+    found: bool         # a portrait was found (else a = 1, b = 0: the frame is unchanged)
     plan: intrinsic.Plan | None
 
 
@@ -64,27 +70,84 @@ def find_box(session: IntrinsicSession, x_full: np.ndarray) -> framing.Box | Non
                        inner.size * k)
 
 
+def grid_shape(height: int, width: int, box: framing.Box, size: int) -> tuple[int, int]:
+    """The grid on which the change is built: the frame scaled so the box spans ``size`` pixels
+    (the face crop's own resolution), never larger than the frame."""
+    f = min(1.0, size / max(box.size, 1e-6))
+    return max(1, int(round(height * f))), max(1, int(round(width * f)))
+
+
+def feather(size: int, share: float = FEATHER) -> np.ndarray:
+    """(size, size) weight: 1 inside the crop, falling smoothly to 0 at its edges."""
+    ramp = np.clip((np.arange(size) + 0.5) / max(share * size, 1e-6), 0.0, 1.0)
+    edge = np.minimum(ramp, ramp[::-1])
+    edge = edge * edge * (3 - 2 * edge)
+    return np.minimum(edge[:, None], edge[None, :]).astype(np.float32)
+
+
+def _change(session, x: np.ndarray, light, effects, valid=None):
+    """(ratio - 1 and highlight, each times the matte; the matte) for a (3, h, w) image."""
+    bufs = _buffers(session, x, valid)
+    sh = intrinsic.shade(x, bufs, light, effects, keep_exposure=False)
+    m = np.clip(bufs.matte, 0.0, 1.0)[None]
+    return m * (sh.ratio - 1.0), m * sh.highlight, m[0], sh.plan
+
+
 def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarray,
                   box: framing.Box | None, effects: intrinsic.Plan | None = None,
                   keep_exposure: bool = True) -> FrameResult:
-    """Relight a (3, H, W) linear frame to ``light`` within ``box`` (None: nothing found, the
-    frame comes back unchanged with an empty matte)."""
+    """Relight a (3, H, W) linear frame to ``light``: a coarse pass over the whole frame lights
+    the whole person, the crop around ``box`` gives the face its working size, and the crop
+    fades into the coarse pass over its outer edge. ``box`` None (no portrait found): the frame
+    is unchanged. ``keep_exposure``: the subject keeps the frame's mean luminance (intrinsic.shade)."""
     h, w = x_full.shape[1:]
-    if box is None:
-        return FrameResult(x_full.astype(np.float32, copy=True), np.zeros((h, w), np.float32),
-                           False, None)
     size = session.card.working_size
+    if box is None:
+        return FrameResult(np.ones((3, 1, 1), np.float32), np.zeros((3, 1, 1), np.float32),
+                           np.zeros((1, 1), np.float32), False, None)
+    gh, gw = grid_shape(h, w, box, size)
     hwc = np.ascontiguousarray(x_full.transpose(1, 2, 0))
+    grid = detail.resize(hwc, gh, gw)  # area averages: the footage at the grid's resolution
+    # Coarse: the whole frame at the working size, enlarged to the grid.
+    ch, cw = detail.working_shape(h, w, size)
+    small = np.ascontiguousarray(detail.resize(grid, ch, cw).transpose(2, 0, 1))
+    plan = intrinsic.plan(light) if effects is None else effects
+    dr, hi, m, _ = _change(session, small, light, plan)
+    coarse = detail.resize(np.concatenate([dr, hi, m[None]], 0).transpose(1, 2, 0), gh, gw)
+    # Fine: the crop around the face, placed on the grid with its feathered edge.
     crop = np.ascontiguousarray(framing.crop(hwc, box, size).transpose(2, 0, 1))
     valid = framing.crop_weight(box, (h, w), size)
-    bufs = _buffers(session, crop, valid)
-    sh = intrinsic.shade(crop, bufs, light, effects, keep_exposure)
-    m = np.clip(bufs.matte, 0.0, 1.0)[None]
-    ratio = 1.0 + m * (sh.ratio - 1.0)   # the background keeps the footage as it was
-    high = m * sh.highlight
-    stack = np.concatenate([ratio, high, m], 0).transpose(1, 2, 0)
-    fill = [1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]
-    full = framing.uncrop(np.ascontiguousarray(stack), box, (h, w), fill)
-    relit = x_full * full[..., 0:3].transpose(2, 0, 1) + full[..., 3:6].transpose(2, 0, 1)
-    return FrameResult(np.ascontiguousarray(relit, np.float32),
-                       np.ascontiguousarray(full[..., 6]), True, sh.plan)
+    dr_f, hi_f, m_f, _ = _change(session, crop, light, plan, valid)
+    fw = feather(size) * valid
+    k = gh / h
+    gbox = framing.Box(box.cx * k, box.cy * k, box.size * k)
+    fine = framing.uncrop(np.concatenate([dr_f, hi_f, m_f[None], fw[None]], 0).transpose(1, 2, 0),
+                          gbox, (gh, gw), 0.0)
+    wf = fine[..., 7:8]
+    # The two passes fit the footage's light separately: match the coarse change's level to the
+    # face's where both see the subject, so the seam does not show.
+    lum = np.asarray(intrinsic.LUMA, np.float32)
+    both = (wf[..., 0] > 0.5) & (fine[..., 6] > 0.5) & (coarse[..., 6] > 0.5)
+    if int(both.sum()) > 16:
+        g = float(np.mean(1.0 + fine[both][:, 0:3] @ lum)
+                  / max(float(np.mean(1.0 + coarse[both][:, 0:3] @ lum)), 1e-6))
+        m_c = coarse[..., 6:7]
+        coarse[..., 0:3] = g * (coarse[..., 0:3] + m_c) - m_c  # m (g ratio - 1)
+        coarse[..., 3:6] *= g
+    mix = (1.0 - wf) * coarse[..., :7] + wf * fine[..., :7]
+    dr, b, matte = mix[..., 0:3], mix[..., 3:6], np.clip(mix[..., 6:7], 0.0, 1.0)
+    g = 1.0
+    if keep_exposure:
+        # The subject (matte) keeps its mean luminance; the background is left as it was:
+        # a = g (dr + m) + (1 - m), b = g b, with g solving sum lum(x a + b) m = sum lum(x) m.
+        xl = grid @ lum
+        before = float((xl * matte[..., 0]).sum() - (xl * (1.0 - matte[..., 0]) * matte[..., 0]).sum())
+        after = float((((grid * (dr + matte) + b) @ lum) * matte[..., 0]).sum())
+        if after > 1e-12 and before > 0:
+            g = before / after
+    a = g * (dr + matte) + (1.0 - matte)
+    b = g * b
+    matte = matte[..., 0]
+    return FrameResult(np.ascontiguousarray(a.transpose(2, 0, 1), np.float32),
+                       np.ascontiguousarray(b.transpose(2, 0, 1), np.float32),
+                       np.ascontiguousarray(matte, np.float32), True, plan)
