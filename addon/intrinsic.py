@@ -279,7 +279,9 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     if keep_exposure and fg.any():
         w = bufs.matte
         before = float((lum * w).sum())
-        after = float(((luminance(ratio) * lum + luminance(highlight)) * w).sum())
+        # luminance(ratio * image), not luminance(ratio) * lum: they differ when both the
+        # light and the footage are coloured.
+        after = float(((luminance(ratio * image_chw) + luminance(highlight)) * w).sum())
         k = before / after if after > 1e-12 else 1.0
         ratio, highlight = ratio * k, highlight * k
     return Shading(ratio.astype(np.float32), highlight.astype(np.float32), effects)

@@ -515,7 +515,9 @@ def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: 
             raise Cancelled("Cancelled while framing the portrait; nothing was written, run "
                             "again to start.")
         raw.append(portrait.find_box(session, linearise(d.pixels, plan)[0]))
-    boxes = framing.smooth_boxes(raw)
+    # Smoothing fills the frames where nothing was found from their neighbours (so the others
+    # are steadied as usual); those frames themselves stay None: written unchanged, counted.
+    boxes = [None if r is None else b for r, b in zip(raw, framing.smooth_boxes(raw))]
     _atomic_write_text(path, json.dumps(
         {"identity": identity, "found": sum(b is not None for b in raw),
          "boxes": [None if b is None else list(b.to_tuple()) for b in boxes]}))

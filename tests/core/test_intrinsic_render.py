@@ -1,0 +1,331 @@
+"""The intrinsic renderer (addon/intrinsic.py) on synthetic buffers: a sphere's normals and height
+on a disc matte, and flat height fields with a bump. numpy only, no model.
+
+(Named test_intrinsic_render.py, not test_intrinsic.py: tests/training/test_intrinsic.py exists,
+and two test modules of one basename break collecting the whole suite in one pytest run.)
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from addon import intrinsic, lightvec
+
+S, R = 64, 28.0  # crop side and sphere radius, working-size pixels
+SKIN = np.array([0.8, 0.55, 0.45], np.float32)
+
+
+def sphere(size=S, radius=R):
+    """(normal (3, s, s), height (s, s), matte (s, s), u, v): a sphere facing the camera, centred;
+    u, v are the image offsets from its centre over the radius (v grows downward)."""
+    c = size / 2.0
+    yy, xx = np.mgrid[0:size, 0:size] + 0.5
+    u, v = (xx - c) / radius, (yy - c) / radius
+    inside = u * u + v * v < 1.0
+    nz = np.sqrt(np.clip(1.0 - u * u - v * v, 0.0, 1.0))
+    normal = np.stack([np.where(inside, u, 0.0), np.where(inside, -v, 0.0),
+                       np.where(inside, nz, 1.0)]).astype(np.float32)
+    return normal, (radius * nz).astype(np.float32), inside.astype(np.float32), u, v
+
+
+def exact_irradiance(light, normal):
+    """(3, h, w) float64 reference irradiance (addon.lightvec)."""
+    return np.moveaxis(lightvec.irradiance(light, np.moveaxis(normal.astype(np.float64), 0, -1)),
+                       -1, 0)
+
+
+def smooth_sky():
+    """An HDRI-like smooth light: a broad warm glow up and to the right over a dim ambient."""
+    d = lightvec.directions()
+    a = np.array([0.4, 0.5, 0.76]) / np.linalg.norm([0.4, 0.5, 0.76])
+    return ((0.3 + np.exp(2.0 * (d @ a - 1.0)))[..., None] * [1.0, 0.9, 0.8]).astype(np.float32)
+
+
+def overcast():
+    """The CIE overcast sky, (1 + 2 cos theta) / 3 above the horizon, over grey ground."""
+    up = lightvec.directions()[..., 1]
+    return (np.where(up > 0, (1 + 2 * up) / 3, 0.2)[..., None] * [1.0, 1.0, 1.05]).astype(np.float32)
+
+
+def lamp(direction, power=10.0, fill=0.05):
+    """A lamp splatted from ``direction`` plus a weak uniform fill."""
+    return lightvec.splat_direction(direction, power) + lightvec.uniform(fill)
+
+
+def unit(v):
+    v = np.asarray(v, np.float64)
+    return v / np.linalg.norm(v)
+
+
+def portrait(albedo=SKIN):
+    """(image (3, S, S), Buffers) of a sphere of skin lit softly from the front and above."""
+    normal, height, matte, _, _ = sphere()
+    alb = np.broadcast_to(np.asarray(albedo, np.float32)[:, None, None], (3, S, S)).copy()
+    src = lightvec.uniform(0.3) + lightvec.splat_direction([0.0, 0.3, 1.0], 3.0)
+    image = (alb * exact_irradiance(src, normal) * matte / math.pi).astype(np.float32)
+    return image, intrinsic.Buffers(normal, height, alb, matte, matte.copy())
+
+
+# ---- plan ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["uniform", "overcast", "smooth_sky"])
+def test_soft_light_has_no_components(name):
+    """Uniform, overcast and smooth HDRI-like light call for no shadows and no highlights."""
+    light = {"uniform": lightvec.uniform(1.0), "overcast": overcast(), "smooth_sky": smooth_sky()}[name]
+    p = intrinsic.plan(light)
+    assert p.components == ()
+    assert not p.shadows and not p.specular
+
+
+@pytest.mark.parametrize("direction", [(0.6, 0.3, 0.74), (1.0, 0.0, 0.3), (-0.3, 0.9, 0.2),
+                                       (0.1, -0.2, 1.0)])
+def test_a_lamp_over_a_weak_fill_is_one_component_toward_the_lamp(direction):
+    """A splatted lamp plus a weak uniform fill: exactly one component, pointing at the lamp."""
+    p = intrinsic.plan(lamp(direction))
+    assert len(p.components) == 1 and p.shadows and p.specular
+    comp = p.components[0]
+    angle = math.degrees(math.acos(min(1.0, float(comp.direction @ unit(direction)))))
+    assert angle < 3.0
+    assert np.linalg.norm(comp.direction) == pytest.approx(1.0, abs=1e-5)
+    # It carries the lamp's irradiance (10), not the fill's.
+    assert comp.irradiance == pytest.approx([10.0] * 3, rel=0.05)
+
+
+def test_zero_light_has_no_components():
+    """A zero light plans nothing (and does not divide by its zero power)."""
+    p = intrinsic.plan(lightvec.zeros())
+    assert p.components == () and not p.shadows and not p.specular
+
+
+def test_effects_off_plan_nothing():
+    """shadows=False and specular=False skip the search even for a lamp."""
+    assert intrinsic.plan(lamp((1, 0, 0.3)), shadows=False, specular=False).components == ()
+
+
+# ---- irradiance ------------------------------------------------------------------------------
+
+def random_normals(seed=0, shape=(20, 30)):
+    n = np.random.default_rng(seed).normal(size=(3, *shape))
+    return (n / np.linalg.norm(n, axis=0)).astype(np.float32)
+
+
+def test_irradiance_with_every_cell_exact_matches_lightvec():
+    """All 256 cells summed exactly: lightvec.irradiance (float64) within 1e-4 relative."""
+    light = np.random.default_rng(1).random(lightvec.SHAPE).astype(np.float32)
+    n = random_normals()
+    got = intrinsic.irradiance(light, n, exact_cells=lightvec.ROWS * lightvec.COLS)
+    np.testing.assert_allclose(got, exact_irradiance(light, n), rtol=1e-4)
+
+
+def test_irradiance_is_exact_for_lamps_by_default():
+    """Lamps cover few cells, all summed exactly by default: within 1e-4 of the reference."""
+    light = (lightvec.splat_direction([0.6, 0.3, 0.74], 10.0)
+             + lightvec.splat_direction([-0.5, 0.2, 0.8], [3.0, 2.0, 1.0]))
+    n = random_normals(2)
+    ref = exact_irradiance(light, n)
+    np.testing.assert_allclose(intrinsic.irradiance(light, n), ref, rtol=1e-4,
+                               atol=1e-4 * float(ref.max()))
+
+
+def test_irradiance_of_smooth_light_through_sh_is_close():
+    """The default (brightest cells exact, the rest through order-2 SH) stays within a few %
+    on a smooth sky, on every normal (back-facing ones included)."""
+    light, n = smooth_sky(), random_normals(3)
+    ref = exact_irradiance(light, n)
+    rel = intrinsic.irradiance(light, n) / ref - 1.0
+    assert np.abs(rel).max() < 0.05
+    assert np.sqrt(np.mean(rel ** 2)) < 0.015
+
+
+# ---- source fit ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("patch", [False, True])
+def test_fit_source_reproduces_smooth_shading(patch):
+    """The fitted SH shading reproduces a sphere's exact irradiance under a smooth light (relative
+    RMSE < 2%); a dark albedo patch (lips, brows) is divided out, not read as shadow."""
+    normal, height, matte, u, v = sphere()
+    alb = np.full((3, S, S), 0.5, np.float32)
+    if patch:
+        alb[:, (np.abs(u) < 0.3) & (np.abs(v - 0.4) < 0.15)] = 0.2
+    e = intrinsic.luminance(exact_irradiance(smooth_sky(), normal).astype(np.float32))
+    lum = e * intrinsic.luminance(alb)
+    bufs = intrinsic.Buffers(normal, height, alb, matte, matte)
+    c = intrinsic.fit_source(lum, bufs)
+    fit = np.tensordot(c, intrinsic.sh_basis(normal), axes=(0, 0))
+    m = matte > 0.5
+    target = e[m] * 0.5  # shading at the median albedo
+    assert np.sqrt(np.mean((fit[m] - target) ** 2) / np.mean(target ** 2)) < 0.02
+
+
+def test_fit_source_without_foreground_is_neutral():
+    """No confident foreground: a constant shading, no NaN."""
+    normal, height, matte, _, _ = sphere()
+    bufs = intrinsic.Buffers(normal, height, np.full((3, S, S), 0.5, np.float32),
+                             np.zeros_like(matte), np.zeros_like(matte))
+    c = intrinsic.fit_source(np.ones((S, S), np.float32), bufs)
+    assert np.all(np.isfinite(c)) and c[0] > 0 and np.all(c[1:] == 0)
+
+
+# ---- shadows ---------------------------------------------------------------------------------
+
+BUMP_ROWS, BUMP_COLS = slice(29, 35), slice(29, 35)
+
+
+def bump_field():
+    h = np.zeros((S, S), np.float32)
+    h[BUMP_ROWS, BUMP_COLS] = 20.0
+    return h
+
+
+RAKING_RIGHT = unit([0.94, 0.0, 0.34])  # from the camera's right, 20 degrees above the image plane
+
+
+def test_a_bump_shadows_the_side_away_from_the_light():
+    """Light from +X: pixels just left of a tall bump are shadowed, pixels right of it are not,
+    nor rows the bump does not cover."""
+    vis = intrinsic.shadow(bump_field(), np.ones((S, S), np.float32), RAKING_RIGHT)
+    assert vis.shape == (S, S) and vis.min() >= 0.0 and vis.max() <= 1.0
+    assert np.all(vis[BUMP_ROWS, 20:29] < 0.5)          # just left of it
+    assert np.all(vis[BUMP_ROWS, 35:] == 1.0)           # right of it, toward the light
+    assert np.all(vis[BUMP_ROWS, BUMP_COLS] == 1.0)     # its own top
+    assert np.all(vis[:25] == 1.0) and np.all(vis[39:] == 1.0)
+    # The mirrored light shadows the other side.
+    vis_left = intrinsic.shadow(bump_field(), np.ones((S, S), np.float32), RAKING_RIGHT * [-1, 1, 1])
+    assert np.all(vis_left[BUMP_ROWS, 35:44] < 0.5) and np.all(vis_left[BUMP_ROWS, :29] == 1.0)
+
+
+def test_a_light_from_above_shadows_below():
+    """Light from +Y (image up): the shadow falls below the bump (image y down)."""
+    vis = intrinsic.shadow(bump_field(), np.ones((S, S), np.float32), unit([0.0, 0.94, 0.34]))
+    assert np.all(vis[35:44, BUMP_COLS] < 0.5)
+    assert np.all(vis[:29, BUMP_COLS] == 1.0)
+
+
+def test_a_light_along_the_view_axis_casts_no_shadow():
+    """+Z light: visibility 1 everywhere."""
+    vis = intrinsic.shadow(bump_field(), np.ones((S, S), np.float32), np.array([0.0, 0.0, 1.0]))
+    assert np.all(vis == 1.0)
+
+
+def test_a_bump_outside_the_matte_casts_nothing():
+    """The matte restricts occluders: the same bump outside the matte shadows no subject pixel."""
+    matte = np.ones((S, S), np.float32)
+    matte[27:37, 27:37] = 0.0
+    vis = intrinsic.shadow(bump_field(), matte, RAKING_RIGHT)
+    assert np.all(vis[matte > 0.5] == 1.0)
+
+
+# ---- specular --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("direction", [(0.5, 0.3, 0.81), (0.9, 0.1, 0.42), (-0.3, -0.4, 0.8)])
+def test_specular_peaks_at_the_half_vector_and_is_zero_facing_away(direction):
+    """The GGX highlight peaks where the normal is the half vector of the light and +Z (within
+    2 px) and is zero wherever n.d <= 0."""
+    normal, _, matte, _, _ = sphere()
+    d = unit(direction)
+    s = intrinsic.specular(normal, d.astype(np.float32))
+    assert s.shape == (S, S) and np.all(np.isfinite(s)) and s.min() >= 0.0
+    row, col = np.unravel_index(int(np.argmax(np.where(matte > 0.5, s, -1.0))), s.shape)
+    hv = unit(d + [0.0, 0.0, 1.0])
+    want_row, want_col = S / 2 - R * hv[1] - 0.5, S / 2 + R * hv[0] - 0.5
+    assert math.hypot(row - want_row, col - want_col) <= 2.0
+    facing_away = np.tensordot(d, normal, axes=(0, 0)) <= 0
+    assert facing_away.sum() > 50
+    assert np.all(s[facing_away] == 0.0)
+
+
+# ---- shade -----------------------------------------------------------------------------------
+
+def halves(chw, u, matte):
+    lum = intrinsic.luminance(chw)
+    m = matte > 0.5
+    return float(lum[m & (u < 0)].mean()), float(lum[m & (u > 0)].mean())
+
+
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_a_side_lamp_brightens_its_side(side):
+    """A lamp from the right makes the right half brighter than the left, and the reverse."""
+    image, bufs = portrait()
+    _, _, _, u, _ = sphere()
+    left0, right0 = halves(image, u, bufs.matte)
+    assert left0 == pytest.approx(right0, rel=1e-3)  # the footage is symmetric
+    sh = intrinsic.shade(image, bufs, lamp([side, 0.0, 0.3]))
+    left, right = halves(image * sh.ratio + sh.highlight, u, bufs.matte)
+    near, far = (right, left) if side > 0 else (left, right)
+    assert near > 3.0 * far
+
+
+def test_white_light_keeps_skin_colour():
+    """A white light leaves the ratio achromatic (channels equal within 1e-5), so skin keeps its
+    colour; a red light does not."""
+    image, bufs = portrait()
+    for light in (lamp([1.0, 0.2, 0.5]), smooth_sky().mean(-1, keepdims=True).repeat(3, -1)):
+        ratio = intrinsic.shade(image, bufs, light).ratio
+        scale = float(np.abs(ratio).max())
+        assert np.abs(ratio[0] - ratio[1]).max() <= 1e-5 * scale
+        assert np.abs(ratio[2] - ratio[1]).max() <= 1e-5 * scale
+    red = lamp([1.0, 0.2, 0.5]) * np.array([1.0, 0.3, 0.2], np.float32)
+    ratio = intrinsic.shade(image, bufs, red).ratio
+    m = bufs.matte > 0.5
+    assert ratio[0][m].mean() > 2.0 * ratio[1][m].mean()
+
+
+@pytest.mark.parametrize("light", ["lamp", "sky", "dim"])
+def test_keep_exposure_keeps_the_mean_luminance(light):
+    """keep_exposure: the matte-weighted mean luminance of image * ratio + highlight equals the
+    image's within 1e-3 relative, whatever the light's power."""
+    image, bufs = portrait()
+    target = {"lamp": lamp([0.7, 0.4, 0.6], 50.0), "sky": smooth_sky(),
+              "dim": 1e-3 * lamp([-0.5, 0.0, 0.8])}[light]
+    sh = intrinsic.shade(image, bufs, target, keep_exposure=True)
+    w = bufs.matte
+    before = float((intrinsic.luminance(image) * w).sum())
+    after = float((intrinsic.luminance(image * sh.ratio + sh.highlight) * w).sum())
+    assert after == pytest.approx(before, rel=1e-3)
+
+
+def test_without_keep_exposure_twice_the_light_is_twice_the_change():
+    """keep_exposure=False: doubling the light doubles ratio and highlight."""
+    image, bufs = portrait()
+    light = lamp([0.7, 0.4, 0.6], 2.0)
+    one = intrinsic.shade(image, bufs, light, keep_exposure=False)
+    two = intrinsic.shade(image, bufs, 2.0 * light, keep_exposure=False)
+    assert one.ratio.max() < intrinsic.RATIO_MAX / 2 and one.highlight.max() > 0
+    np.testing.assert_allclose(two.ratio, 2.0 * one.ratio, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(two.highlight, 2.0 * one.highlight, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize("case", ["black_image_zero_light", "black_image_lamp", "zero_light",
+                                  "no_matte"])
+def test_degenerate_inputs_stay_finite(case):
+    """An all-zero image, a zero light, or no matte at all: finite ratio and highlight."""
+    image, bufs = portrait()
+    light = lightvec.zeros() if "zero_light" in case else lamp([0.7, 0.4, 0.6])
+    if "black_image" in case:
+        image = np.zeros_like(image)
+    if case == "no_matte":
+        bufs = intrinsic.Buffers(bufs.normal, bufs.height, bufs.albedo,
+                                 np.zeros_like(bufs.matte), np.zeros_like(bufs.face))
+    sh = intrinsic.shade(image, bufs, light)
+    assert np.all(np.isfinite(sh.ratio)) and np.all(np.isfinite(sh.highlight))
+    assert sh.ratio.shape == image.shape and sh.highlight.shape == image.shape
+    assert sh.ratio.min() >= 0.0
+
+
+def test_highlights_only_when_the_plan_has_components():
+    """Effects off (Plan()) and a uniform light give zero highlight; a lamp gives one on skin."""
+    image, bufs = portrait()
+    assert not intrinsic.shade(image, bufs, lamp([0.7, 0.4, 0.6]), intrinsic.Plan()).highlight.any()
+    assert not intrinsic.shade(image, bufs, lightvec.uniform(1.0)).highlight.any()
+    lit = intrinsic.shade(image, bufs, lamp([0.7, 0.4, 0.6]))
+    assert lit.highlight.max() > 0 and not lit.highlight[:, bufs.face < 0.5].any()
+
+
+def test_exposure_scale_puts_the_90th_percentile_at_the_input_level():
+    """The crop's 90th luminance percentile goes to INPUT_LEVEL; a black crop keeps scale 1."""
+    x = np.random.default_rng(4).random((3, 16, 16)).astype(np.float32) * 3.0
+    s = intrinsic.exposure_scale(x)
+    q = float(np.quantile(intrinsic.luminance(x * s), intrinsic.INPUT_QUANTILE))
+    assert q == pytest.approx(intrinsic.INPUT_LEVEL, rel=1e-4)
+    assert intrinsic.exposure_scale(np.zeros((3, 4, 4), np.float32)) == 1.0

@@ -1,0 +1,362 @@
+"""Intrinsic models end to end with a stand-in network: the engine session, framing
+(portrait.find_box), one frame (portrait.relight_frame, addon.api.relight_image) and whole clips
+(pipeline.relight_clip: boxes file, resume, frames without a portrait).
+
+The stand-in (built here with onnx.helper, opset 17) sees a "portrait" wherever the image is
+skin-coloured: parsing (foreground, skin) = sigmoid(K (r - b - T)), so a grey background is never
+the subject at any exposure; normals bulge like a sphere filling the crop (the crop is centred
+on the face, so a side lamp lights that side of the face); height 0; albedo 0.5.
+"""
+
+import hashlib
+import json
+import os
+import pathlib
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from addon import (api, contract, detail, engine, framing, frames, intrinsic, lightvec, pipeline,
+                   portrait)
+from addon.errors import ModelError
+from tests.clip_fixtures import write_exr_sequence
+
+OPSET = 17
+K, T = 400.0, 0.04          # parsing = sigmoid(K (r - b - T))
+BULGE = 0.7                 # normals: (BULGE u, -BULGE v, sqrt(1 - ...)) over the padded input
+SKIN = np.array([0.8, 0.55, 0.45], np.float32)
+GREY = 0.2
+HALF = 2.0 ** -11           # relative rounding of a half float
+RIGHT_LAMP = lightvec.splat_direction([1.0, 0.0, 0.35], 10.0) + lightvec.uniform(0.05)
+
+
+# ---- the stand-in model --------------------------------------------------------------------
+
+def _c(name, value):
+    return numpy_helper.from_array(np.asarray(value, np.float32), name)
+
+
+def build_standin(normal_name: str = contract.OUTPUT_NORMAL) -> onnx.ModelProto:
+    """The stand-in intrinsic network; ``normal_name`` renames its normal output (to break the
+    contract)."""
+    n = helper.make_node
+    nodes = [
+        n("Slice", [contract.INPUT_IMAGE, "i0", "i1", "ax1"], ["r"]),
+        n("Slice", [contract.INPUT_IMAGE, "i2", "i3", "ax1"], ["b"]),
+        n("Sub", ["r", "b"], ["chroma"]),
+        n("Sub", ["chroma", "t"], ["chroma_t"]),
+        n("Mul", ["chroma_t", "k"], ["logit"]),
+        n("Sigmoid", ["logit"], ["p"]),
+        n("Concat", ["p", "p"], [contract.OUTPUT_PARSING], axis=1),
+        # A plane of zeros and ones of the input's size ([N, 1, H, W]).
+        n("Mul", ["r", "zero"], [contract.OUTPUT_HEIGHT]),
+        n("Add", [contract.OUTPUT_HEIGHT, "one"], ["ones"]),
+        n("Mul", [contract.INPUT_IMAGE, "zero"], ["zeros3"]),
+        n("Add", ["zeros3", "half"], [contract.OUTPUT_ALBEDO]),
+    ]
+    for axis, name in ((3, "u"), (2, "v")):  # pixel centres in (-1, 1) across the input
+        nodes += [n("CumSum", ["ones", f"axis{axis}"], [f"{name}_count"]),
+                  n("ReduceSum", ["ones", f"axes{axis}"], [f"{name}_len"], keepdims=1),
+                  n("Sub", [f"{name}_count", "half"], [f"{name}_centre"]),
+                  n("Div", [f"{name}_centre", f"{name}_len"], [f"{name}_unit"]),
+                  n("Mul", [f"{name}_unit", "two_bulge"], [f"{name}_scaled"]),
+                  n("Sub", [f"{name}_scaled", "bulge"], [f"{name}_n"])]
+    nodes += [
+        n("Neg", ["v_n"], ["ny"]),
+        n("Mul", ["u_n", "u_n"], ["uu"]),
+        n("Mul", ["v_n", "v_n"], ["vv"]),
+        n("Add", ["uu", "vv"], ["rr"]),
+        n("Sub", ["one", "rr"], ["zz"]),
+        n("Sqrt", ["zz"], ["nz"]),
+        n("Concat", ["u_n", "ny", "nz"], [normal_name], axis=1),
+    ]
+    inits = [numpy_helper.from_array(np.array([v], np.int64), name) for name, v in
+             (("i0", 0), ("i1", 1), ("i2", 2), ("i3", 3), ("ax1", 1))]
+    inits += [numpy_helper.from_array(np.array(a, np.int64), name) for name, a in
+              (("axis3", 3), ("axis2", 2), ("axes3", [3]), ("axes2", [2]))]
+    inits += [_c("t", T), _c("k", K), _c("zero", 0.0), _c("one", 1.0), _c("half", 0.5),
+              _c("bulge", BULGE), _c("two_bulge", 2 * BULGE)]
+    f = TensorProto.FLOAT
+    outputs = [helper.make_tensor_value_info(name, f, ["N", c, "H", "W"]) for name, c in
+               ((normal_name, 3), (contract.OUTPUT_HEIGHT, 1), (contract.OUTPUT_ALBEDO, 3),
+                (contract.OUTPUT_PARSING, 2))]
+    graph = helper.make_graph(
+        nodes, "intrinsic_standin",
+        [helper.make_tensor_value_info(contract.INPUT_IMAGE, f, ["N", 3, "H", "W"])], outputs, inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
+                              producer_name="tests/core/test_portrait.py")
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+    return model
+
+
+def write_standin(folder, name="standin", normal_name=contract.OUTPUT_NORMAL) -> str:
+    """The stand-in and its card (contract relight-intrinsic/1, stride 16, working size 32)."""
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{name}.onnx"
+    path.write_bytes(build_standin(normal_name).SerializeToString())
+    shapes = {normal_name: 3, contract.OUTPUT_HEIGHT: 1, contract.OUTPUT_ALBEDO: 3,
+              contract.OUTPUT_PARSING: len(contract.INTRINSIC_CLASSES)}
+    card = {
+        "contract": contract.INTRINSIC_CONTRACT, "name": name, "preset": "standin",
+        "onnx": path.name, "sha256": engine.file_sha256(path),
+        "inputs": [{"name": contract.INPUT_IMAGE, "shape": ["N", 3, "H", "W"], "dtype": "float32"}],
+        "outputs": [{"name": k, "shape": ["N", c, "H", "W"]} for k, c in shapes.items()],
+        "stride": 16, "working_size": 32,
+        "colour": {"space": "linear Rec.709 scene-referred, channels first"},
+        "classes": list(contract.INTRINSIC_CLASSES),
+        "training": {"data": "none: a stand-in built by tests/core/test_portrait.py"},
+        "metrics": {}, "cost": {},
+    }
+    path.with_suffix(".json").write_text(json.dumps(card, indent=1), encoding="utf-8")
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    return write_standin(tmp_path_factory.mktemp("standin"))
+
+
+@pytest.fixture(scope="module")
+def session(model):
+    return engine.new_session(model, providers=["CPUExecutionProvider"], threads=1, spin=False)
+
+
+# ---- frames --------------------------------------------------------------------------------
+
+def frame(h, w, centre=None, radius=0.0, seed=0):
+    """(H, W, 3) linear: a grey textured background and, if ``centre`` (x, y), a disc of skin
+    with a little texture."""
+    rng = np.random.default_rng(seed)
+    img = np.empty((h, w, 3), np.float32)
+    img[...] = GREY * (1.0 + 0.2 * rng.random((h, w, 1)))
+    if centre is not None:
+        yy, xx = np.mgrid[0:h, 0:w] + 0.5
+        disc = np.hypot(xx - centre[0], yy - centre[1]) < radius
+        img[disc] = SKIN * (1.0 + 0.1 * rng.random((int(disc.sum()), 1)))
+    return img
+
+
+def away_from(shape_hw, centre, distance):
+    """Pixels whose centre is farther than ``distance`` from ``centre`` (x, y)."""
+    yy, xx = np.mgrid[0:shape_hw[0], 0:shape_hw[1]] + 0.5
+    return np.hypot(xx - centre[0], yy - centre[1]) > distance
+
+
+def within(shape_hw, centre, distance):
+    return ~away_from(shape_hw, centre, distance)
+
+
+def chw(hwc):
+    return np.ascontiguousarray(hwc.transpose(2, 0, 1))
+
+
+def apply(x, res):
+    """(3, H, W) float32 of a FrameResult applied to ``x`` at full resolution, as the pipeline
+    and relight_image do (half-float output)."""
+    y, _ = detail.FullRes(threads=1).finish_planar(x, res.a, res.b, float(x.max(initial=0.0)))
+    return y.astype(np.float32)
+
+
+def margin(h, w, size=32):
+    """How far the change may spread past the disc: the coarse pass's pixels, enlarged
+    bilinearly, reach 2.5 of them."""
+    return 2.5 * max(h, w) / size
+
+
+# ---- the session -----------------------------------------------------------------------------
+
+def test_intrinsic_card_gives_an_intrinsic_session_with_the_buffers(session):
+    """new_session returns an IntrinsicSession whose buffers have the contract's shapes, at odd
+    sizes too (padding to the stride is cropped away)."""
+    assert isinstance(session, engine.IntrinsicSession)
+    assert session.card.contract == contract.INTRINSIC_CONTRACT
+    res = session.run_planar(chw(frame(21, 35, (17.0, 10.0), 8.0)))
+    assert res.normal.shape == (3, 21, 35) and res.height.shape == (21, 35)
+    assert res.albedo.shape == (3, 21, 35) and res.parsing.shape == (2, 21, 35)
+    np.testing.assert_allclose(np.linalg.norm(res.normal, axis=0), 1.0, atol=1e-5)
+    assert res.parsing[0, 10, 17] > 0.99 and res.parsing[0, 1, 1] < 1e-6
+
+
+def test_a_model_without_a_normal_output_is_refused(tmp_path):
+    """A relight-intrinsic/1 model whose outputs lack 'normal' is a ModelError, not a crash."""
+    path = write_standin(tmp_path, "no_normal", normal_name="normals")
+    with pytest.raises(ModelError, match="normal"):
+        engine.new_session(path, providers=["CPUExecutionProvider"], threads=1)
+
+
+# ---- framing ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("h, w, centre, radius", [(180, 320, (210.0, 80.0), 25.0),
+                                                    (320, 180, (70.0, 120.0), 25.0)])
+def test_find_box_finds_the_disc(session, h, w, centre, radius):
+    """A disc in a wide 16:9 and in a vertical frame: the box is centred on it (lifted by
+    framing.LIFT for the hair) and about MARGIN times its diameter."""
+    box = portrait.find_box(session, chw(frame(h, w, centre, radius)))
+    assert box is not None
+    assert abs(box.cx - centre[0]) < 0.03 * box.size
+    assert abs(box.cy + framing.LIFT * box.size - centre[1]) < 0.03 * box.size
+    assert box.size == pytest.approx(portrait.MARGIN * 2 * radius, rel=0.15)
+
+
+@pytest.mark.parametrize("kind", ["black", "grey"])
+def test_no_portrait_gives_none_and_an_unchanged_frame(session, kind):
+    """A black (or grey, skinless) frame has no box; relight_frame(..., None) returns the frame
+    unchanged with found=False and an empty matte."""
+    x = chw(np.zeros((45, 80, 3), np.float32) if kind == "black" else frame(45, 80))
+    assert portrait.find_box(session, x) is None
+    res = portrait.relight_frame(session, x, RIGHT_LAMP, None)
+    assert not res.found and res.plan is None
+    assert np.all(res.a == 1.0) and not res.b.any() and not res.matte.any()
+    np.testing.assert_allclose(apply(x, res), x, rtol=HALF, atol=0)
+
+
+def test_relight_frame_changes_the_portrait_and_keeps_the_background(session):
+    """Under a lamp from the right the disc's right half gains on its left half; pixels outside
+    the matte keep the footage exactly."""
+    h, w, centre, radius = 90, 160, (90.0, 45.0), 20.0
+    x = chw(frame(h, w, centre, radius, seed=1))
+    box = portrait.find_box(session, x)
+    res = portrait.relight_frame(session, x, RIGHT_LAMP, box)
+    assert res.found and res.matte.max() > 0.99
+    y = apply(x, res)
+    assert y.shape == x.shape and np.all(np.isfinite(y))
+    outside = away_from((h, w), centre, radius + margin(h, w))
+    np.testing.assert_allclose(y[:, outside], x[:, outside], rtol=HALF, atol=0)
+    inner = within((h, w), centre, radius - 3)
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    left, right = inner & (xx < centre[0] - 4), inner & (xx > centre[0] + 4)
+    gain = intrinsic.luminance(y) / intrinsic.luminance(x)
+    assert gain[right].mean() > 1.5 * gain[left].mean()
+    # The mirrored lamp favours the other side.
+    mirrored = lightvec.splat_direction([-1.0, 0.0, 0.35], 10.0) + lightvec.uniform(0.05)
+    y = apply(x, portrait.relight_frame(session, x, mirrored, box))
+    gain = intrinsic.luminance(y) / intrinsic.luminance(x)
+    assert gain[left].mean() > 1.5 * gain[right].mean()
+
+
+# ---- addon.api.relight_image -----------------------------------------------------------------
+
+@pytest.mark.parametrize("h, w", [(37, 53), (53, 37), (1, 1), (2, 1), (1, 7)])
+def test_relight_image_any_size(model, h, w):
+    """Odd and tiny sizes come back (H, W, 3) float32 and finite, with or without a portrait."""
+    for img in (frame(h, w, (w / 2, h / 2), 0.3 * min(h, w) + 0.5), np.zeros((h, w, 3), np.float32),
+                np.broadcast_to(SKIN, (h, w, 3))):
+        out = api.relight_image(img, RIGHT_LAMP, model=model, threads=1)
+        assert out.shape == (h, w, 3) and out.dtype == np.float32
+        assert np.all(np.isfinite(out)) and out.min() >= 0.0
+
+
+def test_relight_image_takes_bad_pixels_as_zero(model):
+    """NaN, Inf and negative pixels: finite output, those pixels black, the portrait relit as if
+    they were 0."""
+    img = frame(48, 64, (32.0, 24.0), 12.0)
+    bad = img.copy()
+    bad[0, :8] = np.nan
+    bad[1, :8] = np.inf
+    bad[2, :8] = -np.inf
+    bad[3, :8] = -1.0
+    out = api.relight_image(bad, RIGHT_LAMP, model=model, threads=1)
+    assert out.shape == img.shape and np.all(np.isfinite(out))
+    assert not out[:4, :8].any()
+    clean = img.copy()
+    clean[:4, :8] = 0.0
+    np.testing.assert_array_equal(out, api.relight_image(clean, RIGHT_LAMP, model=model, threads=1))
+
+
+def test_relight_image_is_the_frame_path(model, session):
+    """relight_image is find_box + relight_frame on the image."""
+    img = frame(60, 90, (40.0, 30.0), 14.0, seed=2)
+    x = chw(img)
+    want = apply(x, portrait.relight_frame(session, x, RIGHT_LAMP, portrait.find_box(session, x)))
+    got = api.relight_image(img, RIGHT_LAMP, model=model, threads=1)
+    np.testing.assert_array_equal(got, want.transpose(1, 2, 0))
+    assert np.abs(got - img).max() > 0.05
+
+
+@pytest.mark.parametrize("centre", [(8.0, 30.0), (90.0, 4.0), (92.0, 60.0)])
+def test_a_disc_touching_the_frame_edge(model, centre):
+    """A portrait cut by the frame's edge: finite, relit, and the footage unchanged outside the
+    disc (the crop's padding beyond the frame is not taken for the subject)."""
+    h, w, radius = 64, 96, 14.0
+    img = frame(h, w, centre, radius, seed=3)
+    out = api.relight_image(img, RIGHT_LAMP, model=model, threads=1)
+    assert out.shape == img.shape and np.all(np.isfinite(out))
+    outside = away_from((h, w), centre, radius + margin(h, w))
+    np.testing.assert_allclose(out[outside], img[outside], rtol=HALF, atol=0)
+    assert np.abs(out - img)[within((h, w), centre, radius - 2)].max() > 0.05
+
+
+# ---- the pipeline ----------------------------------------------------------------------------
+
+H, W, N = 48, 80, 4
+
+
+def clip_frames(absent=()):
+    """N frames of a disc drifting right; frames in ``absent`` have no disc."""
+    return [frame(H, W, None if i in absent else (34.0 + 2 * i, 24.0), 11.0, seed=10 + i)
+            for i in range(N)]
+
+
+def image_clip(files):
+    files = tuple(str(f) for f in files)
+    return pipeline.ClipSpec("images", str(pathlib.Path(files[0]).parent), files, 0, len(files),
+                             "Linear Rec.709", 0.0)
+
+
+def run(model, files, out):
+    return pipeline.relight_clip(image_clip(files), RIGHT_LAMP[None], out,
+                                 pipeline.RelightOptions(model, threads=1, write_matte=True))
+
+
+def sha(path):
+    return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+
+
+def test_clip_writes_every_frame_and_resumes_bit_identically(model, tmp_path):
+    """Every frame and the boxes file are written; after deleting one relit frame a rerun writes
+    exactly that frame, framed from the stored boxes, bit-identical to the first run's."""
+    src = clip_frames()
+    files = write_exr_sequence(tmp_path / "src", src)
+    out = tmp_path / "out"
+    res = run(model, files, out)
+    assert res.written == N and res.resumed == 0 and not res.warnings
+    assert all(os.path.isfile(p) for p in res.relit_files + res.matte_files)
+    boxes_path = out / pipeline.BOXES_FILE
+    stored = json.loads(boxes_path.read_text(encoding="utf-8"))
+    assert stored["found"] == N and len(stored["boxes"]) == N
+    for i, b in enumerate(stored["boxes"]):  # each box on its frame's disc
+        assert abs(b[0] - (34.0 + 2 * i)) < 0.1 * b[2] and b[2] > 2 * 11.0
+    for i, p in enumerate(res.relit_files):
+        y = frames.read_exr(p)
+        assert y.shape == (H, W, 3) and np.all(np.isfinite(y))
+        assert np.abs(y - src[i]).max() > 0.05  # relit, not copied
+    first = [sha(p) for p in res.relit_files]
+    boxes_bytes, boxes_stamp = boxes_path.read_bytes(), boxes_path.stat().st_mtime_ns
+
+    os.remove(res.relit_files[2])
+    again = run(model, files, out)
+    assert (again.written, again.resumed) == (1, N - 1)
+    assert [sha(p) for p in again.relit_files] == first
+    assert boxes_path.read_bytes() == boxes_bytes  # not framed again: read back
+    assert boxes_path.stat().st_mtime_ns == boxes_stamp
+
+
+def test_a_frame_without_a_portrait_warns_and_is_written_unchanged(model, tmp_path):
+    """A frame with no disc: the run warns that no portrait was found, that frame comes out as its
+    input (within half-float rounding) and the others are relit."""
+    src = clip_frames(absent=(2,))
+    files = write_exr_sequence(tmp_path / "src", src)
+    res = run(model, files, tmp_path / "out")
+    assert res.written == N
+    assert any("No portrait was found in 1 frame" in m for m in res.warnings), res.warnings
+    stored = json.loads((tmp_path / "out" / pipeline.BOXES_FILE).read_text(encoding="utf-8"))
+    assert stored["found"] == N - 1 and stored["boxes"][2] is None
+    out = [frames.read_exr(p) for p in res.relit_files]
+    np.testing.assert_allclose(out[2], src[2], rtol=2.0 ** -10, atol=0)
+    assert not frames.read_exr(res.matte_files[2]).any()
+    for i in (0, 1, 3):
+        assert np.abs(out[i] - src[i]).max() > 0.05
