@@ -495,16 +495,19 @@ def clip_exposure(clip: ClipSpec, plan: Plan, fullres: detail.FullRes) -> float:
 # ---- portrait framing (intrinsic models) ----------------------------------------------------
 
 def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: dict,
-                   should_cancel=None) -> list:
-    """The portrait's box in every frame of the clip (None where none was found), smoothed over
-    the whole clip (never the chunk, so farm chunks agree) and kept in BOXES_FILE so a resumed
-    run frames exactly as the first did."""
+                   should_cancel=None) -> tuple[list, list[int]]:
+    """(the portrait's box in every frame of the clip, the frames where none was found). Boxes
+    are smoothed over the whole clip (never the chunk, so farm chunks agree), and a frame where
+    none was found takes its neighbours' framing: a face missed for a frame is still relit,
+    and where there really is no subject the network's matte is empty there and the frame comes
+    out unchanged. Kept in BOXES_FILE so a resumed run frames exactly as the first did."""
     path = os.path.join(out_dir, BOXES_FILE)
     if os.path.isfile(path):
         try:
             stored = json.loads(pathlib.Path(path).read_text(encoding="utf-8"))
             if stored.get("identity") == identity and len(stored["boxes"]) == clip.count:
-                return [None if b is None else framing.Box(*b) for b in stored["boxes"]]
+                return ([None if b is None else framing.Box(*b) for b in stored["boxes"]],
+                        [int(i) for i in stored["missing"]])
         except (OSError, ValueError, TypeError, KeyError):
             pass  # unreadable: framed again below
     raw = []
@@ -515,13 +518,12 @@ def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: 
             raise Cancelled("Cancelled while framing the portrait; nothing was written, run "
                             "again to start.")
         raw.append(portrait.find_box(session, linearise(d.pixels, plan)[0]))
-    # Smoothing fills the frames where nothing was found from their neighbours (so the others
-    # are steadied as usual); those frames themselves stay None: written unchanged, counted.
-    boxes = [None if r is None else b for r, b in zip(raw, framing.smooth_boxes(raw))]
+    boxes = framing.smooth_boxes(raw)
+    missing = [i for i, b in enumerate(raw) if b is None]
     _atomic_write_text(path, json.dumps(
-        {"identity": identity, "found": sum(b is not None for b in raw),
+        {"identity": identity, "found": len(raw) - len(missing), "missing": missing,
          "boxes": [None if b is None else list(b.to_tuple()) for b in boxes]}))
-    return boxes
+    return boxes, missing
 
 
 # ---- the run ------------------------------------------------------------------------------
@@ -608,11 +610,12 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
         out.info(f"Resuming: {resumed} of {len(selected)} frames are already done.")
     boxes = None
     if isinstance(session, engine.IntrinsicSession) and todo:
-        boxes = portrait_boxes(clip, plan, session, out_dir, identity, should_cancel)
-        missing = sum(boxes[i] is None for i in todo)
-        if missing:
-            out.warn(f"No portrait was found in {missing} frame(s); they are written unchanged. "
-                     "The subject's face must be visible and at least a few pixels across.")
+        boxes, missing = portrait_boxes(clip, plan, session, out_dir, identity, should_cancel)
+        missed = len(set(missing) & set(todo))
+        if missed:
+            out.warn(f"No portrait was found in {missed} frame(s); they are framed like their "
+                     "neighbours (a frame with no subject comes out unchanged). The subject's "
+                     "face must be visible and at least a few pixels across.")
     written = _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed,
                           len(selected), on_progress, should_cancel, out, boxes)
     return RunResult(out_dir, [relit_path(out_dir, i) for i in selected],

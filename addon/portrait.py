@@ -48,6 +48,19 @@ def _buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None 
     return intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face)
 
 
+def fit_in_frame(box: framing.Box, frame_hw: tuple[int, int]) -> framing.Box:
+    """The box no larger than the frame's long side, moved to lie inside the frame where it
+    fits: a tight portrait (the face fills the frame) is cropped as the frame itself, not with
+    replicated edges around it, which the network never saw in training."""
+    h, w = frame_hw
+    size = min(box.size, float(max(h, w)))
+
+    def centre(c: float, n: int) -> float:
+        return n / 2 if size >= n else min(max(c, size / 2), n - size / 2)
+
+    return framing.Box(centre(box.cx, w), centre(box.cy, h), size)
+
+
 def find_box(session: IntrinsicSession, x_full: np.ndarray) -> framing.Box | None:
     """The portrait's square box in a (3, H, W) frame, or None when there is none."""
     h, w = x_full.shape[1:]
@@ -58,6 +71,7 @@ def find_box(session: IntrinsicSession, x_full: np.ndarray) -> framing.Box | Non
     box = framing.find_portrait(coarse.face, coarse.matte, (h, w), MARGIN)
     if box is None:
         return None
+    box = fit_in_frame(box, (h, w))
     # Refine on the box itself, where the face has most of the working size.
     crop = framing.crop(np.ascontiguousarray(x_full.transpose(1, 2, 0)), box, size)
     valid = framing.crop_weight(box, (h, w), size)
@@ -66,8 +80,8 @@ def find_box(session: IntrinsicSession, x_full: np.ndarray) -> framing.Box | Non
     if inner is None:
         return box
     k = box.size / size
-    return framing.Box(box.cx - box.size / 2 + inner.cx * k, box.cy - box.size / 2 + inner.cy * k,
-                       inner.size * k)
+    return fit_in_frame(framing.Box(box.cx - box.size / 2 + inner.cx * k,
+                                    box.cy - box.size / 2 + inner.cy * k, inner.size * k), (h, w))
 
 
 def grid_shape(height: int, width: int, box: framing.Box, size: int) -> tuple[int, int]:

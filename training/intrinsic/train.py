@@ -39,6 +39,40 @@ def normalise_batch(img: torch.Tensor) -> torch.Tensor:
     return img * scale.view(-1, 1, 1, 1)
 
 
+ZOOM = (1.0, 1.7)  # tighter framings than the light stage's camera gives (a face filling the crop)
+
+
+def zoom(batch: dict, gen: torch.Generator, p: float = 0.5) -> dict:
+    """Zoom a random share ``p`` of the batch into a random sub-square (scale in ZOOM), image and
+    buffers alike: normals are renormalised, heights (in pixels) scale with the zoom."""
+    n = batch["image"].shape[0]
+    pick = torch.rand(n, generator=gen) < p
+    if not bool(pick.any()):
+        return batch
+    f = ZOOM[0] + (ZOOM[1] - ZOOM[0]) * torch.rand(n, generator=gen)
+    f = torch.where(pick, f, torch.ones_like(f))
+    room = 1.0 - 1.0 / f
+    t = (torch.rand(n, 2, generator=gen) * 2 - 1) * room[:, None]
+    theta = torch.zeros(n, 2, 3)
+    theta[:, 0, 0] = theta[:, 1, 1] = 1.0 / f
+    theta[:, :, 2] = t
+    grid = torch.nn.functional.affine_grid(theta, list(batch["image"].shape), align_corners=False)
+
+    def warp(x, mode="bilinear"):
+        return torch.nn.functional.grid_sample(x, grid, mode=mode, padding_mode="border",
+                                               align_corners=False)
+
+    out = dict(batch)
+    out["image"] = warp(batch["image"])
+    tgt = warp(batch["target"])
+    fg = warp(batch["fg"], "nearest")
+    tgt[:, 0:3] = torch.nn.functional.normalize(tgt[:, 0:3], dim=1) * fg
+    tgt[:, 3:4] = tgt[:, 3:4] * f.view(-1, 1, 1, 1)
+    tgt[:, 8:9] = (tgt[:, 8:9] > 0.5).float()
+    out["target"], out["fg"] = tgt, fg
+    return out
+
+
 def prepare(batch: dict, gen: torch.Generator, strength: float = 1.0) -> torch.Tensor:
     img = camera.camera_pipeline(batch["image"], gen, strength)
     img = camera.greyscale(img, gen, 0.15)
@@ -111,7 +145,10 @@ def train(a) -> pathlib.Path:
         lr = a.lr * (min(1.0, (step + 1) / 200) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
         for g in opt.param_groups:
             g["lr"] = lr
-        batch = ds.batch(range(step * a.batch, (step + 1) * a.batch))
+        first = (a.start_step + step) * a.batch
+        batch = ds.batch(range(first, first + a.batch))
+        if a.zoom > 0:
+            batch = zoom(batch, gen, a.zoom)
         inp = prepare(batch, gen)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=a.bf16):
             pred = model(inp)
@@ -159,6 +196,9 @@ def main(argv=None):
     ap.add_argument("--val-every", type=int, default=250)
     ap.add_argument("--log-every", type=int, default=50)
     ap.add_argument("--init", help="start from this checkpoint's weights")
+    ap.add_argument("--zoom", type=float, default=0.5, help="share of samples zoomed in (ZOOM)")
+    ap.add_argument("--start-step", type=int, default=0, help="batch index to start at (a "
+                    "continued run sees new samples)")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false")
     a = ap.parse_args(argv)
     print(train(a))
