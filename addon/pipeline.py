@@ -495,7 +495,7 @@ def clip_exposure(clip: ClipSpec, plan: Plan, fullres: detail.FullRes) -> float:
 # ---- portrait framing (intrinsic models) ----------------------------------------------------
 
 def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: dict,
-                   should_cancel=None) -> tuple[list, list[int]]:
+                   fullres: detail.FullRes, should_cancel=None) -> tuple[list, list[int]]:
     """(the portrait's box in every frame of the clip, the frames where none was found). Boxes
     are smoothed over the whole clip (never the chunk, so farm chunks agree), and a frame where
     none was found takes its neighbours' framing: a face missed for a frame is still relit,
@@ -517,7 +517,7 @@ def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: 
         if should_cancel and should_cancel():
             raise Cancelled("Cancelled while framing the portrait; nothing was written, run "
                             "again to start.")
-        raw.append(portrait.find_box(session, linearise(d.pixels, plan)[0]))
+        raw.append(portrait.find_box(session, linearise(d.pixels, plan)[0], fullres))
     boxes = framing.smooth_boxes(raw)
     missing = [i for i, b in enumerate(raw) if b is None]
     _atomic_write_text(path, json.dumps(
@@ -610,7 +610,8 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
         out.info(f"Resuming: {resumed} of {len(selected)} frames are already done.")
     boxes = None
     if isinstance(session, engine.IntrinsicSession) and todo:
-        boxes, missing = portrait_boxes(clip, plan, session, out_dir, identity, should_cancel)
+        boxes, missing = portrait_boxes(clip, plan, session, out_dir, identity, fullres,
+                                        should_cancel)
         missed = len(set(missing) & set(todo))
         if missed:
             out.warn(f"No portrait was found in {missed} frame(s); they are framed like their "
@@ -689,7 +690,7 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             i, x_full, x_max, x_low = item
             light = lights[min(i, len(lights) - 1)]
             if boxes is not None:  # intrinsic: framing, buffers, renderer (addon/portrait.py)
-                res = portrait.relight_frame(session, x_full, light, boxes[i])
+                res = portrait.relight_frame(session, x_full, light, boxes[i], fullres=fullres)
                 s = np.float32(plan.scale)  # x_full is the footage / s
                 ab, fg = (res.a * s, res.b * s), res.matte
                 source = np.zeros(lightvec.SHAPE, np.float32)

@@ -21,6 +21,20 @@ from . import detail, framing, intrinsic
 from .engine import IntrinsicSession
 
 MARGIN = 2.2  # box side over the face's extent: room for hair, chin and a little shoulder
+_FULLRES: dict = {}
+
+
+def _fullres(fullres: detail.FullRes | None) -> detail.FullRes:
+    """The caller's full-resolution graphs, else one kept here (building them costs time)."""
+    if fullres is None:
+        fullres = _FULLRES.setdefault("default", detail.FullRes(threads=1))
+    return fullres
+
+
+def crop_planar(x: np.ndarray, box: framing.Box, size: int) -> np.ndarray:
+    """(3, size, size) crop of a (3, H, W) frame, channel by channel (no channels-last copy of
+    the whole frame)."""
+    return np.stack([framing.crop(x[c], box, size) for c in range(x.shape[0])])
 
 
 FEATHER = 0.12  # share of the crop's side over which the face crop fades into the coarse pass
@@ -61,21 +75,20 @@ def fit_in_frame(box: framing.Box, frame_hw: tuple[int, int]) -> framing.Box:
     return framing.Box(centre(box.cx, w), centre(box.cy, h), size)
 
 
-def find_box(session: IntrinsicSession, x_full: np.ndarray) -> framing.Box | None:
+def find_box(session: IntrinsicSession, x_full: np.ndarray,
+             fullres: detail.FullRes | None = None) -> framing.Box | None:
     """The portrait's square box in a (3, H, W) frame, or None when there is none."""
     h, w = x_full.shape[1:]
     size = session.card.working_size
-    ch, cw = detail.working_shape(h, w, size)
-    small = detail.resize(np.ascontiguousarray(x_full.transpose(1, 2, 0)), ch, cw)
-    coarse = _buffers(session, np.ascontiguousarray(small.transpose(2, 0, 1)))
+    small = _fullres(fullres).shrink_planar(x_full, *detail.working_shape(h, w, size))
+    coarse = _buffers(session, small)
     box = framing.find_portrait(coarse.face, coarse.matte, (h, w), MARGIN)
     if box is None:
         return None
     box = fit_in_frame(box, (h, w))
     # Refine on the box itself, where the face has most of the working size.
-    crop = framing.crop(np.ascontiguousarray(x_full.transpose(1, 2, 0)), box, size)
     valid = framing.crop_weight(box, (h, w), size)
-    fine = _buffers(session, np.ascontiguousarray(crop.transpose(2, 0, 1)), valid)
+    fine = _buffers(session, crop_planar(x_full, box, size), valid)
     inner = framing.find_portrait(fine.face, fine.matte, (size, size), MARGIN)
     if inner is None:
         return box
@@ -109,7 +122,7 @@ def _change(session, x: np.ndarray, light, effects, valid=None):
 
 def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarray,
                   box: framing.Box | None, effects: intrinsic.Plan | None = None,
-                  keep_exposure: bool = True) -> FrameResult:
+                  keep_exposure: bool = True, fullres: detail.FullRes | None = None) -> FrameResult:
     """Relight a (3, H, W) linear frame to ``light``: a coarse pass over the whole frame lights
     the whole person, the crop around ``box`` gives the face its working size, and the crop
     fades into the coarse pass over its outer edge. ``box`` None (no portrait found): the frame
@@ -120,19 +133,25 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
         return FrameResult(np.ones((3, 1, 1), np.float32), np.zeros((3, 1, 1), np.float32),
                            np.zeros((1, 1), np.float32), False, None)
     gh, gw = grid_shape(h, w, box, size)
-    hwc = np.ascontiguousarray(x_full.transpose(1, 2, 0))
-    grid = detail.resize(hwc, gh, gw)  # area averages: the footage at the grid's resolution
-    # Coarse: the whole frame at the working size, enlarged to the grid.
-    ch, cw = detail.working_shape(h, w, size)
-    small = np.ascontiguousarray(detail.resize(grid, ch, cw).transpose(2, 0, 1))
+    fr = _fullres(fullres)
+    grid_chw = fr.shrink_planar(x_full, gh, gw)  # the footage at the grid's resolution
+    grid = np.ascontiguousarray(grid_chw.transpose(1, 2, 0))
     plan = intrinsic.plan(light) if effects is None else effects
-    dr, hi, m, _ = _change(session, small, light, plan)
-    coarse = detail.resize(np.concatenate([dr, hi, m[None]], 0).transpose(1, 2, 0), gh, gw)
+    # Coarse: the whole frame at half the working size (it lights the body beyond the face's
+    # box, where a soft change is enough), enlarged to the grid; not needed when the box holds
+    # the whole frame.
+    covers = (box.cx - box.size / 2 <= 0 and box.cy - box.size / 2 <= 0
+              and box.cx + box.size / 2 >= w and box.cy + box.size / 2 >= h)
+    if covers:
+        coarse = np.zeros((gh, gw, 7), np.float32)
+    else:
+        small = fr.shrink_planar(grid_chw, *detail.working_shape(h, w, max(size // 2, 16)))
+        dr, hi, m, _ = _change(session, small, light, plan)
+        coarse = detail.resize(np.concatenate([dr, hi, m[None]], 0).transpose(1, 2, 0), gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
-    crop = np.ascontiguousarray(framing.crop(hwc, box, size).transpose(2, 0, 1))
     valid = framing.crop_weight(box, (h, w), size)
-    dr_f, hi_f, m_f, _ = _change(session, crop, light, plan, valid)
-    fw = feather(size) * valid
+    dr_f, hi_f, m_f, _ = _change(session, crop_planar(x_full, box, size), light, plan, valid)
+    fw = (1.0 if covers else feather(size)) * valid
     k = gh / h
     gbox = framing.Box(box.cx * k, box.cy * k, box.size * k)
     fine = framing.uncrop(np.concatenate([dr_f, hi_f, m_f[None], fw[None]], 0).transpose(1, 2, 0),
