@@ -47,11 +47,13 @@ def session(model_path, threads: int | None = None):
 
 
 def relight_image(image, light, preset: str = "standard", models_dir=None, *, model=None,
-                  threads: int | None = None) -> np.ndarray:
+                  threads: int | None = None,
+                  background: str = pipeline.DEFAULT_BACKGROUND) -> np.ndarray:
     """Relight ``image`` ((H, W, 3) float32 scene-linear Rec.709) to ``light`` ((16, 16, 3), the
     light-vector convention) with the preset's model and return (H, W, 3) scene linear.
-    ``model``: a path to an .onnx (with its card) instead of a preset. NaN, infinite and negative
-    pixels are taken as 0, as the pipeline does."""
+    ``model``: a path to an .onnx (with its card) instead of a preset; ``background``: the
+    pipeline's choice for the end-to-end presets (intrinsic presets always keep the footage's
+    background). NaN, infinite and negative pixels are taken as 0, as the pipeline does."""
     img = np.asarray(image, dtype=np.float32)
     if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
         raise InputError(f"The image must be (H, W, 3), got shape {img.shape}.")
@@ -63,16 +65,15 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
         res = portrait.relight_frame(sess, x, light, portrait.find_box(sess, x))
         y = detail.FullRes(threads=1).finish_planar(x, res.a, res.b, float(x.max(initial=0.0)))[0]
         return np.ascontiguousarray(y.astype(np.float32).transpose(1, 2, 0))
-    return _network_frame(sess, x, light)
+    return _network_frame(sess, x, light, background)
 
 
-def _network_frame(sess, x: np.ndarray, light: np.ndarray) -> np.ndarray:
+def _network_frame(sess, x: np.ndarray, light: np.ndarray, background: str) -> np.ndarray:
     """The end-to-end network's path through the pipeline's per-frame stages."""
     h, w = x.shape[1:]
     s = normalise.exposure_scale([x.transpose(1, 2, 0)])
     plan = pipeline.Plan(LINEAR, s, (w, h), detail.working_shape(h, w, sess.card.working_size),
-                         True, False, "none", pipeline.relit_times_s(sess.card),
-                         pipeline.DEFAULT_BACKGROUND)
+                         True, False, "none", pipeline.relit_times_s(sess.card), background)
     fullres = detail.FullRes(threads=1)
     xn = np.ascontiguousarray(x / np.float32(s))
     x_low = pipeline.shrink_planar(xn, plan, fullres)

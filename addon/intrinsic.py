@@ -40,8 +40,9 @@ INPUT_LEVEL = 0.6
 # highlight. Up to MAX_COMPONENTS are simulated.
 COMPONENT_SHARE = 0.12
 MAX_COMPONENTS = 3
-SHADOW_STEPS = 40           # march length in working-size pixels
-SHADOW_SOFTNESS = 1.5       # pixels of height over which an occluder fades in
+SHADOW_STEPS = 30           # march length in working-size pixels
+SHADOW_SOFTNESS = 3.0       # pixels of height over which an occluder fades in
+SHADOW_BIAS = (2.0, 0.1)    # pixels, plus pixels per pixel marched: the height is approximate
 SKIN_ROUGHNESS = 0.38
 SKIN_F0 = 0.028
 RATIO_MAX = 16.0            # a region the footage had in deep shadow is not amplified without bound
@@ -131,10 +132,12 @@ def sh_basis(normal: np.ndarray) -> np.ndarray:
                      1.092548 * x * z, 0.546274 * (x * x - y * y)]).astype(np.float32)
 
 
-EXACT_CELLS = 24  # the brightest cells are summed exactly; the rest (soft light) through SH
+EXACT_CELLS = 24     # at most this many of the brightest cells are summed exactly ...
+EXACT_SHARE = 0.01   # ... those with at least this share of the power; the rest through SH
 
 
-def irradiance(light: np.ndarray, normal: np.ndarray, exact_cells: int = EXACT_CELLS) -> np.ndarray:
+def irradiance(light: np.ndarray, normal: np.ndarray, exact_cells: int = EXACT_CELLS,
+               exact_share: float = EXACT_SHARE) -> np.ndarray:
     """(3, h, w) irradiance sum_t L_t max(0, n.d_t) Omega_t on normals (3, h, w): the
     ``exact_cells`` brightest cells exactly (a lamp's terminator stays sharp), the others through
     their order-2 spherical-harmonic projection (Ramamoorthi and Hanrahan: about 1% error for
@@ -143,10 +146,14 @@ def irradiance(light: np.ndarray, normal: np.ndarray, exact_cells: int = EXACT_C
     lw = (np.asarray(light, np.float32).reshape(-1, 3)
           * lightvec.solid_angles().reshape(-1, 1).astype(np.float32))
     power = lw @ np.asarray(LUMA, np.float32)
-    order = np.argsort(-power)
-    exact = order[:exact_cells]
-    exact = exact[power[exact] > 0]
-    rest = order[exact_cells:]
+    # Exact for the brightest cells that each carry a noticeable share of the power (a lamp's);
+    # a smooth light has none and goes wholly through SH. Chosen by share, not by rank alone,
+    # so equal cells (a uniform world) never split between the two paths by rounding.
+    order = np.argsort(-power, kind="stable")[:exact_cells]
+    total = float(np.abs(power).sum())
+    chosen = np.zeros(len(power), bool)
+    chosen[order[power[order] > exact_share * total]] = True
+    exact, rest = np.nonzero(chosen)[0], np.nonzero(~chosen)[0]
     n = normal.reshape(3, -1)
     cos = np.maximum(d[exact] @ n, 0.0)  # (cells, h*w)
     out = lw[exact].T @ cos
@@ -207,7 +214,7 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
         inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
         xi = np.clip(np.rint(x).astype(np.int32), 0, w - 1)
         yi = np.clip(np.rint(y).astype(np.int32), 0, h - 1)
-        ray = h0 + rise * t + 0.5 + 0.05 * t  # bias grows with distance: height is approximate
+        ray = h0 + rise * t + SHADOW_BIAS[0] + SHADOW_BIAS[1] * t
         above = (hh[yi, xi] - ray) * (inside / SHADOW_SOFTNESS)
         np.maximum(occl, above, out=occl)
     vis[yy.astype(np.int64), xx.astype(np.int64)] = 1.0 - np.clip(occl, 0.0, 1.0)
@@ -269,7 +276,11 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
             s = specular(bufs.normal, comp.direction) * (vis if vis is not None else 1.0)
             spec += comp.irradiance[:, None, None] * (s * bufs.face)[None]
     e_t = np.maximum(e_t, 0.0)
-    ratio = np.minimum(e_t / e_src[None], RATIO_MAX)
+    # Bound the ratio relative to its typical value, so the bound does not depend on the light's
+    # absolute power (the change stays linear in the light).
+    typical = float(np.median(luminance(e_t)[fg])) if fg.any() else 0.0
+    norm = float(np.median(e_src[fg])) / typical if typical > 0 else 1.0
+    ratio = np.minimum(e_t * np.float32(norm) / e_src[None], RATIO_MAX) / np.float32(norm)
     # The highlight in the footage's units: the footage's radiance per unit of irradiance on skin
     # is lum / e_src there (albedo / pi of the skin, in whatever exposure the footage has).
     skin = fg & (bufs.face > 0.5)

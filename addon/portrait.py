@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import detail, framing, intrinsic
+from . import detail, framing, intrinsic, lightvec
 from .engine import IntrinsicSession
 
 MARGIN = 2.2  # box side over the face's extent: room for hair, chin and a little shoulder
@@ -113,11 +113,13 @@ def feather(size: int, share: float = FEATHER) -> np.ndarray:
 
 
 def _change(session, x: np.ndarray, light, effects, valid=None):
-    """(ratio - 1 and highlight, each times the matte; the matte) for a (3, h, w) image."""
+    """(ratio and highlight, each times the matte; the matte) for a (3, h, w) image. The ratio
+    is carried times the matte, never as ratio - 1: under a faint light ratio - 1 + 1 would
+    lose the ratio to rounding."""
     bufs = _buffers(session, x, valid)
     sh = intrinsic.shade(x, bufs, light, effects, keep_exposure=False)
     m = np.clip(bufs.matte, 0.0, 1.0)[None]
-    return m * (sh.ratio - 1.0), m * sh.highlight, m[0], sh.plan
+    return m * sh.ratio, m * sh.highlight, m[0], sh.plan
 
 
 def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarray,
@@ -129,6 +131,10 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     is unchanged. ``keep_exposure``: the subject keeps the frame's mean luminance (intrinsic.shade)."""
     h, w = x_full.shape[1:]
     size = session.card.working_size
+    if not float(np.max(lightvec.total_power(light))) > 0:
+        # No light: a black frame, as for the end-to-end presets (nothing to keep exposure of).
+        return FrameResult(np.zeros((3, 1, 1), np.float32), np.zeros((3, 1, 1), np.float32),
+                           np.zeros((1, 1), np.float32), True, None)
     if box is None:
         return FrameResult(np.ones((3, 1, 1), np.float32), np.zeros((3, 1, 1), np.float32),
                            np.zeros((1, 1), np.float32), False, None)
@@ -146,15 +152,15 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
         coarse = np.zeros((gh, gw, 7), np.float32)
     else:
         small = fr.shrink_planar(grid_chw, *detail.working_shape(h, w, max(size // 2, 16)))
-        dr, hi, m, _ = _change(session, small, light, plan)
-        coarse = detail.resize(np.concatenate([dr, hi, m[None]], 0).transpose(1, 2, 0), gh, gw)
+        mr, hi, m, _ = _change(session, small, light, plan)
+        coarse = detail.resize(np.concatenate([mr, hi, m[None]], 0).transpose(1, 2, 0), gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
     valid = framing.crop_weight(box, (h, w), size)
-    dr_f, hi_f, m_f, _ = _change(session, crop_planar(x_full, box, size), light, plan, valid)
+    mr_f, hi_f, m_f, _ = _change(session, crop_planar(x_full, box, size), light, plan, valid)
     fw = (1.0 if covers else feather(size)) * valid
     k = gh / h
     gbox = framing.Box(box.cx * k, box.cy * k, box.size * k)
-    fine = framing.uncrop(np.concatenate([dr_f, hi_f, m_f[None], fw[None]], 0).transpose(1, 2, 0),
+    fine = framing.uncrop(np.concatenate([mr_f, hi_f, m_f[None], fw[None]], 0).transpose(1, 2, 0),
                           gbox, (gh, gw), 0.0)
     wf = fine[..., 7:8]
     # The two passes fit the footage's light separately: match the coarse change's level to the
@@ -162,23 +168,22 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     lum = np.asarray(intrinsic.LUMA, np.float32)
     both = (wf[..., 0] > 0.5) & (fine[..., 6] > 0.5) & (coarse[..., 6] > 0.5)
     if int(both.sum()) > 16:
-        g = float(np.mean(1.0 + fine[both][:, 0:3] @ lum)
-                  / max(float(np.mean(1.0 + coarse[both][:, 0:3] @ lum)), 1e-6))
-        m_c = coarse[..., 6:7]
-        coarse[..., 0:3] = g * (coarse[..., 0:3] + m_c) - m_c  # m (g ratio - 1)
-        coarse[..., 3:6] *= g
+        num = float(np.mean(fine[both][:, 0:3] @ lum))
+        den = float(np.mean(coarse[both][:, 0:3] @ lum))
+        g = num / den if den > 0 and num > 0 else 1.0
+        coarse[..., 0:6] *= g
     mix = (1.0 - wf) * coarse[..., :7] + wf * fine[..., :7]
-    dr, b, matte = mix[..., 0:3], mix[..., 3:6], np.clip(mix[..., 6:7], 0.0, 1.0)
+    mr, b, matte = mix[..., 0:3], mix[..., 3:6], np.clip(mix[..., 6:7], 0.0, 1.0)
     g = 1.0
     if keep_exposure:
         # The subject (matte) keeps its mean luminance; the background is left as it was:
-        # a = g (dr + m) + (1 - m), b = g b, with g solving sum lum(x a + b) m = sum lum(x) m.
+        # a = g m ratio + (1 - m), b = g b, with g solving sum lum(x a + b) m = sum lum(x) m.
         xl = grid @ lum
         before = float((xl * matte[..., 0]).sum() - (xl * (1.0 - matte[..., 0]) * matte[..., 0]).sum())
-        after = float((((grid * (dr + matte) + b) @ lum) * matte[..., 0]).sum())
-        if after > 1e-12 and before > 0:
+        after = float((((grid * mr + b) @ lum) * matte[..., 0]).sum())
+        if after > 0 and before > 0:
             g = before / after
-    a = g * (dr + matte) + (1.0 - matte)
+    a = g * mr + (1.0 - matte)
     b = g * b
     matte = matte[..., 0]
     return FrameResult(np.ascontiguousarray(a.transpose(2, 0, 1), np.float32),

@@ -351,13 +351,31 @@ def onnx_predictor(session, stride: int):
     return predict
 
 
+def product_predictor(onnx_path, threads: int = 1):
+    """An intrinsic model as the product runs it (``addon.relight_image``: framing, buffers,
+    renderer, the footage's exposure kept): its figures are the product's. The level it keeps is
+    the input's, so ``rmse_level_fit`` is the figure comparable with the end-to-end models."""
+    from addon import api
+
+    def predict(sample):
+        img = np.ascontiguousarray(np.asarray(sample["img_t_i"], np.float32).transpose(1, 2, 0))
+        out = api.relight_image(img, sample["light_k"], model=onnx_path, threads=threads)
+        return np.ascontiguousarray(out.transpose(2, 0, 1)), {}
+    return predict
+
+
 def onnx_file_predictor(path, threads: int):
     """(predict, card) for an exported model: its card (the .json beside an .onnx) gives the
-    stride; onnxruntime on the CPU with ``threads`` threads."""
+    stride; onnxruntime on the CPU with ``threads`` threads. Intrinsic models run through the
+    product's path (product_predictor)."""
     import onnxruntime as ort
+
+    from addon import contract
 
     path = str(path)
     card = json.loads(open(path[:-5] + ".json").read()) if path.endswith(".onnx") else {}
+    if card.get("contract") == contract.INTRINSIC_CONTRACT:
+        return product_predictor(path, threads), card
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
     session = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])

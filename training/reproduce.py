@@ -20,6 +20,8 @@ import shlex
 import subprocess
 import sys
 
+from addon import contract
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
@@ -57,6 +59,10 @@ def commands(card: dict) -> list[str]:
     if int8 and name.endswith("-int8"):
         name = name[: -len("-int8")]
     checkpoint = (recipe.get("exported_checkpoint") or {}).get("file", "best.pt")
+    if card.get("contract") == contract.INTRINSIC_CONTRACT:
+        out.append(f"python -m training.intrinsic.export --run {recipe['args']['out']} "
+                   f"--checkpoint {checkpoint} --name {name}")
+        return out
     out.append(f"python -m training.export --run {recipe['args']['out']} --checkpoint "
                f"{checkpoint} --name {name} --threads 1 --eval 64" + (" --int8" if int8 else ""))
     return out

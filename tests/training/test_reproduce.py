@@ -7,6 +7,8 @@ import shlex
 import pytest
 
 from training import export, reproduce, train
+from training.intrinsic import export as intrinsic_export
+from training.intrinsic import train as intrinsic_train
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 CARDS = sorted((ROOT / "models").glob("*.json"))
@@ -63,10 +65,14 @@ def test_every_shipped_card_gives_commands_the_current_cli_accepts(card):
         if args[2] == "training.train":
             parsed = train.parser().parse_args(args[3:])
             assert parsed.steps > 0  # step budgets: the same work on any machine
+        elif args[2] == "training.intrinsic.train":
+            intrinsic_train.parser().parse_args(args[3:])
+        elif args[2] == "training.intrinsic.export":
+            intrinsic_export.parser().parse_args(args[3:])
         else:
             assert args[2] == "training.export"
             export.parser().parse_args(args[3:])
-    trains = [c for c in cmds if "training.train" in c]
+    trains = [c for c in cmds if shlex.split(c)[2] in ("training.train", "training.intrinsic.train")]
     for before, after in zip(trains, trains[1:]):  # each run starts from the one before it
         out = shlex.split(before)[shlex.split(before).index("--out") + 1]
         assert f"--init {out}/" in after

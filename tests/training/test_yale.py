@@ -181,7 +181,7 @@ def toy(tmp_path_factory):
 def test_pipeline_relighter_follows_the_units_of_the_card(toy, b01):
     from tests.onnx_fixtures import frontal_irradiance_weights
 
-    relight = ye.PipelineRelighter(toy)
+    relight = ye.PipelineRelighter(toy, background="network")  # the network's own units
     img = b01.images[index_of(b01, 0, 0)]
     light = ye.light_vector(b01.dirs[[3]], np.array([1.5]))
     out = relight(img, light)

@@ -98,7 +98,47 @@ def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20)
     return float(np.median(t) * 1000)
 
 
-def main(argv=None):
+TRAIN_ARGS = ("width", "res", "minutes", "steps", "batch", "lr", "ema", "seed", "threads",
+              "val_n", "val_every", "zoom", "start_step", "init", "out")
+
+
+def train_command(recipe: dict) -> str:
+    """The training command a run's recipe.json records (every argument that shapes the run)."""
+    args = []
+    for k in TRAIN_ARGS:
+        v = recipe.get(k)
+        if v is None or (k == "minutes" and recipe.get("minutes") is None):
+            continue
+        if k == "steps" and recipe.get("minutes"):
+            continue  # a time-boxed run: --steps is not used
+        args.append(f"--{k.replace('_', '-')} {v}")
+    if not recipe.get("bf16", True):
+        args.append("--no-bf16")
+    return "python -m training.intrinsic.train " + " ".join(args)
+
+
+def lineage(run: pathlib.Path, checkpoint: str) -> dict:
+    """The run's record for the card: its command, code, samples and the exported checkpoint's
+    step, and (nested) the run its --init checkpoint came from, as training.reproduce reads."""
+    recipe = json.loads((run / "recipe.json").read_text())
+    state = torch.load(run / checkpoint, map_location="cpu")
+    out = {"command": train_command(recipe), "args": {"out": recipe["out"]},
+           "git_commit": recipe.get("git_commit"), "render_version": recipe.get("render_version"),
+           "exported_checkpoint": {"file": checkpoint, "step": state.get("step")}}
+    init = recipe.get("init")
+    if init:
+        parent = pathlib.Path(init)
+        rec = lineage(parent.parent, parent.name) if (parent.parent / "recipe.json").is_file() else {}
+        out["init"] = {"checkpoint": init, "step": rec.get("exported_checkpoint", {}).get("step"),
+                       "recipe": rec.get("command"), "git_commit": rec.get("git_commit"),
+                       "render_version": rec.get("render_version"), "init": rec.get("init")}
+        stopped = json.loads((parent.parent / "recipe.json").read_text()).get("stopped")
+        if stopped:
+            out["init"]["note"] = stopped
+    return out
+
+
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--run", required=True)
     ap.add_argument("--checkpoint", default="best.pt")
@@ -106,7 +146,13 @@ def main(argv=None):
     ap.add_argument("--preset", default="intrinsic")
     ap.add_argument("--out", default=str(ROOT / "models"))
     ap.add_argument("--working-size", type=int, default=128)
-    a = ap.parse_args(argv)
+    ap.add_argument("--eval", type=int, default=64, help="held-out test samples for the card")
+    ap.add_argument("--threads", type=int, default=1)
+    return ap
+
+
+def main(argv=None):
+    a = parser().parse_args(argv)
     run = pathlib.Path(a.run)
     state = torch.load(run / a.checkpoint, map_location="cpu")
     net = IntrinsicNet(state["width"])
@@ -118,6 +164,8 @@ def main(argv=None):
     worst = check_against_torch(net, onnx_path)
     recipe = json.loads((run / "recipe.json").read_text())
     ms = {str(t): time_onnx(onnx_path, t, a.working_size) for t in (1, 2)}
+    card_path = out / f"{a.name}.json"
+    onnx_sha = engine.file_sha256(onnx_path)
     card = {
         "contract": contract.INTRINSIC_CONTRACT, "name": a.name, "preset": a.preset,
         "onnx": onnx_path.name, "sha256": engine.file_sha256(onnx_path),
@@ -135,12 +183,8 @@ def main(argv=None):
                              "heads, CC0 HDRIs and backdrops) through a simulated camera "
                              "(training.intrinsic.camera); exact per-pixel buffers as targets",
                      "render_version": recipe.get("render_version"),
-                     "recipe": {"command": "python -m training.intrinsic.train " + " ".join(
-                         f"--{k.replace('_', '-')} {v}" for k, v in recipe.items()
-                         if k in ("width", "res", "minutes", "steps", "batch", "lr", "ema", "seed",
-                                  "threads", "out") and v is not None),
-                                "git_commit": recipe.get("git_commit"), "step": state.get("step")}},
-        "metrics": {"val_buffers": val_metrics(net)},
+                     "recipe": lineage(run, a.checkpoint)},
+        "metrics": {},
         "cost": {"cpu": {"provider": "CPUExecutionProvider", "batch": 1,
                          "network_ms_at_working_size": {f"{t} thread(s)": round(v, 2)
                                                         for t, v in ms.items()}},
@@ -149,8 +193,18 @@ def main(argv=None):
                          "parameters": sum(p.numel() for p in net.parameters())},
         "onnx_check_max_abs": worst,
     }
-    (out / f"{a.name}.json").write_text(json.dumps(card, indent=1) + "\n")
-    print(json.dumps(card["metrics"], indent=1), ms)
+    card_path.write_text(json.dumps(card, indent=1) + "\n")  # the product path reads the card
+    # Held-out figures: the relit test set through the product's path (as the end-to-end
+    # presets' cards), and each buffer against the light stage on val identities.
+    from .. import evaluate
+
+    metrics = evaluate.card_metrics(evaluate.product_predictor(onnx_path, a.threads),
+                                    evaluate.heldout_dataset(128), a.eval, 128)
+    metrics["val_buffers"] = val_metrics(net)
+    card["metrics"] = metrics
+    assert engine.file_sha256(onnx_path) == onnx_sha
+    card_path.write_text(json.dumps(card, indent=1) + "\n")
+    print(json.dumps({k: metrics[k] for k in ("model", "identity", "val_buffers")}, indent=1), ms)
 
 
 if __name__ == "__main__":

@@ -179,7 +179,7 @@ def train(a) -> pathlib.Path:
     return out
 
 
-def main(argv=None):
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", required=True)
     ap.add_argument("--width", default="standard", choices=["small", "standard"])
@@ -200,8 +200,11 @@ def main(argv=None):
     ap.add_argument("--start-step", type=int, default=0, help="batch index to start at (a "
                     "continued run sees new samples)")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false")
-    a = ap.parse_args(argv)
-    print(train(a))
+    return ap
+
+
+def main(argv=None):
+    print(train(parser().parse_args(argv)))
 
 
 if __name__ == "__main__":
