@@ -37,6 +37,7 @@ def crop_planar(x: np.ndarray, box: framing.Box, size: int) -> np.ndarray:
     return np.stack([framing.crop(x[c], box, size) for c in range(x.shape[0])])
 
 
+MATTE_EDGE = (0.3, 0.9)  # matte values over which the change fades in (smoothstep)
 FEATHER = 0.12  # share of the crop's side over which the face crop fades into the coarse pass
 
 
@@ -113,13 +114,17 @@ def feather(size: int, share: float = FEATHER) -> np.ndarray:
 
 
 def _change(session, x: np.ndarray, light, effects, valid=None):
-    """(ratio and highlight, each times the matte; the matte) for a (3, h, w) image. The ratio
+    """(ratio and highlight, each times the weight; the weight; the matte) for a (3, h, w)
+    image, the weight being the matte's core (MATTE_EDGE). The ratio
     is carried times the matte, never as ratio - 1: under a faint light ratio - 1 + 1 would
     lose the ratio to rounding."""
     bufs = _buffers(session, x, valid)
     sh = intrinsic.shade(x, bufs, light, effects, keep_exposure=False)
-    m = np.clip(bufs.matte, 0.0, 1.0)[None]
-    return m * sh.ratio, m * sh.highlight, m[0], sh.plan
+    # The change fades in over the matte's confident core: at the outline the normals graze and
+    # the ratio is least certain, and a soft matte there would carry it onto the background.
+    m = np.clip((bufs.matte - MATTE_EDGE[0]) / (MATTE_EDGE[1] - MATTE_EDGE[0]), 0.0, 1.0)
+    m = (m * m * (3.0 - 2.0 * m))[None]
+    return m * sh.ratio, m * sh.highlight, m[0], np.clip(bufs.matte, 0.0, 1.0)
 
 
 def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarray,
@@ -149,20 +154,21 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     covers = (box.cx - box.size / 2 <= 0 and box.cy - box.size / 2 <= 0
               and box.cx + box.size / 2 >= w and box.cy + box.size / 2 >= h)
     if covers:
-        coarse = np.zeros((gh, gw, 7), np.float32)
+        coarse = np.zeros((gh, gw, 8), np.float32)
     else:
         small = fr.shrink_planar(grid_chw, *detail.working_shape(h, w, max(size // 2, 16)))
-        mr, hi, m, _ = _change(session, small, light, plan)
-        coarse = detail.resize(np.concatenate([mr, hi, m[None]], 0).transpose(1, 2, 0), gh, gw)
+        mr, hi, m, raw = _change(session, small, light, plan)
+        coarse = detail.resize(np.concatenate([mr, hi, m[None], raw[None]], 0).transpose(1, 2, 0),
+                               gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
     valid = framing.crop_weight(box, (h, w), size)
-    mr_f, hi_f, m_f, _ = _change(session, crop_planar(x_full, box, size), light, plan, valid)
+    mr_f, hi_f, m_f, raw_f = _change(session, crop_planar(x_full, box, size), light, plan, valid)
     fw = (1.0 if covers else feather(size)) * valid
     k = gh / h
     gbox = framing.Box(box.cx * k, box.cy * k, box.size * k)
-    fine = framing.uncrop(np.concatenate([mr_f, hi_f, m_f[None], fw[None]], 0).transpose(1, 2, 0),
-                          gbox, (gh, gw), 0.0)
-    wf = fine[..., 7:8]
+    fine = framing.uncrop(np.concatenate([mr_f, hi_f, m_f[None], raw_f[None], fw[None]],
+                                         0).transpose(1, 2, 0), gbox, (gh, gw), 0.0)
+    wf = fine[..., 8:9]
     # The two passes fit the footage's light separately: match the coarse change's level to the
     # face's where both see the subject, so the seam does not show.
     lum = np.asarray(intrinsic.LUMA, np.float32)
@@ -172,7 +178,7 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
         den = float(np.mean(coarse[both][:, 0:3] @ lum))
         g = num / den if den > 0 and num > 0 else 1.0
         coarse[..., 0:6] *= g
-    mix = (1.0 - wf) * coarse[..., :7] + wf * fine[..., :7]
+    mix = (1.0 - wf) * coarse + wf * fine[..., :8]
     mr, b, matte = mix[..., 0:3], mix[..., 3:6], np.clip(mix[..., 6:7], 0.0, 1.0)
     g = 1.0
     if keep_exposure:
@@ -185,7 +191,7 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
             g = before / after
     a = g * mr + (1.0 - matte)
     b = g * b
-    matte = matte[..., 0]
+    matte = np.clip(mix[..., 7], 0.0, 1.0)  # the portrait's matte, for the matte strip
     return FrameResult(np.ascontiguousarray(a.transpose(2, 0, 1), np.float32),
                        np.ascontiguousarray(b.transpose(2, 0, 1), np.float32),
                        np.ascontiguousarray(matte, np.float32), True, plan)

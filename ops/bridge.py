@@ -10,6 +10,7 @@ import re
 
 import bpy
 
+from ..addon.contract import INTRINSIC_CONTRACT
 from ..addon.errors import InputError, ModelError, OutputError
 
 # The extension's top-level package: "bl_ext.<repo>.portrait_relight" when installed.
@@ -124,6 +125,11 @@ def card_error(data: dict) -> tuple[float | None, str]:
     if _leaf_number(_frontier(data).get("rmse")) is not None:
         return float(data["frontier"]["rmse"]), "RMSE"
     metrics = data.get("metrics") or {}
+    level = _leaf_number((metrics.get("model") or {}).get("rmse_level_fit")
+                         if isinstance(metrics.get("model"), dict) else None)
+    if data.get("contract") == INTRINSIC_CONTRACT and level is not None:
+        # It keeps the footage's exposure: the error once the level is set is its comparable one.
+        return level, "RMSE at the right level"
     model = metrics.get("model") if isinstance(metrics.get("model"), dict) else metrics
     for key in ("rmse", "mae", "l1", "lpips"):
         value = _leaf_number(model.get(key))

@@ -185,9 +185,12 @@ def main(argv=None):
                      "render_version": recipe.get("render_version"),
                      "recipe": lineage(run, a.checkpoint)},
         "metrics": {},
-        "cost": {"cpu": {"provider": "CPUExecutionProvider", "batch": 1,
-                         "network_ms_at_working_size": {f"{t} thread(s)": round(v, 2)
-                                                        for t, v in ms.items()}},
+        "cost": {"cpu": {"provider": "CPUExecutionProvider", "threads": 1, "batch": 1,
+                         "per_size": {str(a.working_size): {"ms": round(ms["1"], 2),
+                                                            "fps": round(1000 / ms["1"], 1)}},
+                         "two_threads_ms": round(ms["2"], 2),
+                         "what": "the network alone at the working size; the whole frame's "
+                                 "path: python -m bench.intrinsic_speed"},
                  "machine": "2-core x86-64 CPU (AMD EPYC, AVX-512), shared and noisy"},
         "architecture": {"kind": "U-Net, dense 3x3", "width": state["width"],
                          "parameters": sum(p.numel() for p in net.parameters())},
