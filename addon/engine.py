@@ -146,6 +146,19 @@ def session_options(ort, threads: int | None = None, spin: bool = True):
     return so
 
 
+def pad_to_stride(image: np.ndarray, stride: int) -> tuple[np.ndarray, int, int]:
+    """(a (3, H, W) float32 image reflect-padded at the bottom and right to a multiple of
+    ``stride``, its original H and W); ValueError for any other shape."""
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim != 3 or img.shape[0] != 3 or img.shape[1] < 1 or img.shape[2] < 1:
+        raise ValueError(f"image must be (3, H, W), got {img.shape}")
+    h, w = img.shape[1:]
+    ph, pw = -h % stride, -w % stride
+    if ph or pw:
+        img = np.pad(img, ((0, 0), (0, ph), (0, pw)), mode="reflect" if min(h, w) > 1 else "edge")
+    return img, h, w
+
+
 @dataclass(frozen=True)
 class EngineResult:
     relit: np.ndarray         # (H, W, 3) float32 (run_planar: (3, H, W)), image's units
@@ -191,14 +204,7 @@ class RelightSession:
     def preprocess_planar(self, image: np.ndarray, light: np.ndarray) -> Prepared:
         """As ``preprocess`` for a channels-first (3, H, W) image (no copy when no padding is
         needed and the image is contiguous float32)."""
-        img = np.asarray(image, dtype=np.float32)
-        if img.ndim != 3 or img.shape[0] != 3 or img.shape[1] < 1 or img.shape[2] < 1:
-            raise ValueError(f"image must be (3, H, W), got {img.shape}")
-        h, w = img.shape[1:]
-        s = self.card.stride
-        ph, pw = -h % s, -w % s
-        if ph or pw:
-            img = np.pad(img, ((0, 0), (0, ph), (0, pw)), mode="reflect")
+        img, h, w = pad_to_stride(image, self.card.stride)
         chw = np.ascontiguousarray(img[None])
         lt = np.ascontiguousarray(lightvec.validate(light).transpose(2, 0, 1)[None])
         return Prepared({contract.INPUT_IMAGE: chw, contract.INPUT_LIGHT: lt}, h, w)
@@ -274,14 +280,7 @@ class IntrinsicSession:
     def run_planar(self, image: np.ndarray) -> IntrinsicResult:
         """(3, H, W) normalised linear image (addon.intrinsic.exposure_scale) -> buffers; the
         image is reflect-padded to the model's stride and the buffers cropped back."""
-        img = np.asarray(image, dtype=np.float32)
-        if img.ndim != 3 or img.shape[0] != 3 or img.shape[1] < 1 or img.shape[2] < 1:
-            raise ValueError(f"image must be (3, H, W), got {img.shape}")
-        h, w = img.shape[1:]
-        s = self.card.stride
-        ph, pw = -h % s, -w % s
-        if ph or pw:
-            img = np.pad(img, ((0, 0), (0, ph), (0, pw)), mode="reflect" if min(h, w) > 1 else "edge")
+        img, h, w = pad_to_stride(image, self.card.stride)
         outs = self.session.run(list(self.OUTPUTS), {contract.INPUT_IMAGE: np.ascontiguousarray(img[None])})
         n, hgt, alb, par = (np.ascontiguousarray(o[0, :, :h, :w], dtype=np.float32) for o in outs)
         k = len(self.card.classes)
