@@ -105,6 +105,17 @@ def _components(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return labels, areas
 
 
+def component_at(mask: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """The 8-connected component of ``mask`` that holds most of ``weight`` (same shape, >= 0):
+    the portrait among everything a matte marks; all False when the mask is empty."""
+    labels, areas = _components(mask)
+    if len(areas) == 0:
+        return np.zeros_like(mask)
+    held = np.bincount(labels[mask], weights=np.asarray(weight, np.float64)[mask],
+                       minlength=len(areas))
+    return labels == int(np.argmax(held))
+
+
 def _largest(mask: np.ndarray) -> tuple[np.ndarray, int]:
     """The largest component (ties: the one found first, i.e. topmost) and its area."""
     labels, areas = _components(mask)

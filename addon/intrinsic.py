@@ -221,6 +221,25 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
     return vis
 
 
+def height_scale(bufs: Buffers) -> float:
+    """How much steeper the predicted height is than the predicted normals say (least squares of
+    its image gradient against -n_x / n_z and n_y / n_z over the confident, camera-facing
+    subject). The two are predicted separately; the shading follows the normals, so the
+    shadows' height is brought to the normals' slopes (the network's heights ran 1.2-1.6 times
+    too steep on real footage)."""
+    n, h = bufs.normal, bufs.height
+    m = (bufs.matte > 0.9) & (n[2] > 0.3)
+    px = -n[0] / np.maximum(n[2], 1e-3)
+    py = n[1] / np.maximum(n[2], 1e-3)  # image y runs down, the normal's y up
+    m &= (np.abs(px) < 3.0) & (np.abs(py) < 3.0)
+    if int(m.sum()) < 32:
+        return 1.0
+    gx, gy = np.gradient(h, axis=1)[m], np.gradient(h, axis=0)[m]
+    num = float((gx * px[m]).sum() + (gy * py[m]).sum())
+    den = float((px[m] ** 2).sum() + (py[m] ** 2).sum())
+    return float(np.clip(num / den, 0.3, 3.0)) if den > 0 and num > 0 else 1.0
+
+
 def specular(normal: np.ndarray, direction: np.ndarray,
              roughness: float = SKIN_ROUGHNESS, f0: float = SKIN_F0) -> np.ndarray:
     """(h, w) GGX reflectance x cosine toward a distant light, viewer along +Z (orthographic
@@ -265,12 +284,13 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     e_src = np.maximum(e_src, max(floor, 1e-8))
     e_t = irradiance(light, bufs.normal)  # (3, h, w)
     spec = np.zeros_like(e_t)
+    height = bufs.height / height_scale(bufs) if effects.shadows and effects.components else None
     for comp in effects.components:
         lam = np.maximum(np.tensordot(comp.direction, bufs.normal, axes=(0, 0)), 0.0)
         e_c = comp.irradiance[:, None, None] * lam[None]
         vis = None
         if effects.shadows:
-            vis = shadow(bufs.height, bufs.matte, comp.direction, lit=lam)
+            vis = shadow(height, bufs.matte, comp.direction, lit=lam)
             e_t = e_t - (1.0 - vis)[None] * e_c
         if effects.specular:
             s = specular(bufs.normal, comp.direction) * (vis if vis is not None else 1.0)

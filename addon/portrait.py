@@ -179,6 +179,11 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
         g = num / den if den > 0 and num > 0 else 1.0
         coarse[..., 0:6] *= g
     mix = (1.0 - wf) * coarse + wf * fine[..., :8]
+    # The portrait is the matte's region that holds the face crop; anything else a matte marks
+    # (a bright door, a lamp in the room) keeps the footage as it was.
+    keep = framing.component_at(mix[..., 7] > 0.5, wf[..., 0] * fine[..., 7])
+    if keep.any():
+        mix *= np.clip(detail.box_mean(keep.astype(np.float32), 2) * 2.0, 0.0, 1.0)[..., None]
     mr, b, matte = mix[..., 0:3], mix[..., 3:6], np.clip(mix[..., 6:7], 0.0, 1.0)
     g = 1.0
     if keep_exposure:

@@ -290,3 +290,15 @@ def test_components_match_a_flood_fill():
         # The same partition: each (label, reference label) pair is one-to-one.
         assert len(set(zip(labels[mask].tolist(), ref[mask].tolist()))) == n
         assert np.all(labels[~mask] == -1)
+
+
+def test_component_at_keeps_the_region_holding_the_weight():
+    """The portrait is the matte's region under the face crop, not the biggest one."""
+    mask = np.zeros((20, 40), bool)
+    mask[2:18, 2:20] = True      # big region (a bright wall)
+    mask[5:10, 30:36] = True     # small region holding the weight (the portrait)
+    weight = np.zeros((20, 40))
+    weight[6:9, 31:35] = 1.0
+    keep = framing.component_at(mask, weight)
+    assert keep[7, 32] and not keep[10, 10] and keep.sum() == 30
+    assert not framing.component_at(np.zeros((4, 4), bool), np.ones((4, 4))).any()
