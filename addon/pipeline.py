@@ -40,6 +40,7 @@ from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's A
 
 RUN_FILE = "relight_run.json"
 BOXES_FILE = "relight_boxes.json"  # intrinsic models: the clip's smoothed portrait boxes
+FRAMING_STEP = 3  # frames between two framing passes (a head moves little in 3 frames at 25 fps)
 RUN_FORMAT = "relight-run/1"
 
 
@@ -510,19 +511,21 @@ def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: 
                         [int(i) for i in stored["missing"]])
         except (OSError, ValueError, TypeError, KeyError):
             pass  # unreadable: framed again below
-    raw = []
+    # Every FRAMING_STEP-th frame (and the last) is framed; smoothing interpolates the others.
+    probe = sorted(set(range(0, clip.count, FRAMING_STEP)) | {clip.count - 1})
+    raw: list = [None] * clip.count
     for d in frames.iter_frames(clip.kind, clip.path, clip.files,
-                                [clip.first + i for i in range(clip.count)], plan.size,
-                                planar=True):
+                                [clip.first + i for i in probe], plan.size, planar=True):
         if should_cancel and should_cancel():
             raise Cancelled("Cancelled while framing the portrait; nothing was written, run "
                             "again to start.")
-        raw.append(portrait.find_box(session, linearise(d.pixels, plan)[0], fullres))
+        raw[d.index - clip.first] = portrait.find_box(session, linearise(d.pixels, plan)[0],
+                                                      fullres)
     boxes = framing.smooth_boxes(raw)
-    missing = [i for i, b in enumerate(raw) if b is None]
+    missing = [i for i in probe if raw[i] is None]
     _atomic_write_text(path, json.dumps(
-        {"identity": identity, "found": len(raw) - len(missing), "missing": missing,
-         "boxes": [None if b is None else list(b.to_tuple()) for b in boxes]}))
+        {"identity": identity, "framed": probe, "found": len(probe) - len(missing),
+         "missing": missing, "boxes": [None if b is None else list(b.to_tuple()) for b in boxes]}))
     return boxes, missing
 
 

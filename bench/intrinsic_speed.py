@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from addon import api, colour, detail, framing, intrinsic, lightvec, portrait
+from addon import api, colour, detail, framing, intrinsic, lightvec, pipeline, portrait
 from training.lightstage.png import read_png
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -54,26 +54,26 @@ def run(model: str, threads: int, repeats: int) -> dict:
     x = frame_1080p()
     lamp = (lightvec.splat_direction([0.8, 0.3, 0.5], [3, 3, 3]) + 0.05 * lightvec.uniform())
     soft = lightvec.uniform()
-    box = portrait.find_box(sess, x)
+    fullres = detail.FullRes(threads=threads)
+    box = portrait.find_box(sess, x, fullres)
     crop = np.ascontiguousarray(framing.crop(np.ascontiguousarray(x.transpose(1, 2, 0)), box,
                                              size).transpose(2, 0, 1))
     bufs = portrait._buffers(sess, crop)
-    fullres = detail.FullRes(threads=threads)
-    res = portrait.relight_frame(sess, x, lamp, box)
+    res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
+    framing_row = f"framing pass (find_box; the run frames every {pipeline.FRAMING_STEP}th frame)"
     rows = {
         f"network, {size} px crop": timed(lambda: sess.run_planar(crop), repeats),
         "renderer, key lamp (diffuse + shadow + highlight)":
             timed(lambda: intrinsic.shade(crop, bufs, lamp), repeats),
         "renderer, soft world (diffuse only)": timed(lambda: intrinsic.shade(crop, bufs, soft), repeats),
-        "framing pass (find_box, once per frame before the run)":
-            timed(lambda: portrait.find_box(sess, x), repeats),
+        framing_row: timed(lambda: portrait.find_box(sess, x, fullres), repeats),
         "relight_frame at 1080p (coarse + face passes, key lamp)":
-            timed(lambda: portrait.relight_frame(sess, x, lamp, box), repeats),
+            timed(lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats),
         "full-resolution finish at 1080p":
             timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
     }
     net_render = rows[f"network, {size} px crop"] + rows["renderer, key lamp (diffuse + shadow + highlight)"]
-    end_to_end = (rows["framing pass (find_box, once per frame before the run)"]
+    end_to_end = (rows[framing_row] / pipeline.FRAMING_STEP
                   + rows["relight_frame at 1080p (coarse + face passes, key lamp)"]
                   + rows["full-resolution finish at 1080p"])
     return {"stages_ms": rows, "network_plus_renderer_fps": 1000 / net_render,

@@ -327,7 +327,10 @@ def test_clip_writes_every_frame_and_resumes_bit_identically(model, tmp_path):
     assert all(os.path.isfile(p) for p in res.relit_files + res.matte_files)
     boxes_path = out / pipeline.BOXES_FILE
     stored = json.loads(boxes_path.read_text(encoding="utf-8"))
-    assert stored["found"] == N and len(stored["boxes"]) == N
+    # Every FRAMING_STEP-th frame and the last are framed; the others are interpolated.
+    framed = sorted(set(range(0, N, pipeline.FRAMING_STEP)) | {N - 1})
+    assert stored["framed"] == framed and stored["found"] == len(framed)
+    assert len(stored["boxes"]) == N
     for i, b in enumerate(stored["boxes"]):  # each box on its frame's disc
         assert abs(b[0] - (34.0 + 2 * i)) < 0.1 * b[2] and b[2] > 2 * 11.0
     for i, p in enumerate(res.relit_files):
@@ -348,16 +351,17 @@ def test_clip_writes_every_frame_and_resumes_bit_identically(model, tmp_path):
 def test_a_frame_without_a_portrait_warns_and_is_written_unchanged(model, tmp_path):
     """A frame with no disc: the run warns that no portrait was found, that frame comes out as its
     input (within half-float rounding) and the others are relit."""
-    src = clip_frames(absent=(2,))
+    gone = pipeline.FRAMING_STEP  # a frame the framing pass looks at
+    src = clip_frames(absent=(gone,))
     files = write_exr_sequence(tmp_path / "src", src)
     res = run(model, files, tmp_path / "out")
     assert res.written == N
     assert any("No portrait was found in 1 frame" in m for m in res.warnings), res.warnings
     stored = json.loads((tmp_path / "out" / pipeline.BOXES_FILE).read_text(encoding="utf-8"))
-    assert stored["found"] == N - 1 and stored["missing"] == [2]
-    assert stored["boxes"][2] is not None  # framed like its neighbours
+    assert stored["missing"] == [gone] and stored["found"] == len(stored["framed"]) - 1
+    assert stored["boxes"][gone] is not None  # framed like its neighbours
     out = [frames.read_exr(p) for p in res.relit_files]
-    np.testing.assert_allclose(out[2], src[2], rtol=2.0 ** -10, atol=0)
-    assert frames.read_exr(res.matte_files[2]).max() < 1e-2  # no subject seen there
-    for i in (0, 1, 3):
+    np.testing.assert_allclose(out[gone], src[gone], rtol=2.0 ** -10, atol=0)
+    assert frames.read_exr(res.matte_files[gone]).max() < 1e-2  # no subject seen there
+    for i in sorted(set(range(N)) - {gone}):
         assert np.abs(out[i] - src[i]).max() > 0.05
