@@ -1,6 +1,6 @@
 """What each effect of the intrinsic renderer buys and costs, against the light stage's truth.
 
-    .venv/bin/python -m bench.intrinsic_effects [--frames 24] [--model models/relight-intrinsic.onnx]
+    .venv/bin/python -m bench.intrinsic_effects [--frames 24] [--model models/relight-portrait.onnx]
 
 Held-out val frames (training/intrinsic/data.py, identities never trained on) are rendered under
 a soft source light, then relit by ``addon.intrinsic.shade`` to five target lights and compared

@@ -1,7 +1,7 @@
 """Speed of the intrinsic presets: network and renderer at the working size, and a 1080p frame
 end to end (framing pass, relighting, full-resolution finish).
 
-    .venv/bin/python -m bench.intrinsic_speed [--model models/relight-intrinsic.onnx] [--threads 2]
+    .venv/bin/python -m bench.intrinsic_speed [--model models/relight-portrait.onnx] [--threads 2]
 
 The frame is the built-in demo clip's first frame (our own render) enlarged into a 1920x1080
 canvas, the portrait off-centre as in a wide shot. Each stage runs ``--repeats`` times after two
@@ -83,7 +83,7 @@ def run(model: str, threads: int, repeats: int) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--model", default=str(ROOT / "models" / "relight-intrinsic.onnx"))
+    ap.add_argument("--model", default=str(ROOT / "models" / "relight-portrait.onnx"))
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "intrinsic_speed"))

@@ -1,7 +1,7 @@
 """Export a trained intrinsic network to ONNX with its model card.
 
     .venv/bin/python -m training.intrinsic.export --run runs/intrinsic-standard \
-        --name relight-intrinsic --preset intrinsic
+        --name relight-portrait --preset portrait
 
 Writes models/<name>.onnx (opset 17, dynamic N/H/W) and models/<name>.json (contract
 ``relight-intrinsic/1``), after checking onnxruntime against PyTorch on two sizes and measuring
@@ -142,8 +142,8 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--run", required=True)
     ap.add_argument("--checkpoint", default="best.pt")
-    ap.add_argument("--name", default="relight-intrinsic")
-    ap.add_argument("--preset", default="intrinsic")
+    ap.add_argument("--name", default="relight-portrait")
+    ap.add_argument("--preset", default="portrait")
     ap.add_argument("--out", default=str(ROOT / "models"))
     ap.add_argument("--working-size", type=int, default=128)
     ap.add_argument("--eval", type=int, default=64, help="held-out test samples for the card")
