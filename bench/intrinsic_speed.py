@@ -60,7 +60,7 @@ def run(model: str, threads: int, repeats: int) -> dict:
                                              size).transpose(2, 0, 1))
     bufs = portrait._buffers(sess, crop)
     res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
-    framing_row = f"framing pass (find_box; the run frames every {pipeline.FRAMING_STEP}th frame)"
+    framing_row = f"framing pass (find_box; a run frames one frame in {pipeline.FRAMING_STEP})"
     rows = {
         f"network, {size} px crop": timed(lambda: sess.run_planar(crop), repeats),
         "renderer, key lamp (diffuse + shadow + highlight)":
