@@ -42,6 +42,9 @@ def crop_planar(x: np.ndarray, box: framing.Box, size: int) -> np.ndarray:
     return np.stack([framing.crop(x[c], box, size) * valid for c in range(x.shape[0])])
 
 
+# The coarse pass's size as a share of the working size: at 0.5 the wide clip s18 changed 1.69x
+# as much as its input from frame to frame under key-left, at 1.0 1.56x (training.footage_sheet).
+COARSE = 1.0
 MATTE_EDGE = (0.3, 0.9)  # matte values over which the change fades in (smoothstep)
 FEATHER = 0.12  # share of the crop's side over which the face crop fades into the coarse pass
 
@@ -151,15 +154,15 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     grid_chw = fr.shrink_planar(x_full, gh, gw)  # the footage at the grid's resolution
     grid = np.ascontiguousarray(grid_chw.transpose(1, 2, 0))
     plan = intrinsic.plan(light) if effects is None else effects
-    # Coarse: the whole frame at half the working size (it lights the body beyond the face's
-    # box, where a soft change is enough), enlarged to the grid; not needed when the box holds
-    # the whole frame.
+    # Coarse: the whole frame at COARSE times the working size (it lights the body beyond the
+    # face's box), enlarged to the grid; not needed when the box holds the whole frame.
     covers = (box.cx - box.size / 2 <= 0 and box.cy - box.size / 2 <= 0
               and box.cx + box.size / 2 >= w and box.cy + box.size / 2 >= h)
     if covers:
         coarse = np.zeros((gh, gw, 8), np.float32)
     else:
-        small = fr.shrink_planar(grid_chw, *detail.working_shape(h, w, max(size // 2, 16)))
+        coarse_size = max(int(size * COARSE), 16)
+        small = fr.shrink_planar(grid_chw, *detail.working_shape(h, w, coarse_size))
         mr, hi, m, raw = _change(session, small, light, plan)
         coarse = detail.resize(np.concatenate([mr, hi, m[None], raw[None]], 0).transpose(1, 2, 0),
                                gh, gw)

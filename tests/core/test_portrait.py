@@ -162,9 +162,9 @@ def apply(x, res):
 
 
 def margin(h, w, size=32):
-    """How far the change may spread past the disc: the coarse pass's pixels (it runs at half
-    the working size), enlarged bilinearly, reach 2.5 of them."""
-    return 2.5 * max(h, w) / (size // 2)
+    """How far the change may spread past the disc: the coarse pass's pixels (it runs at
+    portrait.COARSE times the working size), enlarged bilinearly, reach 2.5 of them."""
+    return 2.5 * max(h, w) / max(int(size * portrait.COARSE), 16)
 
 
 # ---- the session -----------------------------------------------------------------------------
