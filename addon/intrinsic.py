@@ -23,7 +23,7 @@ footage's full resolution as a ratio, so the footage keeps its identity and deta
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -82,7 +82,6 @@ class Plan:
     components: tuple[Component, ...] = ()
     shadows: bool = True
     specular: bool = True
-    notes: tuple[str, ...] = field(default=())
 
 
 def plan(light: np.ndarray, shadows: bool = True, specular: bool = True,
