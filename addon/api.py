@@ -62,8 +62,10 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
     sess = session(model or find_model(preset, models_dir), threads)
     x = np.ascontiguousarray(img.transpose(2, 0, 1))
     if isinstance(sess, engine.IntrinsicSession):
-        res = portrait.relight_frame(sess, x, light, portrait.find_box(sess, x))
-        y = detail.FullRes(threads=1).finish_planar(x, res.a, res.b, float(x.max(initial=0.0)))[0]
+        fullres = portrait.shared_fullres()
+        res = portrait.relight_frame(sess, x, light, portrait.find_box(sess, x, fullres),
+                                     fullres=fullres)
+        y = fullres.finish_planar(x, res.a, res.b, float(x.max(initial=0.0)))[0]
         return np.ascontiguousarray(y.astype(np.float32).transpose(1, 2, 0))
     return _network_frame(sess, x, light, background)
 
@@ -74,7 +76,7 @@ def _network_frame(sess, x: np.ndarray, light: np.ndarray, background: str) -> n
     s = normalise.exposure_scale([x.transpose(1, 2, 0)])
     plan = pipeline.Plan(LINEAR, s, (w, h), detail.working_shape(h, w, sess.card.working_size),
                          True, False, "none", pipeline.relit_times_s(sess.card), background)
-    fullres = detail.FullRes(threads=1)
+    fullres = portrait.shared_fullres()  # built once: its graphs cost more than a small frame
     xn = np.ascontiguousarray(x / np.float32(s))
     x_low = pipeline.shrink_planar(xn, plan, fullres)
     relit_low, source, fg, k = pipeline.infer_planar(sess, x_low, light)

@@ -10,14 +10,14 @@ those buffers and a light vector into a per-pixel change of the footage:
   fitted to the crop's luminance over the predicted normals (divided by the albedo variations, so
   brows and lips do not read as shadow). Fitted on luminance: the footage keeps its own colour,
   and the target light alone sets the colour change (a white light keeps skin colour).
-* ``E_target``: the exact irradiance sum over the light vector's 256 cells on the predicted
-  normals.
+* ``E_target``: the irradiance of the light vector on the predicted normals, summed exactly
+  over its brightest cells and through order-2 SH for the rest (``irradiance``).
 * Effects on demand (``plan``): the light's strong, compact components (a lamp, a sun) get a
   screen-space cast shadow marched over the predicted height and a GGX highlight on skin; soft
   light (an overcast sky, a uniform world) gets neither, and pays nothing for them.
 
-Everything is numpy, channels first, at the working size; ``apply`` brings the change to the
-footage's full resolution as a ratio, so the footage keeps its identity and detail.
+Everything is numpy, channels first, at the working size; addon/portrait.py brings the change
+to the footage's full resolution as a ratio, so the footage keeps its identity and detail.
 """
 
 from __future__ import annotations

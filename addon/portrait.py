@@ -7,8 +7,8 @@ Framing: a coarse pass runs the network on the whole frame shrunk to the working
 face-skin and matte maps; ``addon.framing`` turns them into a square box around the face, which a
 second pass on that box refines (a face of 11 pixels in the coarse pass becomes a face of about
 half the working size). Over a clip the boxes are smoothed (``framing.smooth_boxes``) so the crop
-does not jitter. A frame with no portrait found is left unchanged (and counted, so the run can
-say so).
+does not jitter. ``relight_frame`` leaves a frame with no box unchanged; the pipeline gives a
+frame where none was found its neighbours' box and counts it.
 """
 
 from __future__ import annotations
@@ -24,22 +24,23 @@ MARGIN = 2.2  # box side over the face's extent: room for hair, chin and a littl
 _FULLRES: dict = {}
 
 
-def _fullres(fullres: detail.FullRes | None) -> detail.FullRes:
+def shared_fullres(fullres: detail.FullRes | None = None) -> detail.FullRes:
     """The caller's full-resolution graphs, else one kept here (building them costs time)."""
     if fullres is None:
         fullres = _FULLRES.setdefault("default", detail.FullRes(threads=1))
     return fullres
 
 
-def crop_planar(x: np.ndarray, box: framing.Box, size: int) -> np.ndarray:
-    """(3, size, size) crop of a (3, H, W) frame, channel by channel (no channels-last copy of
-    the whole frame); beyond the frame's edge it is black, like a dark backdrop. A face that
+def crop_planar(x: np.ndarray, box: framing.Box, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """((3, size, size) crop of a (3, H, W) frame, (size, size) share of each crop pixel inside
+    the frame), channel by channel (no channels-last copy of the whole frame); beyond the
+    frame's edge the crop is black, like a dark backdrop. A face that
     fills its frame (a tight crop) thus still reaches the network with room around it, as in
     training: on CroppedYale a lamp from either side moved the face's left/right balance 0.90
     with black room around it, 0.64 with the edges replicated and 0.2 with no room (the
     ground truth moves 1.1)."""
     valid = framing.crop_weight(box, x.shape[1:], size)
-    return np.stack([framing.crop(x[c], box, size) * valid for c in range(x.shape[0])])
+    return np.stack([framing.crop(x[c], box, size) * valid for c in range(x.shape[0])]), valid
 
 
 # The coarse pass's size as a share of the working size: at 0.5 the wide clip s18 changed 1.69x
@@ -60,13 +61,14 @@ class FrameResult:
     plan: intrinsic.Plan | None
 
 
-def _buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None = None):
-    """The network's buffers for a (3, h, w) linear image (normalised here)."""
+def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None = None):
+    """The network's buffers for a (3, h, w) linear image (normalised here); ``valid``: the
+    share of each pixel inside the frame (crop_planar)."""
     res = session.run_planar(x * np.float32(intrinsic.exposure_scale(x)))
     names = session.card.classes
     matte = res.parsing[names.index("foreground")]
     face = res.parsing[names.index("skin")] if "skin" in names else np.zeros_like(matte)
-    if valid is not None:  # replicated padding beyond the frame is not the subject
+    if valid is not None:  # the dark backdrop beyond the frame is not the subject
         matte, face = matte * valid, face * valid
     return intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face)
 
@@ -87,15 +89,14 @@ def find_box(session: IntrinsicSession, x_full: np.ndarray,
     """The portrait's square box in a (3, H, W) frame, or None when there is none."""
     h, w = x_full.shape[1:]
     size = session.card.working_size
-    small = _fullres(fullres).shrink_planar(x_full, *detail.working_shape(h, w, size))
-    coarse = _buffers(session, small)
+    small = shared_fullres(fullres).shrink_planar(x_full, *detail.working_shape(h, w, size))
+    coarse = buffers(session, small)
     box = framing.find_portrait(coarse.face, coarse.matte, (h, w), MARGIN)
     if box is None:
         return None
     box = fit_in_frame(box, (h, w))
     # Refine on the box itself, where the face has most of the working size.
-    valid = framing.crop_weight(box, (h, w), size)
-    fine = _buffers(session, crop_planar(x_full, box, size), valid)
+    fine = buffers(session, *crop_planar(x_full, box, size))
     inner = framing.find_portrait(fine.face, fine.matte, (size, size), MARGIN)
     if inner is None:
         return box
@@ -124,7 +125,7 @@ def _change(session, x: np.ndarray, light, effects, valid=None):
     image, the weight being the matte's core (MATTE_EDGE). The ratio
     is carried times the matte, never as ratio - 1: under a faint light ratio - 1 + 1 would
     lose the ratio to rounding."""
-    bufs = _buffers(session, x, valid)
+    bufs = buffers(session, x, valid)
     sh = intrinsic.shade(x, bufs, light, effects, keep_exposure=False)
     # The change fades in over the matte's confident core: at the outline the normals graze and
     # the ratio is least certain, and a soft matte there would carry it onto the background.
@@ -150,7 +151,7 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
         return FrameResult(np.ones((3, 1, 1), np.float32), np.zeros((3, 1, 1), np.float32),
                            np.zeros((1, 1), np.float32), False, None)
     gh, gw = grid_shape(h, w, box, size)
-    fr = _fullres(fullres)
+    fr = shared_fullres(fullres)
     grid_chw = fr.shrink_planar(x_full, gh, gw)  # the footage at the grid's resolution
     grid = np.ascontiguousarray(grid_chw.transpose(1, 2, 0))
     plan = intrinsic.plan(light) if effects is None else effects
@@ -167,8 +168,8 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
         coarse = detail.resize(np.concatenate([mr, hi, m[None], raw[None]], 0).transpose(1, 2, 0),
                                gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
-    valid = framing.crop_weight(box, (h, w), size)
-    mr_f, hi_f, m_f, raw_f = _change(session, crop_planar(x_full, box, size), light, plan, valid)
+    crop, valid = crop_planar(x_full, box, size)
+    mr_f, hi_f, m_f, raw_f = _change(session, crop, light, plan, valid)
     fw = (1.0 if covers else feather(size)) * valid
     k = gh / h
     gbox = framing.Box(box.cx * k, box.cy * k, box.size * k)

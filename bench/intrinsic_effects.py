@@ -79,7 +79,7 @@ def exact_buffers(a: dict) -> intrinsic.Buffers:
 def predicted_buffers(session, img: np.ndarray) -> intrinsic.Buffers:
     from addon import portrait
 
-    return portrait._buffers(session, img)
+    return portrait.buffers(session, img)
 
 
 def error(out: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:

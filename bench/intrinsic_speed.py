@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from addon import api, colour, detail, framing, intrinsic, lightvec, pipeline, portrait
+from addon import api, colour, detail, intrinsic, lightvec, pipeline, portrait
 from training.lightstage.png import read_png
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -56,9 +56,8 @@ def run(model: str, threads: int, repeats: int) -> dict:
     soft = lightvec.uniform()
     fullres = detail.FullRes(threads=threads)
     box = portrait.find_box(sess, x, fullres)
-    crop = np.ascontiguousarray(framing.crop(np.ascontiguousarray(x.transpose(1, 2, 0)), box,
-                                             size).transpose(2, 0, 1))
-    bufs = portrait._buffers(sess, crop)
+    crop, _ = portrait.crop_planar(x, box, size)
+    bufs = portrait.buffers(sess, crop)
     res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
     framing_row = f"framing pass (find_box; a run frames one frame in {pipeline.FRAMING_STEP})"
     rows = {
