@@ -42,6 +42,21 @@ class ModelCard:
         return self.classes.index(contract.FOREGROUND_CLASS)
 
 
+MAX_CARD_NESTING = 32  # real cards nest 4-5 levels
+
+
+def _nesting(tree) -> int:
+    """How deeply lists and dicts nest in parsed JSON (iteratively: no recursion limit)."""
+    deepest, stack = 0, [(tree, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if isinstance(node, (dict, list)):
+            deepest = max(deepest, depth)
+            stack.extend((v, depth + 1) for v in (node.values() if isinstance(node, dict)
+                                                  else node))
+    return deepest
+
+
 def card_path_for(model_path) -> pathlib.Path:
     return pathlib.Path(model_path).with_suffix(".json")
 
@@ -61,8 +76,15 @@ def load_card(model_path) -> ModelCard:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise ModelError(f"The model card {card_path} cannot be read ({err}); reinstall the "
                          "model.") from err
+    except RecursionError as err:  # the JSON decoder recurses once per nesting level
+        raise ModelError(f"The model card {card_path} is nested too deeply to be a model card; "
+                         "reinstall the model.") from err
     if not isinstance(data, dict):
         raise ModelError(f"The model card {card_path} is not a JSON object; reinstall the model.")
+    if _nesting(data) > MAX_CARD_NESTING:
+        # Readers of the card (the panel's figures) walk it recursively.
+        raise ModelError(f"The model card {card_path} is nested more than {MAX_CARD_NESTING} "
+                         "levels deep, which no model card is; reinstall the model.")
     missing = [k for k in contract.REQUIRED_CARD_KEYS if k not in data]
     if missing:
         raise ModelError(f"The model card {card_path.name} lacks {', '.join(missing)}; it was not "
@@ -96,14 +118,44 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
-def verify_checksum(card: ModelCard) -> None:
-    """Refuse a model file whose sha256 differs from its card (truncated download, edited file)."""
-    actual = file_sha256(card.onnx_path)
+def read_model(card: ModelCard) -> bytes:
+    """The .onnx file's bytes: the session is built from exactly the bytes that were checked."""
+    try:
+        return card.onnx_path.read_bytes()
+    except OSError as err:
+        raise ModelError(f"The model file {card.onnx_path} cannot be read ({err}); check its "
+                         "permissions or reinstall the model.") from err
+
+
+def verify_checksum(card: ModelCard, data: bytes | None = None) -> None:
+    """Refuse a model file whose sha256 differs from its card (truncated download, edited file).
+    ``data``: the file's bytes when already read (read_model)."""
+    actual = file_sha256(card.onnx_path) if data is None else hashlib.sha256(data).hexdigest()
     if actual != card.sha256:
         raise ModelError(
             f"The model file {card.onnx_path.name} is corrupt or not the one its card describes "
             f"(sha256 {actual[:12]}... instead of {card.sha256[:12]}...). Download or reinstall "
             "the model.")
+
+
+def refuse_external_data(card: ModelCard, data: bytes) -> None:
+    """Refuse a model that keeps weights in files beside the .onnx: the card's checksum covers
+    only the .onnx, so altered weights would load unnoticed (and onnxruntime would look for
+    them relative to the working folder when the model is given as bytes)."""
+    from . import onnx_graph
+
+    try:
+        external = onnx_graph.external_tensors(data)
+    except ValueError as err:
+        raise ModelError(f"The add-on cannot load {card.onnx_path.name}: it is not a valid ONNX "
+                         f"model ({err}). Download or reinstall the model.") from err
+    if external:
+        shown = ", ".join(external[:3]) + (" ..." if len(external) > 3 else "")
+        raise ModelError(
+            f"The model {card.onnx_path.name} keeps {len(external)} weight tensor(s) ({shown}) "
+            "in separate files, which its card's checksum does not cover, so the add-on does "
+            "not load it. Use a model saved as one .onnx file (onnx.save_model(model, path, "
+            "save_as_external_data=False)) with its card.")
 
 
 def choose_providers(available, requested=None) -> list[str]:
@@ -292,15 +344,18 @@ class IntrinsicSession:
 
 def new_session(model_path, providers=None, threads: int | None = None, spin: bool = True,
                 verify: bool = True):
-    """Load a model after checking its card and checksum: a RelightSession, or an
+    """Load a model after checking its card, its checksum and that it keeps no weights in other
+    files (the session is built from the checked bytes): a RelightSession, or an
     IntrinsicSession for an intrinsic model. Raises ModelError / DependencyError."""
     card = load_card(model_path)
+    data = read_model(card)
     if verify:
-        verify_checksum(card)
+        verify_checksum(card, data)
+    refuse_external_data(card, data)
     ort = _import_onnxruntime()
     chosen = choose_providers(ort.get_available_providers(), providers)
     try:
-        sess = ort.InferenceSession(str(card.onnx_path), sess_options=session_options(
+        sess = ort.InferenceSession(data, sess_options=session_options(
             ort, threads, spin), providers=chosen)
     except Exception as err:  # onnxruntime raises its own untyped errors for bad files
         raise ModelError(f"onnxruntime cannot load {card.onnx_path.name} ({err}). The file is "

@@ -96,3 +96,82 @@ def model(nodes, inputs, outputs, initializers=(), name: str = "graph") -> bytes
     opset = _str(1, "") + _int(2, OPSET)
     return (_int(1, IR_VERSION) + _str(2, "relight-addon") + _bytes(7, graph)
             + _bytes(8, opset))
+
+
+# ---- reading: which tensors of a model keep their data outside the .onnx file ---------------
+
+# (message, field number) -> the message type of that field, for the fields that can hold a
+# TensorProto somewhere below them (onnx.proto3). Everything else is skipped unread.
+_CHILDREN = {
+    ("model", 7): "graph", ("model", 25): "function",
+    ("graph", 1): "node", ("graph", 5): "tensor", ("graph", 15): "sparse",
+    ("function", 7): "node",
+    ("node", 5): "attribute",
+    ("attribute", 5): "tensor", ("attribute", 6): "graph", ("attribute", 10): "tensor",
+    ("attribute", 11): "graph", ("attribute", 22): "sparse", ("attribute", 23): "sparse",
+    ("sparse", 1): "tensor", ("sparse", 2): "tensor",
+}
+_TENSOR_NAME, _TENSOR_EXTERNAL_DATA, _TENSOR_DATA_LOCATION = 8, 13, 14
+_EXTERNAL = 1  # TensorProto.DataLocation.EXTERNAL
+
+
+def _read_varint(buf, pos: int, end: int) -> tuple[int, int]:
+    n = shift = 0
+    while True:
+        if pos >= end or shift > 63:
+            raise ValueError("truncated or malformed varint")
+        b = buf[pos]
+        pos += 1
+        n |= (b & 0x7F) << shift
+        if not b & 0x80:
+            return n, pos
+        shift += 7
+
+
+def _fields(buf, start: int, end: int):
+    """(field number, wire type, value or (start, end) of a length-delimited field) of one
+    message's bytes ``buf[start:end]``."""
+    pos = start
+    while pos < end:
+        key, pos = _read_varint(buf, pos, end)
+        field, wire = key >> 3, key & 7
+        if wire == 0:
+            value, pos = _read_varint(buf, pos, end)
+        elif wire == 1:
+            value, pos = None, pos + 8
+        elif wire == 5:
+            value, pos = None, pos + 4
+        elif wire == 2:
+            size, pos = _read_varint(buf, pos, end)
+            value, pos = (pos, pos + size), pos + size
+        else:
+            raise ValueError(f"unsupported protobuf wire type {wire}")
+        if pos > end:
+            raise ValueError("truncated protobuf message")
+        yield field, wire, value
+
+
+def external_tensors(model_bytes: bytes) -> list[str]:
+    """Names of the tensors (initializers, constants, in subgraphs and functions too) whose data
+    a serialised ModelProto keeps in other files (``data_location: EXTERNAL``). ValueError for
+    bytes that are not a well-formed protobuf message. Walks with an explicit stack, so a deeply
+    nested file cannot exhaust Python's recursion limit."""
+    buf = memoryview(model_bytes)
+    found, stack = [], [("model", 0, len(buf))]
+    while stack:
+        kind, start, end = stack.pop()
+        name, external = "", False
+        for field, wire, value in _fields(buf, start, end):
+            if kind == "tensor":
+                if field == _TENSOR_NAME and wire == 2:
+                    name = bytes(buf[value[0]:value[1]]).decode("utf-8", "replace")
+                elif field == _TENSOR_DATA_LOCATION and wire == 0 and value == _EXTERNAL:
+                    external = True
+                elif field == _TENSOR_EXTERNAL_DATA and wire == 2:
+                    external = True
+            child = _CHILDREN.get((kind, field))
+            if child is not None and wire == 2:
+                stack.append((child, *value))
+        if external:
+            found.append(name or "(unnamed)")
+    return found

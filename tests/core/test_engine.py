@@ -5,7 +5,7 @@ import numpy as np
 import onnx
 import pytest
 
-from addon import contract, engine, lightvec
+from addon import contract, engine, lightvec, onnx_graph
 from addon.errors import DependencyError, ModelError
 from tests.onnx_fixtures import TOY_CLASSES, toy_reference, write_conv_model, write_toy_model
 
@@ -195,3 +195,72 @@ def test_planar_run_equals_channels_last_run(session, h, w):
     np.testing.assert_array_equal(b.source_light, a.source_light)
     with pytest.raises(ValueError, match=r"\(3, H, W\)"):
         session.run_planar(img, light)
+
+
+def _save_with_external_weights(folder, threshold=100):
+    """The toy model saved with its larger weights in a file beside the .onnx, and a card whose
+    checksum matches the .onnx (all a card can cover)."""
+    model = write_toy_model(folder)
+    m = onnx.load(str(model))
+    onnx.save_model(m, str(model), save_as_external_data=True, all_tensors_to_one_file=True,
+                    location="toy.weights", size_threshold=threshold)
+    _rewrite_card(model, sha256=engine.file_sha256(model))
+    return model
+
+
+def test_model_with_external_weight_files_is_refused(tmp_path):
+    model = _save_with_external_weights(tmp_path)
+    weights = tmp_path / "toy.weights"
+    assert weights.is_file()
+    assert onnx_graph.external_tensors(model.read_bytes()) == ["w_front"]
+    with pytest.raises(ModelError, match="separate files") as err:
+        engine.new_session(model)
+    assert "w_front" in str(err.value)
+    # Altered weights (the case the checksum cannot see) are refused just the same.
+    weights.write_bytes(bytes(len(weights.read_bytes())))
+    with pytest.raises(ModelError, match="separate files"):
+        engine.new_session(model)
+
+
+def test_external_data_is_found_in_subgraphs_and_constants():
+    from onnx import TensorProto, helper, numpy_helper
+
+    big = numpy_helper.from_array(np.ones(64, np.float32), "w")
+    big.data_location = TensorProto.EXTERNAL
+    entry = big.external_data.add()
+    entry.key, entry.value = "location", "w.bin"
+    big.ClearField("raw_data")
+    inner = helper.make_graph([helper.make_node("Constant", [], ["c"], value=big)], "inner",
+                              [], [helper.make_tensor_value_info("c", TensorProto.FLOAT, [64])])
+    outer = helper.make_graph(
+        [helper.make_node("If", ["cond"], ["y"], then_branch=inner, else_branch=inner)],
+        "outer", [helper.make_tensor_value_info("cond", TensorProto.BOOL, [])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [64])])
+    data = helper.make_model(outer).SerializeToString()
+    assert onnx_graph.external_tensors(data) == ["w", "w"]
+    assert onnx_graph.external_tensors(
+        helper.make_model(helper.make_graph([], "g", [], [])).SerializeToString()) == []
+    with pytest.raises(ValueError):
+        onnx_graph.external_tensors(data[:-3])
+
+
+def test_shipped_and_toy_models_keep_their_weights_inside(toy):
+    import pathlib
+
+    for path in [toy, *sorted(pathlib.Path(engine.__file__).parents[1].glob("models/*.onnx"))]:
+        assert onnx_graph.external_tensors(path.read_bytes()) == [], path
+
+
+def test_a_deeply_nested_card_is_a_model_error_not_a_crash(tmp_path):
+    model = write_toy_model(tmp_path)
+    engine.card_path_for(model).write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(ModelError, match="nested too deeply"):
+        engine.load_card(model)
+    card = json.loads(engine.card_path_for(write_toy_model(tmp_path / "b")).read_text())
+    nested = {}
+    card["metrics"] = nested
+    for _ in range(500):  # parses, but the panel's readers would recurse 500 levels
+        nested["x"] = nested = {}
+    engine.card_path_for(model).write_text(json.dumps(card))
+    with pytest.raises(ModelError, match="levels deep"):
+        engine.load_card(model)
