@@ -124,6 +124,12 @@ def downsample(image: np.ndarray, world_to_frame: np.ndarray | None = None,
     rotation +a turns it by -a (tests/blender/test_cycles_referee.py). ``max_width`` trades
     accuracy for time: the map is first box-reduced to at most that width.
     """
+    if not math.isfinite(float(strength)):
+        raise LightingError(f"The HDRI strength is {strength}; set it to a number.")
+    if not math.isfinite(float(yaw_degrees)) or (
+            world_to_frame is not None and not np.all(np.isfinite(world_to_frame))):
+        raise LightingError("The lighting's rotation (or the camera's orientation) is not a "
+                            "finite number; set the rotation to a number of degrees.")
     rgb = check_equirect(image, repair=repair)
     width = max(int(max_width), MIN_WIDTH)
     # Small maps are enlarged (exactly: nearest neighbour) to the working width, large ones box-

@@ -14,6 +14,20 @@ import numpy as np
 from .errors import DependencyError, InputError
 
 EXTENSIONS = (".exr", ".hdr", ".pic")
+# The largest map read: 32768 x 16384 (the largest HDRIs published), 6.4 GB as float32 RGB. A
+# header claiming more is refused before anything is allocated.
+MAX_WIDTH, MAX_HEIGHT = 32768, 16384
+
+
+def _check_size(path: str, width: int, height: int) -> None:
+    if width < 1 or height < 1:
+        raise InputError(f"The HDRI {path} claims a size of {width}x{height} pixels; the file "
+                         "is damaged. Re-export it, or pick another HDRI.")
+    if width > MAX_WIDTH or height > MAX_HEIGHT:
+        raise InputError(f"The HDRI {path} claims {width}x{height} pixels, more than the "
+                         f"{MAX_WIDTH}x{MAX_HEIGHT} this add-on reads (a damaged header, or a "
+                         "map far larger than lighting needs). Re-export it at 8192x4096 or "
+                         "less, or pick another HDRI.")
 
 
 def read_hdri(path: str | os.PathLike) -> np.ndarray:
@@ -40,6 +54,9 @@ def _read_exr(path: str) -> np.ndarray:
         import OpenEXR
     except ImportError as err:  # bundled with the extension; missing means a broken install
         raise DependencyError("The OpenEXR module is missing; reinstall the extension.") from err
+    with OpenEXR.File(path, header_only=True) as f:
+        (x0, y0), (x1, y1) = f.header()["dataWindow"]
+    _check_size(path, int(x1) - int(x0) + 1, int(y1) - int(y0) + 1)
     with OpenEXR.File(path) as f:
         channels = f.channels()
         if "RGBA" in channels or "RGB" in channels:
@@ -72,12 +89,22 @@ def _read_rgbe(path: str) -> np.ndarray:
                              "files are supported. Convert it to RGB.")
         if line.startswith(b"EXPOSURE="):
             exposure *= float(line[9:])  # pixels were multiplied by this: divide it back out
+    if not (np.isfinite(exposure) and exposure > 0):
+        raise InputError(f"{path} has an EXPOSURE of {exposure:g} in its header; the file is "
+                         "damaged. Re-export it, or pick another HDRI.")
     eol = data.find(b"\n", header_end + 2)
     match = _RESOLUTION.match(data[header_end + 2:eol].strip())
     if not match:
         raise InputError(f"{path} has an unsupported Radiance resolution line; only standard "
                          "'-Y H +X W' images are supported.")
     height, width = int(match.group(2)), int(match.group(4))
+    _check_size(path, width, height)
+    # The smallest a scanline can be: run-length encoded, every run 127 long (2 bytes per run).
+    least = height * (4 + 4 * 2 * -(-width // 127) if 8 <= width < 32768 else 4 * width)
+    if len(data) - (eol + 1) < least:
+        raise InputError(f"The HDRI {path} claims {width}x{height} pixels but holds only "
+                         f"{len(data) - eol - 1} bytes of pixel data: it is truncated or its "
+                         "header is damaged. Re-export it, or pick another HDRI.")
     rgbe = _decode_scanlines(np.frombuffer(data, np.uint8, offset=eol + 1), height, width)
     if match.group(1) == b"+":  # bottom row stored first
         rgbe = rgbe[::-1]

@@ -120,13 +120,29 @@ def test_radiance_file_feeds_the_downsampler(tmp_path):
     ("xyz.hdr", b"#?RADIANCE\nFORMAT=32-bit_rle_xyze\n\n-Y 2 +X 4\n" + bytes(32), "RGBE"),
     ("odd.hdr", b"#?RADIANCE\n\n+X 4 -Y 2\n" + bytes(32), "resolution"),
     ("short.hdr", b"#?RADIANCE\n\n-Y 2 +X 4\n" + bytes(20), "truncated"),
-    ("badrle.hdr", b"#?RADIANCE\n\n-Y 1 +X 8\n" + bytes([2, 2, 0, 8, 200, 1]), "run-length"),
+    ("badrle.hdr", b"#?RADIANCE\n\n-Y 1 +X 8\n" + bytes([2, 2, 0, 8, 200, 1]) + bytes(10),
+     "run-length"),
+    # Headers that claim more pixels than any HDRI (a MemoryError before), or than the file holds
+    ("huge.hdr", b"#?RADIANCE\n\n-Y 1000000 +X 1000000\n" + bytes(64), "claims 1000000x1000000"),
+    ("wide.hdr", b"#?RADIANCE\n\n-Y 16000 +X 32000\n" + bytes(64), "holds only 64 bytes"),
+    ("zero.hdr", b"#?RADIANCE\n\n-Y 0 +X 8\n", "size of 8x0"),
+    ("exposure.hdr", b"#?RADIANCE\nEXPOSURE=0\n\n-Y 1 +X 2\n" + bytes(8), "EXPOSURE of 0"),
 ])
 def test_bad_files_are_clear_input_errors(tmp_path, name, content, match):
     path = tmp_path / name
     if content is not None:
         path.write_bytes(content)
     with pytest.raises(InputError, match=match):
+        hdri_io.read_hdri(path)
+
+
+def test_exr_whose_header_claims_a_huge_image_is_refused_before_reading(tmp_path):
+    path = _write_exr(tmp_path / "a.exr", _image(4, 8))
+    data = bytearray(path.read_bytes())
+    at = data.index(b"dataWindow\x00box2i\x00") + len(b"dataWindow\x00box2i\x00") + 4
+    data[at + 8:at + 16] = np.array([99999, 49999], "<i4").tobytes()  # xMax, yMax
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="claims 100000x50000 pixels"):
         hdri_io.read_hdri(path)
 
 

@@ -119,6 +119,13 @@ def test_hdri_bad_input_messages():
     with pytest.raises(LightingError, match="1 NaN, 0 infinite and 1 negative"):
         hdri.downsample(img)
     assert np.isfinite(hdri.downsample(img, repair=True)).all()
+    ok = np.ones((64, 128, 3), np.float32)
+    for kw in (dict(yaw_degrees=float("nan")), dict(yaw_degrees=float("inf")),
+               dict(world_to_frame=np.full((3, 3), np.nan))):
+        with pytest.raises(LightingError, match="rotation"):
+            hdri.downsample(ok, **kw)
+    with pytest.raises(LightingError, match="strength is nan"):
+        hdri.downsample(ok, strength=float("nan"))
 
 
 def _rot_x(deg):
