@@ -199,14 +199,35 @@ def area_blocks(n: int, m: int) -> np.ndarray | None:
     return block
 
 
-def _finish_graph(clamp: bool) -> bytes:
-    """out = up(a) * x + up(b), cast to half; with ``clamp``, clamped to the half range first
-    (the caller knows from a cheap bound whether that can be needed, and saves the pass)."""
+def _clamp_tail(clamp: bool) -> list[bytes]:
+    """The end of both finish graphs: ``out`` cast to half as ``y``; with ``clamp``, first
+    clamped to [0, 65504] (radiance is never negative; +Inf becomes the half maximum, -Inf 0),
+    and ``lowest``, the smallest value before the clamp, reported (a negative one is warned
+    about). The caller knows from a cheap bound whether that can be needed, and saves the pass."""
     from . import onnx_graph as g
-    tail = ([g.node("Clip", ["out", "lo", "hi"], ["clamped"]),
-             g.node("Cast", ["clamped"], ["y"], to=g.FLOAT16)] if clamp else
-            [g.node("Cast", ["out"], ["y"], to=g.FLOAT16)])
-    consts = [g.tensor("lo", np.float32(-HALF_MAX)), g.tensor("hi", np.float32(HALF_MAX))]
+    if not clamp:
+        return [g.node("Cast", ["out"], ["y"], to=g.FLOAT16)]
+    return [g.node("ReduceMin", ["out"], ["lowest"], keepdims=0),
+            g.node("Clip", ["out", "lo", "hi"], ["clamped"]),
+            g.node("Cast", ["clamped"], ["y"], to=g.FLOAT16)]
+
+
+def _finish_outputs(clamp: bool) -> list[bytes]:
+    from . import onnx_graph as g
+    y = [g.value_info("y", g.FLOAT16, [1, "C", "H", "W"])]
+    return y + [g.value_info("lowest", g.FLOAT, [])] if clamp else y
+
+
+def _clamp_consts() -> list[bytes]:
+    from . import onnx_graph as g
+    return [g.tensor("lo", np.float32(0.0)), g.tensor("hi", np.float32(HALF_MAX))]
+
+
+def _finish_graph(clamp: bool) -> bytes:
+    """out = up(a) * x + up(b), cast to half (see _clamp_tail for ``clamp``)."""
+    from . import onnx_graph as g
+    tail = _clamp_tail(clamp)
+    consts = _clamp_consts()
     return g.model(
         [g.node("Resize", ["a", "", "", "sizes"], ["a_up"], mode="linear",
                 coordinate_transformation_mode="half_pixel"),
@@ -217,8 +238,7 @@ def _finish_graph(clamp: bool) -> bytes:
         [g.value_info("a", g.FLOAT, [1, "C", "h", "w"]),
          g.value_info("b", g.FLOAT, [1, "C", "h", "w"]),
          g.value_info("x", g.FLOAT, [1, "C", "H", "W"]), g.value_info("sizes", g.INT64, [4])],
-        [g.value_info("y", g.FLOAT16, [1, "C", "H", "W"])],
-        consts if clamp else [], name="finish")
+        _finish_outputs(clamp), consts if clamp else [], name="finish")
 
 
 def upsample_blocks(n: int, m: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -284,18 +304,14 @@ def _finish_blocks_graph(clamp: bool) -> bytes:
     from . import onnx_graph as g
     nodes = _enlarge_nodes("a", "a_up") + _enlarge_nodes("b", "b_up")
     nodes += [g.node("Mul", ["a_up", "x"], ["ax"]), g.node("Add", ["ax", "b_up"], ["out"])]
-    nodes += ([g.node("Clip", ["out", "lo", "hi"], ["clamped"]),
-               g.node("Cast", ["clamped"], ["y"], to=g.FLOAT16)] if clamp else
-              [g.node("Cast", ["out"], ["y"], to=g.FLOAT16)])
-    consts = [g.tensor("pads", _EDGE_PADS)]
-    if clamp:
-        consts += [g.tensor("lo", np.float32(-HALF_MAX)), g.tensor("hi", np.float32(HALF_MAX))]
+    nodes += _clamp_tail(clamp)
+    consts = [g.tensor("pads", _EDGE_PADS)] + (_clamp_consts() if clamp else [])
     return g.model(
         nodes,
         [g.value_info("a", g.FLOAT, [1, "C", "h", "w"]),
          g.value_info("b", g.FLOAT, [1, "C", "h", "w"]),
          g.value_info("x", g.FLOAT, [1, "C", "H", "W"])] + _enlarge_inputs(),
-        [g.value_info("y", g.FLOAT16, [1, "C", "H", "W"])], consts, name="finish_blocks")
+        _finish_outputs(clamp), consts, name="finish_blocks")
 
 
 def _upsample_blocks_graph() -> bytes:
@@ -432,20 +448,31 @@ class FullRes:
 
     def finish_planar(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
                       x_max: float) -> tuple[np.ndarray, bool]:
-        """(half (3, H, W) of up(a) * x_full + up(b), whether it may have been clamped).
+        """(half (3, H, W) of up(a) * x_full + up(b) within [0, 65504], whether it may have
+        been clamped); see finish_planar_lowest."""
+        return self.finish_planar_lowest(x_full, a, b, x_max)[:2]
+
+    def finish_planar_lowest(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
+                             x_max: float) -> tuple[np.ndarray, bool, float]:
+        """(half (3, H, W) of up(a) * x_full + up(b) within [0, 65504], whether it may have
+        been clamped, the smallest value before clamping (0.0 when nothing could be negative)).
         ``a``, ``b`` finite; ``x_max`` bounds x_full from above (x_full >= 0): with bilinear
-        weights |out| <= max|a| * x_max + max|b|, so the clamp pass runs only when needed."""
+        weights out <= max|a| * x_max + max|b|, and out >= 0 when a and b are, so the clamp
+        pass runs only when needed."""
         x = np.ascontiguousarray(x_full, dtype=np.float32)
         bound = float(np.abs(a).max()) * float(x_max) + float(np.abs(b).max())
-        clamp = not bound <= HALF_MAX
+        clamp = not bound <= HALF_MAX or not (float(a.min()) >= 0 and float(b.min()) >= 0)
         feeds = {"a": np.ascontiguousarray(a, np.float32)[None],
                  "b": np.ascontiguousarray(b, np.float32)[None], "x": x[None]}
         (c, big_h, big_w), (h, w) = x.shape, a.shape[1:]
         blocks = _enlarge_feeds(c, h, w, big_h, big_w)
         if blocks is None:
             feeds["sizes"] = np.array([1, c, big_h, big_w], np.int64)
-            return self._finish[clamp].run(None, feeds)[0][0], clamp
-        return self._finish_blocks[clamp].run(None, {**feeds, **blocks})[0][0], clamp
+            outs = self._finish[clamp].run(None, feeds)
+        else:
+            outs = self._finish_blocks[clamp].run(None, {**feeds, **blocks})
+        lowest = float(outs[1]) if clamp else 0.0
+        return outs[0][0], clamp, lowest if lowest < 0 else 0.0
 
     def upsample_half_planar(self, low: np.ndarray, height: int, width: int, lo: float,
                              hi: float) -> np.ndarray:

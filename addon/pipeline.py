@@ -4,7 +4,8 @@ One function, ``relight_clip``, serves the modal operator (on_progress / should_
 batch script and render-farm chunks (``frames``). Per frame:
 
     decode -> linear (colour.py) -> / s -> area-resize to the working size -> network (light / k)
-    -> full-resolution transfer (detail.py) -> * k (* s for old "s*k" cards) -> finite, half -> EXR
+    -> full-resolution transfer (detail.py) -> * k (* s for old "s*k" cards) -> [0, 65504], half
+    -> EXR
 
 Frames stay channels-first (3, H, W) from the decoder to the EXR file (see detail.py); the
 channels-last stage functions below serve callers that hold (H, W, 3) images (benchmarks).
@@ -364,12 +365,20 @@ def coefficients_planar(x_low: np.ndarray, relit_low, k: float, plan: Plan,
 
 def finish_planar(x_full: np.ndarray, ab, x_max: float,
                   fullres: detail.FullRes) -> tuple[np.ndarray, int]:
-    """The full-resolution half-float frame (3, H, W) and how many values were clamped to the
-    half range."""
+    """The full-resolution half-float frame (3, H, W), within [0, 65504], and how many values
+    were clamped to the half maximum."""
+    return finish_frame(x_full, ab, x_max, fullres)[:2]
+
+
+def finish_frame(x_full: np.ndarray, ab, x_max: float,
+                 fullres: detail.FullRes) -> tuple[np.ndarray, int, float]:
+    """finish_planar and the most negative value that was raised to 0 (0.0 if none was):
+    radiance is never negative, though the network's output and the detail transfer's
+    extrapolation can be (a little in normal use, hugely when the light overflows it)."""
     if ab is None:
-        return np.zeros(x_full.shape, np.float16), 0
-    y, may_clamp = fullres.finish_planar(x_full, *ab, x_max)
-    return y, _count_clamped(y) if may_clamp else 0
+        return np.zeros(x_full.shape, np.float16), 0, 0.0
+    y, may_clamp, lowest = fullres.finish_planar_lowest(x_full, *ab, x_max)
+    return y, _count_clamped(y) if may_clamp else 0, lowest
 
 
 def _count_clamped(y: np.ndarray) -> int:
@@ -452,7 +461,8 @@ def coefficients(x_low: np.ndarray, relit_low, k: float, plan: Plan,
 
 def finish(x_full: np.ndarray, ab, x_max: float,
            fullres: detail.FullRes) -> tuple[np.ndarray, int]:
-    """The half-float frame (H, W, 3) and how many values were clamped."""
+    """The half-float frame (H, W, 3), within [0, 65504], and how many values were clamped to
+    the half maximum."""
     h, w = x_full.shape[:2]
     if ab is None:
         return np.zeros((h, w, 3), np.float16), 0
@@ -638,7 +648,8 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
     stop = threading.Event()
     decoded: queue.Queue = queue.Queue(maxsize=2)
     results: queue.Queue = queue.Queue(maxsize=2)
-    counts = {"bad_in": 0, "clamped": 0, "written": 0}  # each key written by one thread
+    # each key written by one thread
+    counts = {"bad_in": 0, "clamped": 0, "written": 0, "negative": 0, "lowest": 0.0}
 
     def produce():
         try:
@@ -660,10 +671,13 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 if item is _DONE:
                     return
                 i, x_full, x_max, ab, fg, source = item
-                relit, clamped = finish_planar(x_full, ab, x_max, fullres)
+                relit, clamped, lowest = finish_frame(x_full, ab, x_max, fullres)
                 matte = matte_full(fg, plan, fullres) if plan.write_matte else None
                 write_frame(out_dir, i, relit, matte, source, plan)
                 counts["clamped"] += clamped
+                if lowest < 0:
+                    counts["negative"] += 1
+                    counts["lowest"] = min(counts["lowest"], lowest)
                 counts["written"] += 1
         except BaseException:
             stop.set()  # the decoder stops too; this thread's error is raised by the caller
@@ -718,6 +732,11 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
     if counts["clamped"]:
         out.warn(f"{counts['clamped']} output values exceeded the half-float range (65504) or "
                  "were not finite, and were clamped; lower the light or the exposure.")
+    if counts["negative"]:
+        out.warn(f"Relit values below 0 (down to {counts['lowest']:.3g}) on "
+                 f"{counts['negative']} frame(s) were set to 0: light cannot be negative. Small "
+                 "ones are the network's error; large ones mean the light is far brighter than "
+                 "the footage, so lower the light or the exposure.")
     if cancelled:
         raise Cancelled(f"Cancelled after {resumed + counts['written']} of {total} frames; the "
                         "finished frames are kept, run again to resume.")

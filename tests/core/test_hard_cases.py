@@ -78,6 +78,22 @@ def build_sqrt_light_model() -> onnx.ModelProto:
                   "sqrt_light")
 
 
+def build_negative_model() -> onnx.ModelProto:
+    """relit = image - 0.3: negative radiance wherever the image is darker than 0.3."""
+    nodes = [
+        helper.make_node("Sub", ["image", "offset"], ["relit"]),
+        helper.make_node("Mul", ["target_light", "zero"], ["z"]),
+        helper.make_node("Add", ["z", "one"], ["source_light"]),
+        helper.make_node("ReduceMean", ["image", "axes_c"], ["lum"], keepdims=1),
+        helper.make_node("Mul", ["lum", "zero"], ["flat"]),
+        helper.make_node("Add", ["flat", "one"], ["fg"]),
+        helper.make_node("Concat", ["fg", "fg"], ["parsing"], axis=1),
+    ]
+    return _model(nodes, {"offset": np.float32(0.3), "zero": np.float32(0.0),
+                          "one": np.float32(1.0), "axes_c": np.array([1], np.int64)},
+                  "negative")
+
+
 def _card(stride=1, working=64):
     return {"preset": "test", "stride": stride, "working_size": working,
             "classes": list(TOY_CLASSES), "cost": {}}
@@ -91,6 +107,12 @@ def toy(tmp_path_factory):
 @pytest.fixture(scope="module")
 def broken(tmp_path_factory):
     return str(_save(build_broken_model(), tmp_path_factory.mktemp("broken"), "broken", _card()))
+
+
+@pytest.fixture(scope="module")
+def negative(tmp_path_factory):
+    return str(_save(build_negative_model(), tmp_path_factory.mktemp("negative"), "negative",
+                     _card()))
 
 
 @pytest.fixture(scope="module")
@@ -239,7 +261,8 @@ def _extreme_lights() -> dict:
     coloured = lightvec.uniform((1.0, 0.0, 0.0))
     coloured[3:8, 6:10] = (0.0, 0.0, 40.0)
     return {"one_texel_1e5": one_texel, "very_coloured": coloured,
-            "tiny_1e-6": lightvec.uniform(1e-6), "hot_1e6": lightvec.uniform(1e6)}
+            "tiny_1e-6": lightvec.uniform(1e-6), "hot_1e6": lightvec.uniform(1e6),
+            "one_texel_1e30": one_texel * 1e25}
 
 
 NETWORKS = ["toy", "sqrt_light"] + [f"shipped:{p}" for p in shipped_models()]
@@ -271,6 +294,7 @@ def test_extreme_lights_are_finite_and_scale_with_the_light(net, light, backgrou
                       background=background)
         assert_safe(written(res))
         outs[c] = frames.read_exr(res.relit_files[0])
+        assert outs[c].min() >= 0, "negative radiance reached a file"
     if is_intrinsic(model):
         # Intrinsic presets keep the footage's exposure: the light sets direction, colour and
         # contrast, so a stronger light of the same shape gives the same frame.
@@ -311,10 +335,27 @@ def test_a_network_that_returns_nan_and_inf_never_reaches_a_file(broken, tmp_pat
                   detail_transfer=detail, working_size=working, write_matte=matte)
     arrays = written(res)
     assert_safe(arrays)
-    assert np.abs(arrays[0]).max() <= HALF_MAX
+    assert arrays[0].min() >= 0 and arrays[0].max() <= HALF_MAX  # -Inf becomes 0, not -65504
     if matte:
         m = frames.read_exr(res.matte_files[0])
         assert m.min() >= 0 and m.max() <= 1
+
+
+@pytest.mark.parametrize("detail,working", [(True, 8), (False, 8), (True, 64)])
+def test_negative_radiance_is_written_as_zero_and_reported_once(negative, tmp_path, detail,
+                                                                working):
+    px = np.random.default_rng(4).random((24, 32, 3)).astype(np.float32) * 0.6
+    files = write_exr_sequence(tmp_path / "in", [px, px])
+    res = relight(negative, files, tmp_path / "out", UNIFORM, detail_transfer=detail,
+                  working_size=working)
+    for f in res.relit_files:
+        out = frames.read_exr(f)
+        assert out.min() == 0 and out.max() > 0
+        if working == 64:  # the network at full size: max(image - 0.3 s, 0) (s: exposure)
+            want = np.maximum(px - np.float32(0.3 * res.exposure_scale), 0)
+            np.testing.assert_allclose(out, want, rtol=2e-3, atol=1e-4)
+    warned = [w for w in res.warnings if "below 0" in w]
+    assert len(warned) == 1 and "on 2 frame(s)" in warned[0], res.warnings
 
 
 def test_hdri_sun_of_1e5_and_more_is_finite_end_to_end(toy, tmp_path):

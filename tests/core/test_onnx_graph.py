@@ -153,6 +153,24 @@ def test_planar_finish_by_blocks_clamps_to_half(fullres):
     assert may_clamp and np.all(y == np.float16(65504))
 
 
+@pytest.mark.parametrize("small,big", [((4, 4), (8, 8)), ((13, 11), (100, 80))])
+def test_finish_raises_negative_radiance_to_zero_and_reports_the_lowest(fullres, small, big):
+    """Blocks and resize paths alike: negative values (and -Inf from an overflowing product)
+    become 0, +Inf the half maximum, and the most negative value before the clamp is returned."""
+    x = np.ones((3, *big), np.float32)
+    a = np.zeros((3, *small), np.float32)
+    b = np.full((3, *small), 0.5, np.float32)
+    b[0] = -0.25
+    y, may_clamp, lowest = fullres.finish_planar_lowest(x, a, b, x_max=1.0)
+    assert may_clamp and lowest == pytest.approx(-0.25)
+    assert np.all(y[0] == 0) and np.all(y[1:] == np.float16(0.5))
+    a[1], a[2] = -1e30, 1e30  # times x = 1e10: -Inf and +Inf in float32
+    y, may_clamp, lowest = fullres.finish_planar_lowest(np.full((3, *big), 1e10, np.float32),
+                                                        a, b, x_max=1e10)
+    assert lowest == -np.inf and np.all(y[1] == 0) and np.all(y[2] == np.float16(65504))
+    assert fullres.finish_planar_lowest(x, np.ones_like(a), b * 0, 1.0)[1:] == (False, 0.0)
+
+
 @pytest.mark.parametrize("small,big", [((9, 14), (45, 70)), ((13, 11), (100, 80))])
 def test_matte_upsample_by_blocks_or_resize_equals_the_reference(fullres, small, big):
     low = np.random.default_rng(8).random((1, *small)).astype(np.float32) * 1.4 - 0.2
