@@ -4,7 +4,7 @@ frontier.
 
     .venv/bin/python -m bench.frontier                 # full run (models/, ~10-20 min here)
     .venv/bin/python -m bench.frontier --quick         # tiny test set, few repeats (CI)
-    .venv/bin/python -m bench.frontier --write-cards --readme README.md   # publish the figures
+    .venv/bin/python -m bench.frontier --write-cards   # also record each card's frontier point
 
 Knob groups, each with its own error measure (so each has its own frontier):
 * network: the per-frame path of addon/pipeline.py (shrink -> network -> guided coefficients ->
@@ -29,20 +29,17 @@ timed together: a few warm-up runs of each, then round-robin rounds (every setti
 the order shuffled with a fixed seed), so start-up costs and load drifts do not fall on the setting
 measured first (one run showed an untrained Draft slower than the untrained Final).
 
-Writes frontier.md, .json and .png into --out; with --readme it replaces the README section
-between the frontier markers, with --write-cards it adds a "frontier" entry to each measured
+Writes frontier.md, .json and .png into --out (bench/results); with --write-cards it adds a "frontier" entry to each measured
 model card in --models (the research cards are left as they are).
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime
 import hashlib
 import json
 import os
 import pathlib
-import platform
 import sys
 import tempfile
 import time
@@ -55,9 +52,8 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(ROOT))
 
 from addon import colour, contract, detail, engine, normalise, pipeline  # noqa: E402
+from training.report import machine, machine_line  # noqa: E402
 
-BEGIN, END = "<!-- frontier:begin -->", "<!-- frontier:end -->"
-SECTION = "## Accuracy against time"
 FULL_SIZES = (256, 384, 512)  # plus "full": the test set's own resolution
 LINEAR = colour.lookup("Linear Rec.709")
 CPU = "CPUExecutionProvider"
@@ -65,33 +61,7 @@ CPU = "CPUExecutionProvider"
 
 # ---- machine and timing -------------------------------------------------------------------
 
-def machine() -> dict:
-    cpu = platform.processor() or ""
-    try:
-        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import onnxruntime as ort
-
-    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
-    return {"platform": platform.platform(), "cpu": cpu, "cores": os.cpu_count(),
-            "load_avg_1_5_15": [round(x, 2) for x in load],
-            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-            "python": platform.python_version(), "onnxruntime": ort.__version__,
-            "providers": ort.get_available_providers()}
-
-
 QUIET_LOAD = 2.5  # above this 1-minute load average (2 cores) timings are noisy
-
-
-def machine_line(m: dict) -> str:
-    end = m.get("load_avg_end")
-    return (f"{m['cpu']}, {m['cores']} cores, {m['platform']}; onnxruntime {m['onnxruntime']} "
-            f"({', '.join(m['providers'])}); load average {m['load_avg_1_5_15'][0]} at the start"
-            + (f", {end} at the end" if end is not None else "") + f"; {m['date']}")
 
 
 def spread(times_s) -> dict:
@@ -757,19 +727,6 @@ def make_plot(path, rows: list[Row], info: dict) -> None:
                                 "Ringed + red line: Pareto frontier. Dashed: baselines.")
 
 
-def splice_readme(text: str, body: str) -> str:
-    """Replace what lies between the frontier markers (adding the section if it is absent)."""
-    block = f"{BEGIN}\n{body.rstrip()}\n{END}"
-    if BEGIN in text and END in text:
-        head, rest = text.split(BEGIN, 1)
-        return head + block + rest.split(END, 1)[1]
-    if f"\n{SECTION}\n" in f"\n{text}":  # the heading without markers: the block goes under it
-        head, rest = f"\n{text}".split(f"\n{SECTION}\n", 1)
-        return f"{head[1:]}\n{SECTION}\n\n{block}\n{rest}"
-    sep = "" if text.endswith("\n") or not text else "\n"
-    return f"{text}{sep}\n{SECTION}\n\n{block}\n"
-
-
 def card_entry(card, result, settings, info) -> dict:
     return {"ms_per_frame": round(result["ms"], 2), "p10_ms": round(result["p10"], 2),
             "p90_ms": round(result["p90"], 2), "runs": result["runs"],
@@ -803,7 +760,6 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="trained width/depth points (ablation-full, width-narrow, width-deep "
                         ".onnx + cards; default: MODELS/research)")
     p.add_argument("--out", type=pathlib.Path, default=ROOT / "bench" / "results")
-    p.add_argument("--readme", type=pathlib.Path, help="update this README's frontier section")
     p.add_argument("--write-cards", action="store_true",
                    help="add the per-preset figures to the measured model cards")
     p.add_argument("--resolution", type=int, help="test set size (default 640; quick 64)")
@@ -897,11 +853,6 @@ def main(argv=None) -> dict:
         {"info": info, "rows": [asdict(r) for r in rows]}, indent=2, default=str) + "\n",
         encoding="utf-8")
     make_plot(args.out / "frontier.png", rows, info)
-    if args.readme:
-        rel = os.path.relpath(args.out / "frontier.png", args.readme.parent)
-        body = f"![accuracy against time]({rel})\n\n{md}"
-        args.readme.write_text(splice_readme(args.readme.read_text(encoding="utf-8"), body),
-                               encoding="utf-8")
     cards = write_cards(per_card, info) if args.write_cards else []
     log(f"wrote {args.out / 'frontier.md'}, .json, .png" + (f"; cards: {cards}" if cards else ""))
     print(md)

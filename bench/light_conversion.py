@@ -9,6 +9,8 @@ the sphere's pixels that face the light (all of the sphere's pixels for a world)
     .venv/bin/python bench/light_conversion.py            # full table (about 1-2 minutes)
     .venv/bin/python bench/light_conversion.py --quick    # fewer cases
 
+Writes bench/results/light_conversion.md (--out) with the tables and what they say.
+
 tests/blender/test_cycles_referee.py uses the same scene builder with asserted bounds.
 """
 
@@ -18,7 +20,6 @@ import argparse
 import importlib.util
 import math
 import pathlib
-import platform
 import sys
 import tempfile
 import time
@@ -27,6 +28,10 @@ import bpy
 import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+if __package__ in (None, ""):  # run as a script: make the repository importable
+    sys.path.insert(0, str(ROOT))
+
+from training import report  # noqa: E402
 EXT_ID = "portrait_relight"
 RADIUS = 1.0  # the sphere (subject) radius in metres; everything scales with it
 ORTHO_SCALE = 2.2 * RADIUS
@@ -270,13 +275,41 @@ def _time_conversion(fn, repeats: int = 5) -> tuple[float, float]:
     return float(np.median(times)), float(np.max(times) - np.min(times))
 
 
+FINDINGS = """What the figures say:
+- **Units are Blender's, as Cycles renders them**: point and spot intensity
+  `colour x energy x 2^exposure / (4 pi)` W/sr, the spot cone only masks (Cycles' smoothstep
+  blend), sun irradiance `colour x energy x 2^exposure` W/m2 spread over its disc, area radiance
+  `P / (pi A)` (`normalize` off: `P / pi`, power per m2), temperature through Blender's own
+  `temperature_color`. The light's `diffuse_factor` is EEVEE's and Cycles ignores it; a lamp
+  hidden from diffuse rays gives no light.
+- **Suns and worlds are within a few per cent**, what the 16x16 cells cost: they quantise a small
+  bright source's direction by up to half a cell.
+- **Near lamps cannot be reproduced by distant light; that error is unavoidable.** A point lamp at
+  k radii lights less than a hemisphere and its shading falls off faster than the cosine from its
+  brightest point; any non-negative distant light's shading falls off no faster than the cosine,
+  so no light vector can match it. The conversion takes the least-squares best fit (one direction
+  scaled by `lamps.near_field_gain(k)`); the floor of that fit is printed above ("unavoidable
+  part") and matches the measured errors within the cells' cost. Area lamps are split into 64
+  patches, so a big close panel becomes a broad light.
+- The HDRI working width changes conversion time and power conservation, not the shading.
+- Lamps whose share of the total power is below 1e-3 are skipped (`lamps.lamps_to_light`).
+  Static lighting is converted once; keyed lamps, world, camera, subject or rotation give one
+  light vector per frame. `rotation` turns the lighting like a world Mapping node's Z rotation.
+"""
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer distances and widths")
+    parser.add_argument("--out", default=str(ROOT / "bench" / "results" / "light_conversion"),
+                        help="write OUT.md")
     args = parser.parse_args(argv)
     distances = (1.2, 4.0) if args.quick else DISTANCES
-    print(f"machine: {platform.machine()} {platform.processor() or ''}, "
-          f"Blender {bpy.app.version_string}, Cycles CPU; sphere radius {RADIUS} m, 64x64 pixels")
+    print = report.Lines()  # noqa: A001 - the tables go to stdout and to the report
+    setup = (f"Blender {bpy.app.version_string}, Cycles CPU (32 samples, no denoising, linear EXR); "
+             f"sphere radius {RADIUS} m, 64x64 pixels; relative RMSE = ||shaded - render|| / "
+             "||render|| over the sphere's pixels that face the light (all of them for a world).")
+    print(setup)
     print("\n| lamp | distance (radii) | relative RMSE | conversion (ms, median of 5) |\n"
           "| --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as folder:
@@ -288,7 +321,10 @@ def main(argv=None) -> None:
                       f"{1e3 * r['seconds']:.2f} |")
         print("\nUnavoidable part for a point lamp (least-squares distant fit, analytic, "
               "addon.lamps): " + ", ".join(f"{k} radii: {_point_floor(k):.3f}" for k in distances))
-        _world_table(folder, args.quick)
+        _world_table(folder, args.quick, print)
+    command = "python bench/light_conversion.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    report.write(args.out, "Lighting conversion against Cycles", command.strip(),
+                 report.machine_line(report.machine()), print.text() + "\n\n" + FINDINGS)
 
 
 LAMP_CASES = (
@@ -324,7 +360,7 @@ def _point_floor(k: float) -> float:
     return float(np.linalg.norm(fit - truth) / np.linalg.norm(truth))
 
 
-def _world_table(folder, quick: bool) -> None:
+def _world_table(folder, quick: bool, print=print) -> None:  # noqa: A002
     hdri, hdri_io = addon_module("hdri"), addon_module("hdri_io")
 
     widths = (128, 256) if quick else (128, 256, 512, 1024)

@@ -35,6 +35,7 @@ lobe and the subsurface case, skin only.
 from __future__ import annotations
 
 import argparse
+import builtins
 import math
 import pathlib
 import sys
@@ -45,10 +46,12 @@ import bpy
 import numpy as np
 import torch
 
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):  # run as a script: make the repository importable
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    sys.path.insert(0, str(ROOT))
 
 from bench import light_conversion  # noqa: E402
+from training import report  # noqa: E402
 from training.lightstage import assets, layout, materials, shading  # noqa: E402
 from training.lightstage.png import to_srgb8, write_png  # noqa: E402
 from training.lightstage.scene import Scene  # noqa: E402
@@ -295,9 +298,13 @@ def main(argv=None):
     ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--samples", type=int, default=64)
     ap.add_argument("--out", default="cache/cycles", help="folder for the side-by-side PNGs")
+    ap.add_argument("--report", default=str(ROOT / "bench" / "results" / "lightstage_cycles"),
+                    help="write REPORT.md with the printed tables")
     ap.add_argument("--no-materials", dest="materials", action="store_false",
                     help="skip the skin-material comparison (GGX, subsurface)")
     a = ap.parse_args(argv)
+    print = report.Lines()  # noqa: A001 - to stdout and to the report
+    print("```")
     print(f"Blender {bpy.app.version_string}, Cycles CPU, {a.samples} samples, {a.res}x{a.res}; "
           f"grey Lambert {ALBEDO}, one sun of irradiance 1 per row")
     print("light  stage  region        pixels  ours/Cycles  rel.RMSE   silhouette IoU")
@@ -321,7 +328,12 @@ def main(argv=None):
                           f"{m['cycles_noise']:12.3f}  {m['rel_rmse_beyond_noise']:12.3f}  "
                           f"{m['rel_rmse_box3']:7.3f}  "
                           f"{m['cycles_seconds']:8.1f}")
-    print(f"side-by-side PNGs (ours | Cycles | |diff| x4) in {a.out}")
+    print("```")
+    builtins.print(f"side-by-side PNGs (ours | Cycles | |diff| x4) in {a.out}")
+    command = "python bench/lightstage_cycles.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    report.write(a.report, "The light stage against Cycles", command.strip(),
+                 report.machine_line(report.machine()), __doc__.split("\n\n", 1)[1].split(
+                     "\n\nPrints")[0] + "\n\n" + print.text())
 
 
 if __name__ == "__main__":

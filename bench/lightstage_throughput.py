@@ -23,11 +23,12 @@ import time
 import numpy as np
 import torch
 
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):  # run as a script: make the repository importable
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    sys.path.insert(0, str(ROOT))
 
 from addon.errors import InputError  # noqa: E402
-from training import lighting_sampling  # noqa: E402
+from training import lighting_sampling, report  # noqa: E402
 from training.build_cache import DEFAULT_OUT, build  # noqa: E402
 from training.dataset import LightStageDataset  # noqa: E402
 from training.lightstage import geometry, materials, pairs  # noqa: E402
@@ -131,7 +132,10 @@ def main(argv=None):
     ap.add_argument("--cache", default=str(DEFAULT_OUT), help="frame cache root")
     ap.add_argument("--cached-samples", type=int, default=200)
     ap.add_argument("--no-selective", action="store_true", help="skip the effect shortcut")
+    ap.add_argument("--report", default=str(ROOT / "bench" / "results" / "lightstage_throughput"),
+                    help="write REPORT.md with the printed figures")
     a = ap.parse_args(argv)
+    print = report.Lines()  # noqa: A001 - to stdout and to the report
     torch.set_num_threads(a.threads)
     load = " ".join(f"{x:.1f}" for x in os.getloadavg())
     print(f"torch threads: {a.threads}; load average {load}")
@@ -164,6 +168,11 @@ def main(argv=None):
         for e, n, em, ex, tf, ts in selective(ds, a.samples):
             print(f"  {e:5.2f}  {n:6.1f}  {em:14.4f}  {ex:13.4f}  {tf:7.1f}  {ts:12.1f}  "
                   f"{100 * (1 - ts / tf):4.0f}%")
+    command = ("python bench/lightstage_throughput.py "
+               + " ".join(sys.argv[1:] if argv is None else argv)).strip()
+    report.write(a.report, "Light-stage throughput and the selective-effects shortcut", command,
+                 report.machine_line(report.machine()), __doc__.split("\n\n", 2)[2].strip()
+                 + "\n\n```\n" + print.text() + "\n```")
 
 
 if __name__ == "__main__":

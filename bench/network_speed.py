@@ -5,7 +5,8 @@
 Speed does not depend on the weight values, so each preset is exported fresh from
 training/network.py (untrained) unless --models points at shipped models/<name>.onnx files.
 int8 here is calibrated on random normalised images (enough for timing; shipped int8 models are
-calibrated on light-stage frames by training/export.py). Prints a Markdown table and JSON.
+calibrated on light-stage frames by training/export.py). Writes bench/results/network_speed.md
+and .json (--out).
 """
 
 from __future__ import annotations
@@ -13,12 +14,15 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 import tempfile
 
 import numpy as np
 import torch
 
-from training import export, network
+from training import export, network, report
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def _random_feeds(n: int, size: int, seed: int = 0) -> list[dict]:
@@ -64,14 +68,19 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--no-int8", action="store_true")
-    p.add_argument("--json", help="also write the rows here")
+    p.add_argument("--out", default=str(ROOT / "bench" / "results" / "network_speed"),
+                   help="write OUT.md and OUT.json")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
         rows = bench(a.presets, a.sizes, a.threads, a.repeats, not a.no_int8, pathlib.Path(tmp))
     print(table(rows))
-    if a.json:
-        pathlib.Path(a.json).write_text(json.dumps(rows, indent=2))
+    m = report.machine()
+    command = "python -m bench.network_speed " + " ".join(sys.argv[1:] if argv is None else argv)
+    body = ("onnxruntime, batch 1, each preset's architecture exported untrained (weights do not "
+            f"change the cost), {a.threads} thread(s); median of {a.repeats} runs.\n\n" + table(rows))
+    report.write(a.out, "Network speed per preset", command, report.machine_line(m), body,
+                 {"machine": m, "rows": rows})
 
 
 if __name__ == "__main__":

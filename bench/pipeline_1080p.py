@@ -16,14 +16,15 @@ of about --gflops GFLOP per 512x512 frame (tests/onnx_fixtures.py) in a temporar
    per frame (user + system, all threads): on a shared machine the frame rate follows the
    other processes' load, the CPU time much less so; with N free cores the pipeline can run at
    most N / (CPU time per frame) frames per second.
-Prints the machine and the load average (before and after) it ran under. Nothing is written
-outside the temporary folder.
+Prints the machine and the load average (before and after) it ran under, and writes the same
+report to bench/results/pipeline_1080p.md (--out; the option runs only print).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import pathlib
 import platform
 import statistics
 import sys
@@ -35,6 +36,9 @@ import numpy as np
 from addon import engine, frames, lightvec, pipeline
 from addon import colour as colour_mod
 from tests.onnx_fixtures import write_conv_model
+from training import report
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def make_clip(path: str, n: int, width: int = 1920, height: int = 1080, fps: int = 25) -> str:
@@ -104,8 +108,11 @@ def main(argv=None) -> int:
                     help="only time the EXR compressions on one relit-like 1080p frame")
     ap.add_argument("--graph-options", action="store_true",
                     help="only time the full-resolution graphs against their resize-op variants")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "pipeline_1080p"),
+                    help="write OUT.md (the end-to-end run only)")
     args = ap.parse_args(argv)
     n = args.frames
+    print = report.Lines()  # noqa: A001 - to stdout and to the report
     print(f"machine: {platform.machine()} {platform.processor() or ''}, {os.cpu_count()} cores, "
           f"python {platform.python_version()}, load average {os.getloadavg()[0]:.1f} "
           "(other processes share these cores: compare runs at similar load)")
@@ -168,6 +175,10 @@ def main(argv=None) -> int:
             print(f"  CPU time per frame after warm-up (all threads, user + system): {per:.1f} ms"
                   f" -> at most {2000 / per:.1f} frames/s on 2 free cores")
     print(f"load average after: {os.getloadavg()[0]:.1f}")
+    command = "python -m bench.pipeline_1080p " + " ".join(sys.argv[1:] if argv is None else argv)
+    report.write(args.out, "The pipeline on 1080p footage, stage by stage and end to end",
+                 command.strip(), report.machine_line(report.machine()),
+                 "```\n" + print.text() + "\n```")
     return 0
 
 

@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import math
 import pathlib
 import sys
@@ -53,7 +52,7 @@ import numpy as np
 
 from addon import contract, engine, normalise
 from addon.errors import InputError, LightingError, ModelError, RelightError
-from training import evaluate, lighting_sampling
+from training import evaluate, lighting_sampling, report
 from training.lightstage import layout
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -411,7 +410,6 @@ def parse_args(argv=None):
 def main(argv=None) -> dict:
     import torch
 
-    from bench.frontier import machine
     from training.lightstage import assets
 
     a = parse_args(argv)
@@ -438,7 +436,7 @@ def main(argv=None) -> dict:
     table = markdown(results, labels)
     print(table)
     wall = time.perf_counter() - t0
-    report = {
+    data = {
         "command": "python -m bench.temporal_stability " + " ".join(
             sys.argv[1:] if argv is None else argv),
         "protocol": {
@@ -458,19 +456,33 @@ def main(argv=None) -> dict:
                                                    3)} for m in models},
         "results": {k: {str(f): v for f, v in r.items()} for k, r in results.items()},
         "seconds": {"stage": round(t_stage, 2), "total": round(wall, 2)},
-        "machine": machine(),
+        "machine": report.machine(),
     }
     out = pathlib.Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "temporal_stability.json").write_text(json.dumps(report, indent=2))
+    write_report(out / "temporal_stability", data)
     footer = (f"{a.frames} FRAMES, STATIC HELD-OUT PERFORMER (ID {stage.info['identity']}), "
               f"{a.source_hdri} TURNING 360 DEG / {a.period} FRAMES AT SPEED-UP 1 -> "
               f"{a.target_hdri}")
     plot(out / "temporal_stability.png", results, labels, footer)
     print(f"\n{a.frames} frames x {len(a.speedups)} speed-ups, {len(models)} model(s): "
           f"{wall:.0f} s wall ({t_stage:.0f} s stage); wrote {out / 'temporal_stability.json'} "
-          "and .png")
-    return report
+          ".md and .png")
+    return data
+
+
+def write_report(stem: pathlib.Path, data: dict) -> pathlib.Path:
+    """temporal_stability.md and .json from one run's results."""
+    p = data["protocol"]
+    labels = list(data["models"])
+    results = {k: {int(f): v for f, v in r.items()} for k, r in data["results"].items()}
+    body = (f"A static held-out performer (identity {p['performer']['identity']}), {p['frames']} "
+            f"frames; source: {p['source']}; target: {p['target']}; mean RMSE of adjacent "
+            "output frames (0 for the ground truth: its target is static). Models: "
+            + ", ".join(f"{k} `{m['onnx']}`" for k, m in data["models"].items())
+            + ".\n\n![temporal stability](temporal_stability.png)\n\n"
+            + markdown(results, labels))
+    return report.write(stem, "Temporal stability (the paper's protocol)", data["command"],
+                        report.machine_line(data["machine"]), body, data)
 
 
 if __name__ == "__main__":

@@ -70,8 +70,8 @@ BACKDROPS = ("wall", "varied")  # lightstage/backdrops.py
 # so a stale one is noticed. Bump it with every change that alters samples (the renderer's look,
 # the lighting sampling, the varied backdrops, the sample layout) and rewrite the golden probe
 # (`python -m training.make_testset --write-probe`); tests/training/test_render_version.py renders
-# the probe and fails when samples changed without a bump. (Until session 3 the key was a hash of
-# whole source files: every edit, even one that changed no sample, made caches look stale.)
+# the probe and fails when samples changed without a bump. (A hash of whole source files would
+# make caches look stale after every edit, even one that changed no sample.)
 RENDER_VERSION = 2
 
 

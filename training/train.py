@@ -152,15 +152,8 @@ def factor_at(stages, frac: float) -> int:
 
 def lr_at(base: float, frac: float, step: int = 0, warmup: int = 0) -> float:
     """Cosine decay over the time budget to 5% of the base rate; with ``warmup`` steps, a linear
-    ramp from base / warmup up to the cosine over the first ones. Meant for runs continued with
-    ``--init``, which start with fresh optimiser moments and a fresh critic: the Standard and Final
-    trained further on render version v2 without it lost 0.006 and 0.009 val RMSE in their first
-    500 steps. A 200-step ramp did not avoid that for the Draft (val 0.1010 at step 0, 0.1056 at
-    step 250, never below 0.1029 in 1500 steps), nor did lr 5e-5 or no adversarial term (0.1057
-    and 0.1093 at step 100): the start is the best of many noisy val checkpoints of the earlier
-    run, so part of the "loss" is likely that selection regressing to the mean. Most of it was
-    step noise: the moving average of the very same Standard run (``--ema 0.999``; session 6, raw
-    weights bit-identical) lost at most 0.0022 where the raw weights lost 0.0063."""
+    ramp from base / warmup up to the cosine over the first ones (for runs continued with
+    ``--init``, which start with fresh optimiser moments and a fresh critic)."""
     cosine = base * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * min(frac, 1.0))))
     return cosine * min(1.0, (step + 1) / warmup) if warmup > 0 else cosine
 

@@ -1,4 +1,4 @@
-"""Real faces: relighting checked against CroppedYale, real one-light-at-a-time data (issue 4).
+"""Real faces: relighting checked against CroppedYale, real one-light-at-a-time data.
 
     .venv/bin/python -m training.yale_eval --onnx models/relight-draft.onnx [--onnx ...]
     .venv/bin/python -m training.yale_eval --onnx models/relight-draft.onnx --quick
@@ -80,12 +80,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import functools
-import json
 import math
 import pathlib
-import platform
 import re
 import sys
 import time
@@ -95,14 +92,14 @@ import numpy as np
 from addon import api, hdri, lightvec, normalise
 from addon.errors import InputError
 
-from . import evaluate
+from . import evaluate, report
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TUNE_SUBJECTS = tuple(range(1, 11))
 KINDS = ("hdri", "single", "few")
 VIEWS = ("calibrated", "scale_invariant")
 BASELINES = ("identity", "irradiance_ratio")
-# A light-blind reference (not one of the issue's baselines): the irradiance-ratio output with
+# A light-blind reference (beside the two baselines): the irradiance-ratio output with
 # its contrast halved in log terms. It knows B's power but not where the light comes from, so a
 # model that only flattens the input's shading scores about the same.
 FLATTENED = "flattened_ratio"
@@ -759,12 +756,28 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
     }
 
 
-def machine() -> str:
-    import os
-
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return (f"{platform.machine()} {os.cpu_count()}-core CPU, {platform.platform()}; load average "
-            f"{load:.2f} at the start")
+def report_body(res: dict) -> str:
+    """The Markdown of one run: what was compared, the tables, the balance correlations."""
+    models = list(res["models"])
+    n_test = len(res["split"]["test"])
+    lines = [f"Real one-light-at-a-time images of {n_test} held-out CroppedYale subjects "
+             f"({len(res['split']['tune'])} more are kept to calibrate one gain per method), "
+             f"{res['pairs_per_subject']} pairs each, relit from lighting A to B and compared with "
+             "the real sum for B, grey in and grey out. Every image goes through "
+             "`addon.relight_image`, exactly what the pipeline does to a frame. Calibrated view: "
+             "one gain per method; scale-invariant view: each output times its own least-squares "
+             "gain. Models: " + ", ".join(f"`{res['models'][m]['onnx']}`" for m in models) + ".",
+             "", res.get("table_markdown") or markdown(res["results"], models, res["paired"]), "",
+             "Correlation of the output's left/right and top/bottom balance with the truth's:", "",
+             "| | left/right | top/bottom |", "|---|---|---|"]
+    for name, c in res["balance_correlation"].items():
+        lines.append(f"| {name} | {c['left_right']:.3f} | {c['top_bottom']:.3f} |")
+    for view, verdicts in res["beats_both_baselines"].items():
+        beat = [m for m, yes in verdicts.items() if yes]
+        lines += ["", f"Beat both light-blind baselines on overall RMSE, {view.replace('_', '-')} "
+                  f"view: {', '.join(beat) or 'none'}."]
+    lines += ["", f"{res['seconds']} s."]
+    return "\n".join(lines)
 
 
 def main(argv=None) -> int:
@@ -788,8 +801,7 @@ def main(argv=None) -> int:
         return 0
     if not a.onnx:
         p.error("give at least one --onnx model (or --check-data)")
-    started = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    m = machine()
+    m = report.machine()
     try:
         res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
                   progress=lambda msg: print(msg, file=sys.stderr))
@@ -798,7 +810,7 @@ def main(argv=None) -> int:
         return 2
     models = list(res["models"])
     table = markdown(res["results"], models, res["paired"])
-    res.update({"table_markdown": table, "date": started, "machine": m,
+    res.update({"table_markdown": table, "date": m["date"], "machine": report.machine_line(m),
                 "command": "python -m training.yale_eval " + " ".join(argv if argv is not None
                                                                      else sys.argv[1:])})
     print(table)
@@ -809,9 +821,9 @@ def main(argv=None) -> int:
         print(f"  {name}: {c['left_right']:.3f}, {c['top_bottom']:.3f}")
     print(f"{res['seconds']} s; gains {res['gains']}")
     out = pathlib.Path(a.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {out}" + (f" and {a.sheet}" if a.sheet else ""))
+    md = report.write(out.with_suffix(""), "Real faces: CroppedYale", res["command"], res["machine"],
+                      report_body(res), res)
+    print(f"wrote {md}, {out}" + (f" and {a.sheet}" if a.sheet else ""))
     return 0
 
 

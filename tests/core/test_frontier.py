@@ -1,4 +1,4 @@
-"""bench/frontier.py's pieces: the Pareto frontier, the PNG writer, the README splice, and the
+"""bench/frontier.py's pieces: the Pareto frontier, the PNG writer, and the
 network group end to end on the toy model (the whole harness, Cycles included, runs in
 tests/blender/test_frontier_harness.py)."""
 
@@ -95,30 +95,13 @@ def test_network_frames_follow_the_cards_relit_scale(tmp_path):
     np.testing.assert_allclose(y_new, 2.0 * x, rtol=2e-3, atol=1e-4)  # the toy: light 2 doubles
 
 
-def test_readme_splice_replaces_only_the_marked_section():
-    text = (f"# T\n\nintro\n\n## Accuracy against time\n\n{frontier.BEGIN}\nold\n{frontier.END}\n\n"
-            "## Next\nkeep\n")
-    out = frontier.splice_readme(text, "new table")
-    assert "old" not in out and "new table" in out
-    assert out.startswith("# T\n\nintro\n") and out.endswith("## Next\nkeep\n")
-    assert frontier.splice_readme(out, "new table") == out
-    added = frontier.splice_readme("# T\n", "body")
-    assert added.count(frontier.SECTION) == 1 and added.index(frontier.BEGIN) < added.index("body")
-    under = frontier.splice_readme(f"# T\n\n{frontier.SECTION}\nprose\n", "body")
-    assert under.count(frontier.SECTION) == 1
-    assert under.index(frontier.SECTION) < under.index("body") < under.index("prose")
-    assert frontier.splice_readme(under, "body") == under
-
-
 @pytest.fixture(scope="module")
 def quick_run(shared_data, tmp_path_factory):
     """The harness on the toy model (as an installed model) without the Cycles part."""
     tmp = tmp_path_factory.mktemp("frontier")
     write_toy_model(tmp / "models")
-    readme = tmp / "README.md"
-    readme.write_text("# Project\n\n## Other\ntext\n")
     result = frontier.main(["--quick", "--models", str(tmp / "models"), "--out",
-                            str(tmp / "results"), "--readme", str(readme), "--write-cards",
+                            str(tmp / "results"), "--write-cards",
                             "--no-cache", "--skip", "conversion"])
     return tmp, result
 
@@ -146,7 +129,7 @@ def test_quick_run_measures_every_network_knob(quick_run):
     assert any(r.frontier for r in rows if r.group == "network")
 
 
-def test_quick_run_writes_table_plot_readme_and_card(quick_run):
+def test_quick_run_writes_table_plot_and_card(quick_run):
     tmp, result = quick_run
     md = (tmp / "results" / "frontier.md").read_text()
     m = result["info"]["machine"]
@@ -156,9 +139,7 @@ def test_quick_run_writes_table_plot_readme_and_card(quick_run):
     assert png.shape[0] > 300 and (png == png_plot.FRONTIER).all(-1).any()
     data = json.loads((tmp / "results" / "frontier.json").read_text())
     assert len(data["rows"]) == len(result["rows"])
-    readme = (tmp / "README.md").read_text()
-    assert readme.startswith("# Project\n\n## Other\ntext\n")
-    assert frontier.SECTION in readme and "frontier.png" in readme and "toy fp32 full" in readme
+    assert "toy fp32 full" in md
     card = json.loads((tmp / "models" / "toy.json").read_text())
     front = card["frontier"]
     assert front["working_size"] == 64 and front["ms_per_frame"] > 0 and 0 < front["rmse"] < 1

@@ -2,7 +2,7 @@
 
 The stage's own backdrop (Scene._backdrop) is a smooth, muted colour field. Networks trained only
 on it learnt that a background is smooth, and on real footage repainted busy rooms into blotches and
-left halos around green screens (session-2 footage sheet). ``LightStageDataset(backdrops="varied")``
+left halos around green screens (the footage sheets showed it). ``LightStageDataset(backdrops="varied")``
 replaces it, per sample, by one of:
 
 * ``photo``: a crop of one of the CC0 HDRIs' horizon band (rooms, streets, trees), tone-mapped to an
