@@ -112,6 +112,16 @@ def validate(light, what: str = "light vector") -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
+# The smallest positive half float. A light whose every texel is below it relights footage of
+# radiance up to about 1 to values that round to 0 in a half-float frame: a black frame.
+DARKEST = 2.0 ** -24
+
+
+def is_black(light) -> bool:
+    """Whether ``light`` (a valid light vector) is too dark to show in a relit frame."""
+    return not float(np.max(light)) >= DARKEST
+
+
 def irradiance(light: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Irradiance (..., 3) on unit normals (..., 3) from a light vector: sum L max(0, n.d) Omega."""
     d = directions().reshape(-1, 3)

@@ -12,7 +12,8 @@ channels-last stage functions below serve callers that hold (H, W, 3) images (be
 
 ``s`` is one exposure scale per clip from fixed sample frames over the whole clip, so chunks and
 resumed runs agree bit for bit; ``k`` is the target light's mean radiance (k == 0: black frame,
-network not run). Decoding runs in a worker thread and writing in another while onnxruntime
+network not run; a run whose light is black on every frame is refused before anything is
+written). Decoding runs in a worker thread and writing in another while onnxruntime
 runs, so the three overlap.
 
 Outputs (i = 0-based clip frame index): relit/relit_{i:06d}.exr, matte/matte_{i:06d}.exr (optional),
@@ -35,7 +36,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from . import colour, detail, engine, framing, frames, lightvec, normalise, portrait
+from . import (colour, contract, detail, engine, framing, frames, lightvec, normalise,
+               portrait)
 from .errors import Cancelled, InputError, LightingError, ModelError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
 
@@ -54,6 +56,14 @@ class ClipSpec:
     count: int                 # number of frames to relight
     colorspace: str            # Blender colour-space name of the strip
     fps: float
+    scene_start: int | None = None  # the scene frame showing clip frame 0, to name frames by
+
+
+def frame_name(clip: ClipSpec, i: int) -> str:
+    """How a message names 0-based clip frame ``i``: by its scene frame when the clip knows it."""
+    if clip.scene_start is not None:
+        return f"scene frame {clip.scene_start + int(i)}"
+    return f"clip frame {int(i)} (0-based)"
 
 
 # What stands behind the relit subject: "network" its own output (the models repaint backgrounds),
@@ -151,6 +161,33 @@ def _check_lights(lights, count: int) -> np.ndarray:
                             f"{count} frames, got {arr.shape}.")
     return np.stack([lightvec.validate(x, f"light vector of frame {i}")
                      for i, x in enumerate(arr)])
+
+
+def black_lights(lights: np.ndarray, contract_name: str) -> list[bool]:
+    """Per light vector: whether a frame relit by it comes out black. Presets that follow the
+    light's brightness need light above lightvec.DARKEST; intrinsic presets keep the footage's
+    exposure (the light sets direction and colour), so only a light of exactly zero is black."""
+    if contract_name == contract.INTRINSIC_CONTRACT:
+        return [not float(np.max(x)) > 0 for x in lights]
+    return [lightvec.is_black(x) for x in lights]
+
+
+def _check_not_black(clip: ClipSpec, lights: np.ndarray, contract_name: str,
+                     selected: list[int], out: Log) -> None:
+    """Refuse lighting that is black on every frame of the clip (every frame would be black: a
+    scene without lamps or world, lamps at 0 W, an exposure of -100); warn about the frames to
+    relight where an animated light goes black (a fade to black is a choice, not an error)."""
+    dark = black_lights(lights, contract_name)
+    if all(dark):
+        raise LightingError(
+            f"The lighting is black (its brightest value is {float(np.max(lights)):.3g}; a "
+            f"half-float frame shows nothing below {lightvec.DARKEST:.3g}), so every frame would "
+            "come out black. Light the subject: add a lamp with energy or a world HDRI, pick a "
+            "studio HDRI, or raise the exposure.")
+    black = [i for i in selected if dark[min(i, len(dark) - 1)]]
+    if black:
+        out.warn(f"The lighting is black on {len(black)} of the frames to relight (the first is "
+                 f"{frame_name(clip, black[0])}); they come out black.")
 
 
 def _check_frames(frames_sel, count: int) -> list[int]:
@@ -580,6 +617,7 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
     info = _check_clip(clip)
     lights = _check_lights(lights, clip.count)
     selected = _check_frames(frames, clip.count)
+    _check_not_black(clip, lights, engine.load_card(options.model_path).contract, selected, out)
     space = colour.lookup(clip.colorspace)
     if space.is_data:
         out.warn(f"The strip's colour space is {clip.colorspace}; its values are relit as if "

@@ -30,6 +30,7 @@ class ModelCard:
     timed_at: str                  # what the time refers to, e.g. "512 px, CPU"
     error: float | None            # held-out error
     error_name: str
+    contract: str = ""             # the ONNX contract (addon/contract.py)
 
     @property
     def summary(self) -> str:
@@ -147,7 +148,8 @@ def read_card(onnx_path: pathlib.Path) -> ModelCard:
     ms, timed_at = card_time(card.data, card.working_size)
     error, error_name = card_error(card.data)
     return ModelCard(name=card.name, preset=card.preset, onnx_path=card.onnx_path,
-                     ms_per_frame=ms, timed_at=timed_at, error=error, error_name=error_name)
+                     ms_per_frame=ms, timed_at=timed_at, error=error, error_name=error_name,
+                     contract=card.contract)
 
 
 def scan_models(folder: pathlib.Path) -> tuple[list[ModelCard], list[str]]:

@@ -13,7 +13,7 @@ import time
 import bpy
 import numpy as np
 
-from ..addon.errors import Cancelled, InputError, RelightError
+from ..addon.errors import Cancelled, InputError, LightingError, RelightError
 from . import bridge, preview_light
 
 RELIT_SUFFIX = " relit"
@@ -23,12 +23,18 @@ MATTE_SUFFIX = " matte"
 def schedule_lights(context, job: bridge.Job):
     """(lights, warnings): the target light of every visible frame of the strip, or one light
     when the lighting is static. Always the whole strip, even for a farm chunk: the pipeline
-    indexes lights by clip frame, and every chunk must describe the same run."""
+    indexes lights by clip frame, and every chunk must describe the same run. LightingError
+    saying what to set in the scene when the light is black on every frame (the pipeline
+    refuses it too, in words that know nothing of scenes)."""
+    from ..addon import pipeline
     from . import scene_light
 
     frames = range(job.frame_start, job.frame_start + job.frame_count)
     schedule = scene_light.light_schedule(context.scene, frames, **job.light_args)
-    return np.asarray(schedule.lights, dtype=np.float32), list(schedule.warnings)
+    lights = np.asarray(schedule.lights, dtype=np.float32)
+    if all(pipeline.black_lights(lights, job.model.contract)):
+        raise LightingError(schedule.black_message)
+    return lights, list(schedule.warnings)
 
 
 def run_pipeline(job: bridge.Job, lights, on_progress=None, should_cancel=None, log=None):

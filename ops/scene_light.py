@@ -22,6 +22,7 @@ SOURCES = ("WORLD", "LAMPS", "WORLD_AND_LAMPS", "HDRI_FILE", "BUILTIN")
 HDRI_WIDTH = 1024  # HDRI working width: bench/light_conversion.py and README give the trade-off
 REL_THRESHOLD = 1e-3  # lamps below this share of the total power are skipped
 MISSING_SUBJECT_DISTANCE = 1.0  # metres in front of the camera when nothing marks the subject
+MAX_EXPOSURE = 128  # stops; 2^128 takes any light past float32's range
 
 
 @dataclass
@@ -30,6 +31,7 @@ class LightSchedule:
     static: bool
     skipped: list[str] = field(default_factory=list)  # names of lamps skipped as negligible
     warnings: list[str] = field(default_factory=list)
+    black_message: str = ""  # why the lighting would be black, and what to set
 
 
 def builtin_hdris() -> dict[str, str]:
@@ -52,6 +54,8 @@ def light_schedule(scene, frames, *, source: str, hdri_path: str | None = None,
     per frame from ``scene.relight`` when that property is animated. ``camera`` defaults to the
     scene camera; without any camera the front view is the light frame, and ``rotation_deg`` must
     be given (not None). Raises InputError / LightingError with a message the user can act on.
+    The schedule's ``black_message`` says why the lighting is black and what to set, for a
+    caller that finds it too dark to relight with (pipeline.black_lights).
     """
     if source not in SOURCES:
         raise InputError(f"Unknown light source {source!r}; use one of {', '.join(SOURCES)}.")
@@ -81,7 +85,7 @@ def light_schedule(scene, frames, *, source: str, hdri_path: str | None = None,
         if scene.frame_current != original:
             scene.frame_set(original)
     return LightSchedule(np.stack(lights).astype(np.float32), static, sorted(ctx.skipped),
-                         ctx.warnings)
+                         ctx.warnings, ctx.black_message())
 
 
 class _Context:
@@ -118,16 +122,54 @@ class _Context:
     def light_at(self, frame: int) -> np.ndarray:
         # The rotation turns the lighting like a Mapping node's Z rotation on the world texture
         # (same number, same look), which turns the picture by minus that angle about world Z.
-        to_frame = self.world_to_frame() @ hdri.yaw_world(-self.setting("rotation", frame))
+        rotation, exposure = self.setting("rotation", frame), self.setting("exposure", frame)
+        if not math.isfinite(rotation):
+            raise LightingError(f"The lighting rotation is {rotation} on frame {frame}; set it "
+                                "to a number of degrees.")
+        if not math.isfinite(exposure) or exposure > MAX_EXPOSURE:
+            raise LightingError(f"The lighting exposure is {exposure:g} on frame {frame}; set it "
+                                f"to a number of stops up to {MAX_EXPOSURE} (0 keeps the light "
+                                "as it is).")
+        to_frame = self.world_to_frame() @ hdri.yaw_world(-rotation)
         out = lightvec.zeros()
         if self.source in ('HDRI_FILE', 'BUILTIN'):
             out = self.downsample(self.image, to_frame, 1.0, "The HDRI")
         if self.source in ('WORLD', 'WORLD_AND_LAMPS'):
-            out = out + self.world_light(to_frame)
+            out = out + lightvec.validate(self.world_light(to_frame), self.world_name())
         if self.source in ('LAMPS', 'WORLD_AND_LAMPS'):
-            out = out + self.lamps_light(to_frame)
-        scale = 2.0 ** float(self.setting("exposure", frame))
-        return lightvec.validate(out * np.float32(scale), "scene lighting")
+            out = out + lightvec.validate(self.lamps_light(to_frame), "light of the lamps")
+        scaled = out * np.float32(2.0 ** exposure)
+        if not np.all(np.isfinite(scaled)):
+            raise LightingError(f"At exposure {exposure:g} the lighting is too bright to "
+                                "represent (radiance overflows); lower the exposure.")
+        return lightvec.validate(scaled, "scene lighting")
+
+    def world_name(self) -> str:
+        world = self.scene.world
+        return f"light of the world '{world.name}'" if world is not None else "world light"
+
+    def black_message(self) -> str:
+        """Why the lighting is black on every frame, and what to set."""
+        why = []
+        if self.source in ('HDRI_FILE', 'BUILTIN'):
+            why.append("the HDRI is black")
+        if self.source in ('WORLD', 'WORLD_AND_LAMPS'):
+            world = self.scene.world
+            why.append("the scene has no world" if world is None
+                       else f"the world '{world.name}' gives no light")
+        if self.source in ('LAMPS', 'WORLD_AND_LAMPS'):
+            objs = [o for o in self.scene.objects if o.type == 'LIGHT']
+            lit = [o for o in objs if not o.hide_render and float(o.data.energy) > 0]
+            why.append("no lamps" if not objs else "no lamps with energy" if not lit
+                       else f"the lamps ({', '.join(o.name for o in lit[:4])}) do not reach "
+                            "the subject")
+        text = "The lighting is black: " + " and ".join(why) + "."
+        exposure = self.exposure if not callable(self.exposure) else None
+        if isinstance(exposure, (int, float)) and exposure < -20:
+            text += (f" The exposure {exposure:g} darkens any light 2^{-exposure:g} times: set "
+                     "it near 0.")
+        return text + (" Add a lamp with energy or a world HDRI, or pick a studio HDRI in the "
+                       "Relight panel.")
 
     def setting(self, name: str, frame: int) -> float:
         value = self.rotation if name == "rotation" else self.exposure
@@ -188,6 +230,14 @@ class _Context:
         if getattr(data, "use_temperature", False):
             colour = colour * np.array(data.temperature_color[:], dtype=np.float64)
         self.warn_unsupported(obj, scale)
+        numbers = {"energy": data.energy, "exposure": getattr(data, "exposure", 0.0),
+                   "colour": tuple(colour), "location": tuple(obj.matrix_world.translation),
+                   "size": (getattr(data, "shadow_soft_size", 0.0), getattr(data, "size", 0.0),
+                            getattr(data, "size_y", 0.0), getattr(data, "angle", 0.0))}
+        for what, value in numbers.items():
+            if not np.all(np.isfinite(np.asarray(value, dtype=np.float64))):
+                raise LightingError(f"Lamp '{obj.name}': its {what} is not a finite number "
+                                    f"({value}); set it to a number.")
         kw = dict(kind=data.type, position=tuple(pos), direction=tuple(emit), color=tuple(colour),
                   energy=float(data.energy), exposure=float(getattr(data, "exposure", 0.0)),
                   normalize=bool(getattr(data, "normalize", True)))

@@ -10,6 +10,7 @@ import sys
 import bpy
 import numpy as np
 import OpenEXR
+import pytest
 
 from conftest import ROOT, footage_scene
 
@@ -92,19 +93,65 @@ def test_batch_hdri_with_a_1e5_sun_and_bad_texels_gives_finite_frames(extension,
 
 def test_batch_rerun_never_replaces_another_run_unless_asked(extension, toy_models, tmp_path):
     """Another lighting into the same output folder exits 1 with a message and touches nothing;
-    with --overwrite it replaces the frames. All-zero lighting (2^-200 underflows to 0) gives
-    black frames."""
+    with --overwrite it replaces the frames. Lighting that an exposure of -100 makes black exits
+    1 before anything is touched, even with --overwrite."""
     blend, strip = save_scene(tmp_path)
     out = tmp_path / "out"
     first = batch(blend, strip, toy_models, out)
     assert first.returncode == 0, first.stderr
     before = stamps(out)
-    refused = batch(blend, strip, toy_models, out, "--exposure", "-200")
+    refused = batch(blend, strip, toy_models, out, "--exposure", "1")
     assert refused.returncode == 1
     assert "already holds another relight run" in refused.stderr
     assert "Traceback" not in refused.stderr
     assert stamps(out) == before
-    replaced = batch(blend, strip, toy_models, out, "--exposure", "-200", "--overwrite")
+    black = batch(blend, strip, toy_models, out, "--exposure", "-100", "--overwrite")
+    assert black.returncode == 1, black.stdout + black.stderr
+    assert "The lighting is black: the HDRI is black" in black.stderr
+    assert "The exposure -100 darkens any light" in black.stderr
+    assert stamps(out) == before
+    replaced = batch(blend, strip, toy_models, out, "--exposure", "1", "--overwrite")
     assert replaced.returncode == 0, replaced.stderr
     relit = sorted(out.rglob("relit_*.exr"))
-    assert len(relit) == 3 and all(not read_exr(f).any() for f in relit)
+    assert len(relit) == 3 and stamps(out) != before
+
+
+def _lamp(name, energy, location=(0.0, -3.0, 0.0)):
+    lamp = bpy.data.objects.new(name, bpy.data.lights.new(name, 'POINT'))
+    lamp.data.energy = energy
+    lamp.location = location
+    bpy.context.scene.collection.objects.link(lamp)
+    return lamp
+
+
+def test_black_or_nan_scene_lighting_is_refused_saying_what_to_set(extension, toy_models,
+                                                                   tmp_path):
+    """No world and only a 0 W lamp, a black world, or a lamp whose energy is NaN: the operator
+    reports what the scene lacks or which lamp is broken, before anything is written."""
+    footage_scene(tmp_path, count=2)
+    scene, settings = bpy.context.scene, bpy.context.scene.relight
+    subject = bpy.data.objects.new("Subject", None)
+    scene.collection.objects.link(subject)
+    settings.subject = subject
+    settings.light_source = 'WORLD_AND_LAMPS'
+    scene.world = None
+    _lamp("Key", 0.0)
+    relight = lambda: bpy.ops.relight.relight_strip(models_dir=str(toy_models))  # noqa: E731
+    with pytest.raises(RuntimeError, match="the scene has no world and no lamps with energy.*"
+                                           "Add a lamp with energy or a world HDRI"):
+        relight()
+    settings.light_source = 'WORLD'
+    scene.world = bpy.data.worlds.new("Night")
+    scene.world.color = (0.0, 0.0, 0.0)
+    if scene.world.node_tree is not None:  # Blender 5 worlds have nodes from the start
+        scene.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
+    with pytest.raises(RuntimeError, match="the world 'Night' gives no light"):
+        relight()
+    settings.light_source = 'LAMPS'
+    _lamp("Fill", float("nan"))
+    with pytest.raises(RuntimeError, match="Lamp 'Fill': its energy is not a finite number"):
+        relight()
+    assert not (tmp_path / "out").exists()
+    bpy.data.objects["Fill"].data.energy = 100.0  # a lamp with energy lights the subject
+    assert relight() == {'FINISHED'}
+    assert len(list((tmp_path / "out").rglob("relit_*.exr"))) == 2

@@ -19,7 +19,7 @@ import onnx
 import pytest
 from onnx import helper, numpy_helper
 
-from addon import colour, contract, engine, frames, hdri, lamps, lightvec, pipeline
+from addon import api, colour, contract, engine, frames, hdri, lamps, lightvec, pipeline
 from addon.errors import LightingError, OutputError
 from tests.clip_fixtures import ramp_frames, write_exr_sequence, write_png
 from tests.onnx_fixtures import IR_VERSION, OPSET, TOY_CLASSES, _io, _save, write_toy_model
@@ -313,10 +313,28 @@ def test_extreme_lights_are_finite_and_scale_with_the_light(net, light, backgrou
 
 
 @pytest.mark.parametrize("net", NETWORKS)
-def test_all_zero_light_gives_black_without_running_the_network(net, request, tmp_path):
-    res = relight(_network(net, request), one_frame(tmp_path / "in", np.ones((8, 8, 3))),
-                  tmp_path / "out", lightvec.zeros()[None], write_matte=True)
-    assert all(not a.any() for a in written(res))
+def test_black_light_is_refused_by_a_run_and_black_in_relight_image(net, request, tmp_path):
+    """A run whose light is black on every frame (all zero; 2^-100, an exposure of -100; just
+    below the smallest half float) is a LightingError saying what to set, before anything is
+    written. Below the run the maths keeps its defined answer: no light, a black image, the
+    network not run. Intrinsic presets keep the footage's exposure, so for them only a light of
+    exactly zero is black; a faint one relights by its direction like any other."""
+    model = _network(net, request)
+    files = one_frame(tmp_path / "in", np.ones((8, 8, 3)))
+    for n, light in enumerate((lightvec.zeros(), lightvec.uniform(2.0 ** -100),
+                               lightvec.uniform(lightvec.DARKEST / 2))):
+        if is_intrinsic(model) and light.any():
+            res = relight(model, files, tmp_path / f"faint{n}", light[None])
+            assert frames.read_exr(res.relit_files[0]).any()
+            continue
+        with pytest.raises(LightingError, match="lighting is black.*add a lamp with energy"):
+            relight(model, files, tmp_path / "out", light[None], write_matte=True)
+        assert not (tmp_path / "out").exists()
+    assert not api.relight_image(np.ones((8, 8, 3), np.float32), lightvec.zeros(),
+                                 model=model, threads=1).any()
+    # Just bright enough to show: a run, and a frame that is not black.
+    res = relight(model, files, tmp_path / "out", lightvec.uniform(4 * lightvec.DARKEST)[None])
+    assert frames.read_exr(res.relit_files[0]).any()
 
 
 # ---- NaN and Inf never reach a written frame ----------------------------------------------
@@ -387,15 +405,22 @@ def test_hdri_that_overflows_or_has_bad_texels_is_a_clear_error():
 
 
 def test_lamps_far_away_or_dark_are_finite_through_the_pipeline(toy, tmp_path):
+    """A lamp 1e12 radii away or at 0 W gives a finite, non-negative light; alone it leaves the
+    subject black, which a run refuses; beside a faint fill it changes nothing visible."""
     files = one_frame(tmp_path / "in", np.full((8, 8, 3), 0.5))
     far = lamps.lamp_to_light(lamps.Lamp("POINT", (0.0, 0.0, 1e12), (0, 0, -1), (1, 1, 1), 1e3),
                               1.0)
     zero = lamps.lamp_to_light(lamps.Lamp("SUN", (0, 0, 5), (0, 0, -1), (1, 1, 1), 0.0), 1.0)
-    res = relight(toy, files, tmp_path / "out", np.stack([far]))
+    for light in (far, zero):
+        assert np.all(np.isfinite(light)) and light.min() >= 0 and lightvec.is_black(light)
+        with pytest.raises(LightingError, match="lighting is black"):
+            relight(toy, files, tmp_path / "alone", light[None])
+    fill = lightvec.uniform(1e-3)
+    res = relight(toy, files, tmp_path / "out", np.stack([far + zero + fill]))
     out = frames.read_exr(res.relit_files[0])
-    assert np.all(np.isfinite(out)) and out.max() < 1e-6
-    res = relight(toy, files, tmp_path / "out0", np.stack([zero]))
-    assert not frames.read_exr(res.relit_files[0]).any()
+    ref = frames.read_exr(relight(toy, files, tmp_path / "ref", fill[None]).relit_files[0])
+    assert np.all(np.isfinite(out)) and out.max() > 0
+    np.testing.assert_array_equal(out, ref)
     with pytest.raises(LightingError, match="inside the subject"):
         lamps.lamp_to_light(lamps.Lamp("POINT", (0, 0, 0), (0, 0, -1), (1, 1, 1), 10.0), 1.0)
 

@@ -95,6 +95,13 @@ def test_per_frame_lights_and_zero_light(toy, tmp_path):
     assert not c.any()  # all-zero light: a black frame, the network not run
     assert np.all(np.load(pipeline.source_path(tmp_path / "out", 2)) == 0)
     assert np.load(pipeline.source_path(tmp_path / "out", 0)).any()
+    # A light that goes black on some frames is a choice (a fade), said once, naming the frame.
+    (warning,) = [w for w in res.warnings if "black" in w]
+    assert "1 of the frames" in warning and "clip frame 2" in warning
+    named = pipeline.ClipSpec(**{**image_clip(files).__dict__, "scene_start": 101,
+                                 "colorspace": "Linear Rec.709"})
+    res = pipeline.relight_clip(named, lights, tmp_path / "out", opts(toy, working_size=8))
+    assert any("scene frame 103" in w for w in res.warnings)
 
 
 def test_twice_the_light_twice_the_output(toy, movie, tmp_path):
