@@ -201,8 +201,22 @@ def _check_frames(frames_sel, count: int) -> list[int]:
 
 
 def _file_stamp(path) -> list:
+    """What identifies a source file wherever it is reached from (a symlink, another mount point
+    of the same share on a farm machine): its name, size and modification time, the time in
+    whole microseconds (network file systems report finer digits differently)."""
     st = os.stat(path)
-    return [os.path.abspath(path), st.st_size, st.st_mtime_ns]
+    return [os.path.basename(path), st.st_size, st.st_mtime_ns // 1000]
+
+
+def _legacy_source(clip: ClipSpec) -> dict:
+    """The source part of identities written before sources were identified by their files
+    alone (by the path as given), so folders made then still resume."""
+    stamps = []
+    for f in _source_files(clip):
+        st = os.stat(f)
+        stamps.append([os.path.abspath(f), st.st_size, st.st_mtime_ns])
+    return {"kind": clip.kind, "path": os.path.abspath(clip.path),
+            "files_sha256": hashlib.sha256(json.dumps(stamps).encode()).hexdigest()}
 
 
 def _source_files(clip: ClipSpec) -> list[str]:
@@ -213,13 +227,13 @@ def _source_files(clip: ClipSpec) -> list[str]:
 
 def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,
                  card: engine.ModelCard, working: int) -> dict:
-    """What makes two runs produce the same frames (the chunk and resume state do not)."""
+    """What makes two runs produce the same frames (the chunk and resume state do not). The
+    footage counts by its files (_file_stamp), not by the path it was reached through."""
     src = hashlib.sha256(json.dumps([_file_stamp(f) for f in _source_files(clip)]).encode())
     light_hash = hashlib.sha256(str(lights.shape).encode() + lights.tobytes()).hexdigest()
     return {
         "format": RUN_FORMAT,
-        "source": {"kind": clip.kind, "path": os.path.abspath(clip.path),
-                   "files_sha256": src.hexdigest()},
+        "source": {"kind": clip.kind, "files_sha256": src.hexdigest()},
         "range": {"first": clip.first, "count": clip.count},
         "colorspace": clip.colorspace,
         "lights_sha256": light_hash,
@@ -298,9 +312,11 @@ def _check_not_source(clip: ClipSpec, out_dir: str) -> None:
                               f"lives ({f}); choose another output folder.")
 
 
-def prepare_output(out_dir: str, identity: dict, overwrite: bool) -> dict | None:
+def prepare_output(out_dir: str, identity: dict, overwrite: bool,
+                   same_run: tuple = ()) -> dict | None:
     """Create the folders; return the stored run record when resuming, else None. Refuses a
-    folder holding another run (or unknown relit frames) unless ``overwrite``."""
+    folder holding another run (or unknown relit frames) unless ``overwrite``. ``same_run``:
+    older spellings of ``identity`` that also mean this run."""
     try:
         for sub in ("relit", "matte", "source_light"):
             os.makedirs(os.path.join(out_dir, sub), exist_ok=True)
@@ -310,7 +326,7 @@ def prepare_output(out_dir: str, identity: dict, overwrite: bool) -> dict | None
     if not os.access(out_dir, os.W_OK):
         raise OutputError(f"The output folder {out_dir} is not writable; choose another.")
     stored = _read_run(out_dir)
-    if stored is not None and stored.get("identity") == identity:
+    if stored is not None and stored.get("identity") in (identity, *same_run):
         return stored
     has_frames = any(pathlib.Path(out_dir, "relit").glob("relit_*.exr"))
     if stored is None and not has_frames:
@@ -360,7 +376,8 @@ def linearise(pixels: np.ndarray, plan: Plan) -> tuple[np.ndarray, int, float]:
     image's values)."""
     gain = 1.0 / plan.scale
     lin = colour.to_linear_planar(pixels, plan.space, gain)
-    if np.issubdtype(pixels.dtype, np.integer) and plan.space.matrix is None:
+    if (np.issubdtype(pixels.dtype, np.integer) and plan.space.matrix is None
+            and plan.space.curve != "ocio"):
         # Code values through a curve: finite, non-negative, bounded by the table's top.
         lut = colour.integer_lut(plan.space, 8 * pixels.dtype.itemsize)
         return lin, 0, float(lut[-1]) * gain
@@ -635,7 +652,8 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
         raise InputError(f"The working size must be positive, got {working}.")
     _check_not_source(clip, out_dir)
     identity = run_identity(clip, lights, options, session.card, working)
-    stored = prepare_output(out_dir, identity, options.overwrite)
+    stored = prepare_output(out_dir, identity, options.overwrite,
+                            same_run=({**identity, "source": _legacy_source(clip)},))
     swept = sweep_partials(out_dir)
     if swept:
         out.info(f"Removed {len(swept)} unfinished file(s) that an interrupted run left.")
@@ -649,7 +667,8 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
         scale = clip_exposure(clip, plan, fullres)
         _atomic_write_text(os.path.join(out_dir, RUN_FILE), json.dumps(
             {"identity": identity, "exposure_scale": scale, "model": session.card.name,
-             "providers": session.providers}, indent=2))
+             "providers": session.providers, "source_path": os.path.realpath(clip.path)},
+            indent=2))
     plan = Plan(space, scale, plan.size, plan.working, plan.detail_transfer, plan.write_matte,
                 plan.compression, relit_times_s(session.card), options.background)
     out.info(f"Relighting {len(selected)} frames at {plan.working[1]}x{plan.working[0]} with "
