@@ -1,16 +1,24 @@
 """Colour spaces a Blender strip can declare, converted to scene linear (linear Rec.709).
 
-The matrices are Blender 5.0's own (``datafiles/colormanagement/config.ocio``: each space's
-``from_scene_reference`` matrix out of CIE XYZ D65); a test compares them with that file where the
-``bpy`` module is installed. Spaces whose transform is a view transform or a log curve (AgX, Filmic,
-ACES output transforms, ...) are not invertible to scene light here, and are refused with a message
-that says what to do, never passed through silently.
+Every colour space of Blender's OpenColorIO configuration is converted by OpenColorIO itself
+(the PyOpenColorIO wheel, bundled with the extension), with the very configuration Blender uses:
+``$OCIO`` when set, else the one the extension registers from Blender (``use_config``), else the
+``bpy`` module's own ``datafiles/colormanagement/config.ocio``. That covers ACEScg, ACES2065-1,
+ACEScc/cct, AgX and Filmic Log, the display spaces with their view transforms, Rec.2100 PQ and HLG.
+
+The common spaces (sRGB, Rec.1886, the linear gamuts) keep hand-written fast paths: a lookup
+table per code value and Blender 5.0's own matrices (each space's ``from_scene_reference`` matrix
+out of CIE XYZ D65). tests/core/test_colour.py holds them to OpenColorIO's results, and
+``python -m bench.pipeline_1080p --colour-options`` measures what they save.
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+import importlib.util
+import os
+import pathlib
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -47,9 +55,10 @@ def _to_709(xyz_to_space: np.ndarray) -> np.ndarray:
 class ColourSpace:
     """How to bring a declared colour space to linear Rec.709."""
     name: str
-    curve: str                 # 'linear' | 'srgb' | 'gamma24'
+    curve: str                 # 'linear' | 'srgb' | 'gamma24' | 'ocio' (OpenColorIO's processor)
     matrix: np.ndarray | None  # 3x3 to linear Rec.709 after the curve; None = identity
     is_data: bool = False      # Non-Color: numbers, not light (treated as linear, with a note)
+    processor: object = field(default=None, compare=False, repr=False)  # OCIO CPU processor
 
 
 _IDENTITY = None
@@ -78,18 +87,88 @@ ALIASES = {
 }
 
 
+SCENE_LINEAR = "Linear Rec.709"  # what every space is converted to (Blender's scene_linear role)
+_CONFIG: list[str | None] = [None]  # set by use_config (the extension, from Blender)
+
+
+def use_config(path: str | os.PathLike | None) -> None:
+    """Convert with this OpenColorIO configuration (the extension passes Blender's own)."""
+    _CONFIG[0] = None if path is None else str(path)
+    _ocio_config.cache_clear()
+    _ocio_space.cache_clear()
+
+
+def config_path() -> str | None:
+    """The OpenColorIO configuration Blender uses: $OCIO, else the one ``use_config`` set, else
+    the bpy module's own (found on disk, without importing bpy)."""
+    env = os.environ.get("OCIO")
+    if env:
+        return env
+    if _CONFIG[0]:
+        return _CONFIG[0]
+    spec = importlib.util.find_spec("bpy")
+    for folder in spec.submodule_search_locations or () if spec else ():
+        hits = sorted(pathlib.Path(folder).glob("*/datafiles/colormanagement/config.ocio"))
+        if hits:
+            return str(hits[-1])
+    return None
+
+
+@functools.lru_cache(maxsize=2)
+def _ocio_config(path: str):
+    import PyOpenColorIO as ocio
+
+    return ocio.Config.CreateFromFile(path)
+
+
+def ocio_names() -> list[str]:
+    """Every colour space of the configuration in use ([] without OpenColorIO or a config)."""
+    path = config_path()
+    if path is None or importlib.util.find_spec("PyOpenColorIO") is None:
+        return []
+    return [cs.getName() for cs in _ocio_config(path).getColorSpaces()]
+
+
+@functools.lru_cache(maxsize=64)
+def _ocio_space(name: str, path: str) -> ColourSpace:
+    config = _ocio_config(path)
+    cs = config.getColorSpace(name)
+    if cs is None:
+        raise KeyError(name)
+    import PyOpenColorIO as ocio
+
+    # lossless: the default optimisation approximates powers (errors of 1e-5 on sRGB)
+    proc = config.getProcessor(cs.getName(), SCENE_LINEAR).getOptimizedCPUProcessor(
+        ocio.OPTIMIZATION_LOSSLESS)
+    return ColourSpace(cs.getName(), "ocio", None, bool(cs.isData()), proc)
+
+
 def lookup(name: str) -> ColourSpace:
-    """The ColourSpace for a Blender colour-space name, or InputError saying what to do."""
+    """The ColourSpace for a Blender colour-space name (or an alias OpenColorIO knows), or an
+    InputError saying what to do."""
     key = ALIASES.get(name, name)
     space = SPACES.get(key)
-    if space is None:
-        known = ", ".join(sorted(SPACES))
-        raise InputError(
-            f"The strip's colour space '{name}' cannot be converted back to scene light by the "
-            f"relighter (it is a view transform, a log encoding or unknown). If the file really "
-            f"holds sRGB or linear footage, set the strip's colour space to that; otherwise convert "
-            f"the footage first. Supported: {known}.")
-    return space
+    if space is not None:
+        return space
+    path = config_path()
+    if importlib.util.find_spec("PyOpenColorIO") is None:
+        raise InputError(f"The strip's colour space '{name}' needs OpenColorIO, which is not "
+                         "installed (it comes with the extension's zip; reinstall the extension, "
+                         "or `pip install opencolorio` where the bpy module runs).")
+    if path is None or not pathlib.Path(path).is_file():
+        raise InputError(f"The strip's colour space '{name}' needs Blender's OpenColorIO "
+                         f"configuration, which was not found ({path or 'no $OCIO, no Blender'}); "
+                         "set $OCIO to the config.ocio Blender uses.")
+    try:
+        return _ocio_space(key, path)
+    except KeyError:
+        known = ", ".join(ocio_names())
+        raise InputError(f"The strip's colour space '{name}' is not in Blender's colour "
+                         f"configuration ({path}); set the strip's colour space to the one the "
+                         f"file was written in. Known: {known}.") from None
+    except Exception as err:  # noqa: BLE001 - OpenColorIO's own exception types
+        raise InputError(f"OpenColorIO cannot convert '{name}' to scene linear ({err}); set the "
+                         "strip's colour space to the one the file was written in.") from None
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -137,6 +216,13 @@ def to_linear(pixels: np.ndarray, space: ColourSpace, gain: float = 1.0) -> np.n
     uint8/uint16 pixels are normalised to [0, 1] code values; float pixels are taken as they are.
     For integer pixels the gain is folded into the lookup table (no extra pass)."""
     px = np.asarray(pixels)
+    if space.curve == "ocio":
+        lin = _code_values(px).reshape(-1, 3).copy()
+        space.processor.applyRGB(lin)
+        lin = lin.reshape(px.shape)
+        if gain != 1.0:
+            lin *= np.float32(gain)
+        return lin
     if px.dtype == np.uint8 or px.dtype == np.uint16:
         lut = integer_lut(space, 8 * px.dtype.itemsize)
         lin = (lut * np.float32(gain) if gain != 1.0 else lut)[px]
@@ -153,6 +239,13 @@ def to_linear(pixels: np.ndarray, space: ColourSpace, gain: float = 1.0) -> np.n
     return lin
 
 
+def _code_values(px: np.ndarray) -> np.ndarray:
+    """float32 values: integers normalised to [0, 1] code values, floats as they are."""
+    if px.dtype == np.uint8 or px.dtype == np.uint16:
+        return px.astype(np.float32) * np.float32(1.0 / np.iinfo(px.dtype).max)
+    return np.asarray(px, np.float32)
+
+
 _BAND = 1 << 18  # values per lookup chunk: keeps numpy's index temporary in cache (~2x faster)
 
 
@@ -163,6 +256,15 @@ def to_linear_planar(planes: np.ndarray, space: ColourSpace, gain: float = 1.0) 
     px = np.asarray(planes)
     if px.ndim != 3 or px.shape[0] != 3:
         raise ValueError(f"planes must be (3, H, W), got {px.shape}")
+    if space.curve == "ocio":
+        import PyOpenColorIO as ocio
+
+        out = np.array(_code_values(px), np.float32, order="C", copy=True)
+        h, w = px.shape[1:]
+        space.processor.apply(ocio.PlanarImageDesc(out[0], out[1], out[2], w, h))
+        if gain != 1.0:
+            out *= np.float32(gain)
+        return out
     out = np.empty(px.shape, np.float32)
     if px.dtype == np.uint8 or px.dtype == np.uint16:
         lut = integer_lut(space, 8 * px.dtype.itemsize)

@@ -393,6 +393,11 @@ def _compression(OpenEXR, name: str):
     return getattr(OpenEXR, "NO_COMPRESSION" if name == "none" else f"{name.upper()}_COMPRESSION")
 
 
+# Rec.709 primaries and D65 white (x, y of red, green, blue, white): what scene-linear RGB files
+# written here hold, stated in the file so other tools read them as such.
+REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+
+
 def write_exr(path, pixels: np.ndarray, compression: str = "none") -> int:
     """Write a half-float EXR atomically: (H, W, 3) -> R, G, B; (H, W) -> Y. Returns the number of
     values clamped to the half range (see to_half). float16 input is written as it is."""
@@ -409,6 +414,8 @@ def write_exr(path, pixels: np.ndarray, compression: str = "none") -> int:
     else:
         raise ValueError(f"pixels must be (H, W, 3) or (H, W), got {px.shape}")
     header = {"compression": _compression(OpenEXR, compression), "type": OpenEXR.scanlineimage}
+    if "RGB" in channels:
+        header["chromaticities"] = REC709_CHROMATICITIES
     _write_atomic(path, lambda tmp: _openexr_write(OpenEXR, tmp, header, channels))
     return n
 
@@ -433,6 +440,8 @@ def write_exr_planes(path, planes: np.ndarray, compression: str = "none") -> Non
         return
     OpenEXR = _exr()
     header = {"compression": _compression(OpenEXR, compression), "type": OpenEXR.scanlineimage}
+    if len(names) == 3:
+        header["chromaticities"] = REC709_CHROMATICITIES
     channels = {n: np.ascontiguousarray(p) for n, p in zip(names, stored)}  # strides ignored
     _write_atomic(path, lambda tmp: _openexr_write(OpenEXR, tmp, header, channels))
 
@@ -448,13 +457,16 @@ def _attribute(name: str, kind: str, value: bytes) -> bytes:
 
 def exr_header(width: int, height: int, names) -> bytes:
     """Magic, version 2 (single-part scanline) and the required attributes of an uncompressed
-    half-float image; ``names`` sorted (the spec's channel order)."""
+    half-float image; ``names`` sorted (the spec's channel order). RGB images also state their
+    primaries (REC709_CHROMATICITIES)."""
     half, linear, sampling = 1, 0, (1, 1)
     chlist = b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", half, linear, *sampling)
                       for n in names) + b"\0"
     box = struct.pack("<4i", 0, 0, width - 1, height - 1)
+    chroma = (_attribute("chromaticities", "chromaticities",
+                         struct.pack("<8f", *REC709_CHROMATICITIES)) if len(names) == 3 else b"")
     return (b"\x76\x2f\x31\x01" + struct.pack("<i", 2)
-            + _attribute("channels", "chlist", chlist)
+            + _attribute("channels", "chlist", chlist) + chroma
             + _attribute("compression", "compression", b"\0")  # NO_COMPRESSION
             + _attribute("dataWindow", "box2i", box) + _attribute("displayWindow", "box2i", box)
             + _attribute("lineOrder", "lineOrder", b"\0")      # INCREASING_Y

@@ -3,6 +3,7 @@
     .venv/bin/python -m bench.pipeline_1080p [--frames 40] [--threads 1] [--gflops 5]
     .venv/bin/python -m bench.pipeline_1080p --exr-options     # EXR compressions only
     .venv/bin/python -m bench.pipeline_1080p --graph-options   # full-res graph variants only
+    .venv/bin/python -m bench.pipeline_1080p --colour-options  # fast colour paths vs OpenColorIO
 
 Makes a 1920x1080 H.264 clip (yuv420p, textured moving gradient) and a random-weight conv model
 of about --gflops GFLOP per 512x512 frame (tests/onnx_fixtures.py) in a temporary folder, then
@@ -106,6 +107,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-detail", action="store_true")
     ap.add_argument("--exr-options", action="store_true",
                     help="only time the EXR compressions on one relit-like 1080p frame")
+    ap.add_argument("--colour-options", action="store_true",
+                    help="only time the hand-written colour paths against OpenColorIO's")
     ap.add_argument("--graph-options", action="store_true",
                     help="only time the full-resolution graphs against their resize-op variants")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "pipeline_1080p"),
@@ -121,6 +124,8 @@ def main(argv=None) -> int:
             return exr_options(tmp)
         if args.graph_options:
             return graph_options()
+        if args.colour_options:
+            return colour_options()
         model = write_conv_model(tmp, gflops_at_512=args.gflops, name="bench")
         card = engine.load_card(model)
         print(f"model: {card.data['cost']['gflops_at_512']} GFLOP at 512x512 "
@@ -208,6 +213,30 @@ def exr_options(tmp: str, repeats: int = 10) -> int:
         print(f"  {comp:16s} wall {statistics.median(wall[comp]):6.1f} ms  CPU "
               f"{statistics.median(cpu[comp]):6.1f} ms  {size[comp] / 1e6:5.1f} MB")
     print(f"load average after: {os.getloadavg()[0]:.1f}")
+    return 0
+
+
+def colour_options(repeats: int = 15) -> int:
+    """One 1080p frame to scene linear, channels first: each hand-written fast path against
+    OpenColorIO's processor for the same space (Blender's config), taking turns."""
+    rng = np.random.default_rng(0)
+    cases = {"sRGB, 8 bits": rng.integers(0, 256, (3, 1080, 1920)).astype(np.uint8),
+             "Linear Rec.2020, half float": rng.random((3, 1080, 1920)).astype(np.float16)}
+    path = colour_mod.config_path()
+    times = {}
+    for label, px in cases.items():
+        name = label.split(",")[0]
+        fast, ocio = colour_mod.lookup(name), colour_mod._ocio_space(name, path)
+        for kind, space in (("fast path", fast), ("OpenColorIO", ocio)):
+            times[(label, kind)] = []
+        for _ in range(repeats):
+            for kind, space in (("fast path", fast), ("OpenColorIO", ocio)):
+                t = time.perf_counter()
+                colour_mod.to_linear_planar(px, space)
+                times[(label, kind)].append(1000 * (time.perf_counter() - t))
+    print(f"to scene linear, one 1920x1080 frame, median of {repeats} (paths in turn)")
+    for (label, kind), v in times.items():
+        print(f"  {label:28s} {kind:12s} {statistics.median(v):6.1f} ms")
     return 0
 
 

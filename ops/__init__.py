@@ -6,8 +6,22 @@ modules = (import_footage, preview_light, relight_strip)
 
 
 def register():
+    _use_blenders_colour_config()
     for module in modules:
         module.register()
+
+
+def _use_blenders_colour_config():
+    """Colour conversions use the OpenColorIO configuration this Blender uses ($OCIO wins)."""
+    import os
+
+    import bpy
+
+    from ..addon import colour
+
+    path = os.path.join(bpy.utils.resource_path('LOCAL'), "datafiles", "colormanagement",
+                        "config.ocio")
+    colour.use_config(path if os.path.isfile(path) else None)
 
 
 def unregister():

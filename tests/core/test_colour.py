@@ -52,9 +52,82 @@ def test_aliases_and_refusals():
     assert colour.lookup("Linear").name == "Linear Rec.709"
     assert colour.lookup("Raw").is_data
     assert colour.lookup("Non-Color").is_data
-    for name in ("AgX Base sRGB", "Filmic sRGB", "Filmic Log", "ACEScg", "no such space"):
-        with pytest.raises(InputError, match="set the strip's colour space"):
-            colour.lookup(name)
+    with pytest.raises(InputError, match="set the strip's colour space"):
+        colour.lookup("no such space")
+
+
+needs_ocio = pytest.mark.skipif(not colour.ocio_names(), reason="needs OpenColorIO (opencolorio, "
+                                "requirements.txt) and Blender's config.ocio (the bpy module)")
+
+
+@needs_ocio
+def test_every_colour_space_of_blenders_config_is_converted():
+    names = colour.ocio_names()
+    assert len(names) >= 24 and {"ACEScg", "ACES2065-1", "ACEScc", "ACEScct", "AgX Log",
+                                 "Filmic Log", "Rec.2100-PQ", "Rec.2100-HLG", "AgX Base sRGB",
+                                 "Filmic sRGB"} <= set(names)
+    rng = np.random.default_rng(1)
+    px = rng.random((4, 5, 3)).astype(np.float32)
+    before = px.copy()
+    for name in names:
+        space = colour.lookup(name)
+        out = colour.to_linear(px, space)
+        assert out.shape == px.shape and out.dtype == np.float32 and np.isfinite(out).all(), name
+        np.testing.assert_array_equal(px, before, err_msg=name)  # never converted in place
+
+
+@needs_ocio
+def test_fast_paths_agree_with_opencolorio():
+    """The hand-written paths give OpenColorIO's own results with Blender's config."""
+    rng = np.random.default_rng(2)
+    # non-negative: below zero the fast sRGB path mirrors the curve, OpenColorIO extends its
+    # linear toe (no integer file holds such values)
+    px = (rng.random((64, 64, 3)) * 1.2).astype(np.float32)
+    for name in colour.SPACES:
+        ours = colour.to_linear(px, colour.lookup(name))
+        ref = colour._ocio_space(name, colour.config_path())
+        theirs = colour.to_linear(px, ref)
+        np.testing.assert_allclose(ours, theirs, rtol=2e-4, atol=5e-5, err_msg=name)
+
+
+@needs_ocio
+def test_acescg_and_log_spaces_are_scene_light():
+    red = colour.to_linear(np.array([[[1.0, 0.0, 0.0]]], np.float32), colour.lookup("ACEScg"))
+    # ACEScg (AP1) red in linear Rec.709: the standard AP1 -> Rec.709 matrix's first column
+    np.testing.assert_allclose(red[0, 0], [1.7051, -0.1302, -0.0240], atol=2e-3)
+    grey = colour.to_linear(np.full((1, 1, 3), 0.4135884, np.float32), colour.lookup("ACEScc"))
+    np.testing.assert_allclose(grey, 0.18, rtol=2e-3)  # ACEScc encodes 0.18 as 0.4135884
+    white = colour.to_linear(np.ones((1, 1, 3), np.float32), colour.lookup("Rec.2100-PQ"))
+    assert float(white.min()) > 10  # PQ's peak is far above diffuse white
+
+
+@needs_ocio
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_opencolorio_planar_equals_channels_last(dtype):
+    rng = np.random.default_rng(3)
+    if dtype == np.float32:
+        px = rng.random((3, 40, 70)).astype(np.float32)
+    else:
+        px = rng.integers(0, np.iinfo(dtype).max + 1, (3, 40, 70)).astype(dtype)
+    before = px.copy()
+    space = colour.lookup("ACEScct")
+    got = colour.to_linear_planar(px, space, 0.5)
+    want = colour.to_linear(px.transpose(1, 2, 0), space, 0.5).transpose(2, 0, 1)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(px, before)  # the caller's pixels are never changed
+
+
+def test_config_follows_ocio_variable_then_the_registered_one(monkeypatch, tmp_path):
+    monkeypatch.delenv("OCIO", raising=False)
+    colour.use_config(tmp_path / "blender.ocio")
+    try:
+        assert colour.config_path() == str(tmp_path / "blender.ocio")
+        monkeypatch.setenv("OCIO", str(tmp_path / "studio.ocio"))
+        assert colour.config_path() == str(tmp_path / "studio.ocio")
+        with pytest.raises(InputError, match=r"\$OCIO"):
+            colour.lookup("ACEScg")  # the studio config does not exist
+    finally:
+        colour.use_config(None)
 
 
 def _blender_config():
@@ -102,3 +175,25 @@ def test_planar_conversion_equals_channels_last(name, dtype):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     with pytest.raises(ValueError, match=r"\(3, H, W\)"):
         colour.to_linear_planar(px.transpose(1, 2, 0), space)
+
+
+@needs_ocio
+@pytest.mark.parametrize("name", ["Filmic Log", "ACEScg"])
+def test_pipeline_relights_footage_declared_in_an_opencolorio_space(name, tmp_path):
+    """8-bit footage declared in a space only OpenColorIO converts: the toy model (relit =
+    image x the light's irradiance ratio) under uniform light 2 doubles the converted input."""
+    from addon import frames, lightvec, pipeline
+    from tests.clip_fixtures import ramp_frames, write_movie
+    from tests.onnx_fixtures import write_toy_model
+
+    src = ramp_frames(3)
+    movie = str(write_movie(tmp_path / "clip.mov", src, codec="png"))
+    toy = str(write_toy_model(tmp_path / "model"))
+    clip = pipeline.ClipSpec("movie", movie, (), 0, 3, name, 25.0)
+    res = pipeline.relight_clip(clip, 2 * lightvec.uniform(1.0)[None], tmp_path / "out",
+                                pipeline.RelightOptions(toy, working_size=32, threads=1,
+                                                        background="network"))
+    for i, f in enumerate(res.relit_files):
+        want = np.maximum(2 * colour.to_linear(src[i], colour.lookup(name)), 0.0)
+        np.testing.assert_allclose(frames.read_exr(f), want, rtol=4e-3,
+                                   atol=2e-3 * float(want.max()))

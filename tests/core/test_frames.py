@@ -307,3 +307,17 @@ def test_stale_partial_names_a_dead_local_writer_only(tmp_path):
     assert frames.stale_partial(f"relight_run.json.{dead}.123.partial") == "relight_run.json"
     assert frames.stale_partial("relit_000001.exr") is None
     assert frames.stale_partial(f"notes.{dead}.txt") is None
+
+
+@pytest.mark.parametrize("compression", ["none", "zip"])
+def test_rgb_exrs_state_rec709_primaries(tmp_path, compression):
+    rgb = np.full((3, 4, 5), 0.5, np.float16)
+    frames.write_exr_planes(tmp_path / "p.exr", rgb, compression)
+    frames.write_exr(tmp_path / "i.exr", rgb.transpose(1, 2, 0), compression)
+    frames.write_exr_planes(tmp_path / "m.exr", rgb[0], compression)
+    for name in ("p.exr", "i.exr"):
+        with OpenEXR.File(str(tmp_path / name), header_only=True) as f:
+            np.testing.assert_allclose(f.header()["chromaticities"],
+                                       frames.REC709_CHROMATICITIES, atol=1e-6)
+    with OpenEXR.File(str(tmp_path / "m.exr"), header_only=True) as f:
+        assert "chromaticities" not in f.header()  # a matte is data, not colour
