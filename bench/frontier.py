@@ -118,9 +118,10 @@ KEYS = ("img_t_i", "img_t1_j", "gt_t_k", "mask_t", "light_i", "light_k")
 def _lightstage_version() -> str:
     """A hash of the light stage's sources: a cached test set is stale when they change."""
     h = hashlib.sha256()
-    for p in sorted((ROOT / "training").rglob("*.py")):
-        if "lightstage" in p.parts or p.name in ("dataset.py", "lighting_sampling.py"):
-            h.update(p.read_bytes())
+    data = ROOT / "training" / "data"
+    for p in sorted((ROOT / "training" / "lightstage").rglob("*.py")) + [
+            data / "dataset.py", data / "lighting_sampling.py"]:
+        h.update(p.read_bytes())
     return h.hexdigest()[:16]
 
 
@@ -131,10 +132,10 @@ def default_cache() -> pathlib.Path:
 
 def heldout_samples(resolution: int, n: int, seed: int, cache: pathlib.Path | None):
     """(samples, description): the first ``n`` samples of the held-out 'test' split at
-    ``resolution``. With the default seed this is training/make_testset.py's fixed test set
+    ``resolution``. With the default seed this is training/data/make_testset.py's fixed test set
     (built once, cached, identified by its sha256); otherwise rendered here (cached too)."""
     try:
-        from training import make_testset
+        from training.data import make_testset
     except ImportError:
         make_testset = None
     if make_testset is not None and seed == make_testset.TEST_SEED:
@@ -143,7 +144,7 @@ def heldout_samples(resolution: int, n: int, seed: int, cache: pathlib.Path | No
         meta = make_testset.testset_path(resolution, n, folder).with_suffix(".json")
         sha = json.loads(meta.read_text())["sha256"][:16] if meta.is_file() else "?"
         samples = [{k: arrays[k][i] for k in KEYS} for i in range(n)]
-        return samples, (f"training/make_testset.py: light stage 'test' split (held-out "
+        return samples, (f"training/data/make_testset.py: light stage 'test' split (held-out "
                          f"identities), seed {seed}, {n} samples at {resolution}x{resolution}, "
                          f"sha256 {sha}...")
     return _rendered(resolution, n, seed, cache), (
@@ -152,7 +153,7 @@ def heldout_samples(resolution: int, n: int, seed: int, cache: pathlib.Path | No
 
 
 def _rendered(resolution: int, n: int, seed: int, cache: pathlib.Path | None) -> list[dict]:
-    from training.dataset import LightStageDataset
+    from training.data.dataset import LightStageDataset
 
     folder = None
     if cache is not None:
@@ -576,7 +577,7 @@ def lightstage_group(args, log) -> list[Row]:
     import torch
 
     from bench import lightstage_throughput as lt
-    from training.dataset import LightStageDataset
+    from training.data.dataset import LightStageDataset
 
     torch.set_num_threads(1)
     ds = LightStageDataset("test", args.lightstage_res, seed=args.seed,

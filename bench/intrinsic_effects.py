@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from addon import intrinsic, lightvec
-from training import lighting_sampling
+from training.data import lighting_sampling
 from training.intrinsic import data
 from training.lightstage import layout, shading
 from training.lightstage.scene import stage_dirs

@@ -4,7 +4,7 @@
 
 Prints milliseconds per stage (pose, G-buffer, materials, shadow maps + visibility + BRDF transfer,
 shading of one light vector, flow), whole samples per second through LightStageDataset rendered on
-the fly and read from the frame cache (training/build_cache.py: stages read pair, lighting
+the fly and read from the frame cache (training/data/build_cache.py: stages read pair, lighting
 triplet, relight + assemble), and for the selective shading: the error against the full 114-light
 sum and the time saved, at several energy thresholds. The cache of ``--cache`` is used where it
 holds the resolution; otherwise a small one (8 pairs) is built in a temporary folder (the cost per
@@ -28,9 +28,10 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(ROOT))
 
 from addon.errors import InputError  # noqa: E402
-from training import lighting_sampling, report  # noqa: E402
-from training.build_cache import DEFAULT_OUT, build  # noqa: E402
-from training.dataset import LightStageDataset  # noqa: E402
+from training import report  # noqa: E402
+from training.data import lighting_sampling  # noqa: E402
+from training.data.build_cache import DEFAULT_OUT, build  # noqa: E402
+from training.data.dataset import LightStageDataset  # noqa: E402
 from training.lightstage import geometry, materials, pairs  # noqa: E402
 
 

@@ -15,7 +15,7 @@ Protocol (every choice is an option; the defaults are recorded in the JSON):
   ``--source-hdri`` (pmndrs/park: a sunny park, strongly directional) turning in yaw (the yaw of
   addon.hdri.downsample) at 360 degrees per P frames. Base frame b has yaw 360 b / P, linearly
   interpolated between the environment bank's 128 exactly down-sampled yaws (2.8125 degrees
-  apart; training.lighting_sampling.environment), each map at mean radiance 1.
+  apart; training.data.lighting_sampling.environment), each map at mean radiance 1.
 * Speed-up f plays that sequence f times faster: frame i of the clip is base frame (f i) mod P,
   so with 1000 frames f = 1 is one turn and f = 10 is ten turns.
 * Target: the held-out HDRI ``--target-hdri`` (pmndrs/lobby) at yaw ``--target-yaw``, the same
@@ -52,7 +52,8 @@ import numpy as np
 
 from addon import contract, engine, normalise
 from addon.errors import InputError, LightingError, ModelError, RelightError
-from training import evaluate, lighting_sampling, report
+from training import evaluate, report
+from training.data import lighting_sampling
 from training.lightstage import layout
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -118,8 +119,8 @@ def build_stage(resolution: int = 128, sample: int = 0, data_root=None) -> Stage
     camera and backdrop; its random lighting is not used)."""
     import torch
 
-    from training.dataset import LightStageDataset
-    from training.make_testset import TEST_SEED
+    from training.data.dataset import LightStageDataset
+    from training.data.make_testset import TEST_SEED
 
     ds = LightStageDataset("test", resolution, seed=TEST_SEED, length=sample + 1,
                            data_root=data_root)

@@ -14,7 +14,7 @@ w/o temporal, w/o parsing, w/o sampling, w/o transport supervision, then the two
 light). ``shading corr`` and ``lateral response`` say whether the light acts where it should
 (training/evaluate.py; both baselines change the whole image alike, so their lateral response is 1).
 Metrics are training/evaluate.py's (portrait region, values normalised to [0, 1]), on the
-fixed test set of training/make_testset.py.
+fixed test set of training/data/make_testset.py.
 
 Besides the means, each variant's RMSE difference to the full model is given with its paired
 standard error over the test samples: that is the test set's sampling noise only. Each variant is

@@ -19,7 +19,7 @@ import torch
 
 from addon.contract import PARSING_CLASSES
 
-from . import lighting_sampling
+from .data import lighting_sampling
 from .lightstage import assets, backdrops
 from .lightstage.png import to_srgb8, write_png
 from .lightstage.scene import Scene

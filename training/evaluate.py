@@ -168,8 +168,8 @@ def background_error(predict, n: int = 16, resolution: int = 128, data_root=None
     the same times pipeline.wall_gain with its own source-light estimate), and both baselines."""
     from addon.pipeline import wall_gain
 
-    from .dataset import LightStageDataset
-    from .make_testset import TEST_SEED
+    from .data.dataset import LightStageDataset
+    from .data.make_testset import TEST_SEED
 
     ds = LightStageDataset("test", resolution, seed=TEST_SEED, length=n, data_root=data_root,
                            backdrops="varied")
@@ -409,9 +409,9 @@ def torch_predictor(net, true_source: bool = False):
 
 
 def heldout_dataset(resolution: int, seed: int = 12345, split: str = "test"):
-    """The fixed test set (training.make_testset: stored, rebuilt bit-identically) for the default
-    test split and seed; other splits or seeds are rendered on the fly."""
-    from . import make_testset
+    """The fixed test set (training.data.make_testset: stored, rebuilt bit-identically) for the
+    default test split and seed; other splits or seeds are rendered on the fly."""
+    from .data import make_testset
 
     if split == "test" and seed == make_testset.TEST_SEED:
         return make_testset.TestSet(resolution)
@@ -422,10 +422,10 @@ def heldout_dataset(resolution: int, seed: int = 12345, split: str = "test"):
 
 def dataset_id(ds) -> dict:
     """What the metrics were measured on: the fixed test set's content sha256 where it is one."""
-    from . import make_testset
+    from .data import make_testset
 
     if isinstance(ds, make_testset.TestSet):
-        return {"testset": "training.make_testset", "samples_in_set": len(ds),
+        return {"testset": "training.data.make_testset", "samples_in_set": len(ds),
                 "testset_sha256": make_testset.content_sha256(ds.arrays),
                 "render_version": make_testset.renderer_version()}
     return {"dataset": type(ds).__name__}

@@ -259,7 +259,7 @@ def main(argv=None):
     print("metrics:", json.dumps(metrics))
     cost = {"cpu": measure_cost(onnx_path, threads=a.threads),
             "machine": "2-core x86-64 CPU (AMD EPYC, AVX-512 VNNI), shared and noisy"}
-    training = {"data": "synthetic dynamic light stage (training.dataset, ICT-FaceKit heads, "
+    training = {"data": "synthetic dynamic light stage (training.data.dataset, ICT-FaceKit heads, "
                         "CC0 HDRIs); held-out identities for metrics",
                 "render_version": samples_version(recipe), "recipe": recipe, "note": a.note,
                 "onnx_check": check}

@@ -9,6 +9,9 @@ that one started from, back to a run from scratch; the commands run in order (ea
 checkpoint the next starts from), then ``training.export`` writes the
 ONNX and the card again (``--int8`` for an int8 card, from the same run). On this project's
 2-core CPU the shipped presets take 40-120 minutes each; a GPU runs the same step budgets.
+
+A card keeps the commands as they were run. Modules that have moved since are run under their
+present names (``MOVED``: the old name, then the new one), so every card still reproduces.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import re
 import shlex
 import subprocess
 import sys
@@ -23,6 +27,23 @@ import sys
 from addon import contract
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+MOVED = {
+    "training.build_cache": "training.data.build_cache",
+    "training.dataset": "training.data.dataset",
+    "training.lighting_sampling": "training.data.lighting_sampling",
+    "training.make_demo_clip": "training.data.make_demo_clip",
+    "training.make_testset": "training.data.make_testset",
+}
+
+
+def current_module(name: str) -> str:
+    """A module's present name, given the name a card recorded."""
+    return MOVED.get(name, name)
+
+
+def current_command(command: str) -> str:
+    """``python -m MODULE ...`` with MODULE under its present name; the rest kept as written."""
+    return re.sub(r"(?<=-m )\S+", lambda m: current_module(m[0]), command, count=1)
 
 
 def chain(card: dict) -> list[dict]:
@@ -54,7 +75,7 @@ def version_notes(card: dict, current: str) -> list[str]:
 def commands(card: dict) -> list[str]:
     """The shell commands that made the model of ``card``, in order."""
     recipe = card["training"]["recipe"]
-    out = [r["recipe"] for r in chain(card)]
+    out = [current_command(r["recipe"]) for r in chain(card)]
     name, int8 = card["name"], str(card.get("preset", "")).endswith("-int8")
     if int8 and name.endswith("-int8"):
         name = name[: -len("-int8")]
@@ -77,7 +98,7 @@ def main(argv=None) -> int:
     if not path.is_file():
         print(f"reproduce: no model card at {path}; pass models/<name>.json", file=sys.stderr)
         return 2
-    from .dataset import renderer_version
+    from .data.dataset import renderer_version
 
     card = json.loads(path.read_text())
     cmds = commands(card)

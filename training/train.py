@@ -161,8 +161,9 @@ def lr_at(base: float, frac: float, step: int = 0, warmup: int = 0) -> float:
 # ---------------------------------------------------------------------------------------- dataset
 
 def make_dataset(split: str, resolution: int, seed: int, sampling: bool = True, **kwargs):
-    """The synthetic light stage (training.dataset), with lighting sampling off for that ablation."""
-    from .dataset import LightStageDataset  # lazy: tests use a stand-in dataset
+    """The synthetic light stage (training.data.dataset), with lighting sampling off for that
+    ablation."""
+    from .data.dataset import LightStageDataset  # lazy: tests use a stand-in dataset
 
     params = inspect.signature(LightStageDataset).parameters
     if not sampling:
@@ -175,8 +176,8 @@ def make_dataset(split: str, resolution: int, seed: int, sampling: bool = True, 
 
 
 def renderer_version() -> str:
-    """training.dataset's render version (imported late, like the dataset)."""
-    from .dataset import renderer_version as version
+    """training.data.dataset's render version (imported late, like the dataset)."""
+    from .data.dataset import renderer_version as version
 
     return version()
 
@@ -194,7 +195,7 @@ def render_cache(folder, split: str, resolution: int, seed: int, start: int, cou
     ds = make_dataset(split, resolution, seed, sampling=sampling)
     (folder / "cache.json").write_text(json.dumps(
         {"split": split, "resolution": resolution, "seed": seed, "sampling": sampling,
-         "dataset": "training.dataset.LightStageDataset", "git_commit": git_commit(),
+         "dataset": "training.data.dataset.LightStageDataset", "git_commit": git_commit(),
          "renderer": renderer_version()}, indent=2))
     for idx in range(start, start + count):
         path = folder / f"{idx:07d}.npz"
@@ -354,7 +355,7 @@ def load_init(net, path) -> dict:
 
 
 def samples_version(recipe: dict) -> str:
-    """The light stage render version a run's samples had (training.dataset.RENDER_VERSION).
+    """The light stage render version a run's samples had (training.data.dataset.RENDER_VERSION).
     Runs recorded before the field was kept all trained on v1 samples: v2 came with it."""
     return recipe.get("render_version") or "v1"
 
@@ -619,7 +620,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--save-every", type=int, default=200)
     p.add_argument("--cache", help="read rendered samples from this folder (see --render)")
     p.add_argument("--data-cache", metavar="DIR",
-                   help="light-stage pair cache root (python -m training.build_cache), e.g. "
+                   help="light-stage pair cache root (python -m training.data.build_cache), e.g. "
                         "cache/lightstage: about 50x faster than rendering")
     p.add_argument("--overfit", type=int, default=0, metavar="N",
                    help="train on the first N samples only and report metrics on them")

@@ -1,10 +1,10 @@
 """Flow warping for the temporal loss (paper sec. 4.2).
 
-Flow conventions (training.dataset): ``flow_fw`` lives on frame t's pixels and holds the displacement
-(dx, dy) in pixels to where that point is in frame t+1; ``flow_bw`` lives on frame t+1's pixels and
-points back to frame t. Warping is backward sampling: to bring frame t+1 onto frame t's pixel grid,
-each pixel p of frame t reads frame t+1 at p + flow_fw(p). Points that leave the frame or are
-occluded are excluded by the dataset's validity masks, and by ``in_bounds`` here.
+Flow conventions (training.data.dataset): ``flow_fw`` lives on frame t's pixels and holds the
+displacement (dx, dy) in pixels to where that point is in frame t+1; ``flow_bw`` lives on frame
+t+1's pixels and points back to frame t. Warping is backward sampling: to bring frame t+1 onto
+frame t's pixel grid, each pixel p of frame t reads frame t+1 at p + flow_fw(p). Points that leave
+the frame or are occluded are excluded by the dataset's validity masks, and by ``in_bounds`` here.
 """
 
 from __future__ import annotations

@@ -310,7 +310,7 @@ class HdriBank:
     """The shared HDRIs, read on first use and down-sampled to light vectors at a given yaw."""
 
     def __init__(self, data_root):
-        from .lighting_sampling import hdri_paths
+        from .data.lighting_sampling import hdri_paths
 
         self.paths = hdri_paths(data_root)
         self.names = [f"{p.parent.name}/{p.stem}" for p in self.paths]

@@ -1,5 +1,5 @@
-"""A small random stand-in for training.dataset.LightStageDataset (same keys, shapes and units),
-for the training tests only: fast, deterministic, and independent of the light stage."""
+"""A small random stand-in for training.data.dataset.LightStageDataset (same keys, shapes and
+units), for the training tests only: fast, deterministic, and independent of the light stage."""
 
 import numpy as np
 

@@ -11,7 +11,7 @@ RES = 40
 
 @pytest.fixture(scope="module")
 def datasets(shared_data):
-    from training.dataset import LightStageDataset
+    from training.data.dataset import LightStageDataset
     torch.set_num_threads(1)
     kw = dict(seed=5, length=50, data_root=shared_data, pool=3)
     return (LightStageDataset("train", RES, **kw),
@@ -76,7 +76,7 @@ def test_backdrop_kinds_are_albedos_with_their_own_character(shared_data):
 
 
 def test_training_never_sees_the_held_out_maps_behind_its_subjects(shared_data):
-    from training.lighting_sampling import HELD_OUT_HDRIS
+    from training.data.lighting_sampling import HELD_OUT_HDRIS
     from training.lightstage import backdrops
     names, _ = backdrops.photo_bank(shared_data)
     train = {names[i] for i in backdrops.pool_for(names, "train")}
@@ -86,7 +86,7 @@ def test_training_never_sees_the_held_out_maps_behind_its_subjects(shared_data):
 
 
 def test_an_unknown_backdrop_choice_says_which_exist(shared_data):
-    from training.dataset import LightStageDataset
+    from training.data.dataset import LightStageDataset
     with pytest.raises(InputError, match="varied"):
         LightStageDataset("train", RES, data_root=shared_data, backdrops="greenscreen")
 

@@ -11,7 +11,7 @@ RES, PAIRS = 32, 2
 
 @pytest.fixture(scope="module")
 def cache(shared_data, tmp_path_factory):
-    from training.build_cache import build
+    from training.data.build_cache import build
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("cache")
     r = build("train", RES, PAIRS, out, data_root=shared_data, progress=None)
@@ -20,7 +20,7 @@ def cache(shared_data, tmp_path_factory):
 
 
 def test_cached_samples_equal_on_the_fly_samples_of_the_same_pool(cache, shared_data):
-    from training.dataset import LightStageDataset
+    from training.data.dataset import LightStageDataset
     cached = LightStageDataset("train", RES, seed=3, length=20, data_root=shared_data,
                                cache_dir=cache)
     live = LightStageDataset("train", RES, seed=3, length=20, data_root=shared_data, pool=PAIRS)
@@ -40,15 +40,15 @@ def test_cached_samples_equal_on_the_fly_samples_of_the_same_pool(cache, shared_
 
 
 def test_pairs_do_not_depend_on_the_seed(shared_data):
-    from training.dataset import LightStageDataset
+    from training.data.dataset import LightStageDataset
     a = LightStageDataset("train", RES, seed=1, data_root=shared_data, pool=4).pair_scene(3)
     b = LightStageDataset("train", RES, seed=2, data_root=shared_data, pool=4).pair_scene(3)
     assert a[1] == b[1] and a[0].ident.id == b[0].ident.id and a[0].cam == b[0].cam
 
 
 def test_rebuilding_keeps_existing_pairs(cache, shared_data):
-    from training.build_cache import build
-    from training.dataset import cache_folder
+    from training.data.build_cache import build
+    from training.data.dataset import cache_folder
     files = sorted(cache_folder(cache, "train", RES).glob("pair_*.bin"))
     stamps = [p.stat().st_mtime_ns for p in files]
     build("train", RES, PAIRS, cache, data_root=shared_data, progress=None)
@@ -56,7 +56,7 @@ def test_rebuilding_keeps_existing_pairs(cache, shared_data):
 
 
 def test_missing_or_incomplete_caches_say_how_to_build_them(cache, shared_data, tmp_path):
-    from training.dataset import LightStageDataset, cache_folder
+    from training.data.dataset import LightStageDataset, cache_folder
     with pytest.raises(InputError, match="build_cache"):
         LightStageDataset("train", RES, data_root=shared_data, cache_dir=tmp_path)
     with pytest.raises(InputError, match="holds 2 pairs"):
@@ -72,8 +72,8 @@ def test_missing_or_incomplete_caches_say_how_to_build_them(cache, shared_data, 
 def test_a_cache_from_another_renderer_version_is_rerendered(cache, shared_data):
     import json
 
-    from training.build_cache import build
-    from training.dataset import cache_folder
+    from training.data.build_cache import build
+    from training.data.dataset import cache_folder
     folder = cache_folder(cache, "train", RES)
     man = json.loads((folder / "manifest.json").read_text())
     (folder / "manifest.json").write_text(json.dumps({**man, "renderer": "older"}))

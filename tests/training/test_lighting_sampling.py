@@ -9,12 +9,12 @@ from addon.hdri_io import read_hdri
 
 @pytest.fixture(scope="module")
 def bank(shared_data):
-    from training import lighting_sampling
+    from training.data import lighting_sampling
     return lighting_sampling.environment_bank(shared_data)
 
 
 def test_bank_rotation_matches_direct_downsampling(bank, shared_data):
-    from training import lighting_sampling
+    from training.data import lighting_sampling
     names, b = bank
     i = names.index("blender/studio")
     img = read_hdri(shared_data / "hdri" / "blender" / "studio.exr")
@@ -26,7 +26,7 @@ def test_bank_rotation_matches_direct_downsampling(bank, shared_data):
 
 
 def test_triplet_follows_the_paper_and_is_seeded(bank):
-    from training import lighting_sampling
+    from training.data import lighting_sampling
     _, b = bank
     for seed in range(5):
         li, lj, lk = lighting_sampling.sample_triplet(np.random.default_rng(seed), b)
@@ -41,7 +41,7 @@ def test_triplet_follows_the_paper_and_is_seeded(bank):
 
 
 def test_point_lights_are_one_to_three_coloured_lamps(bank):
-    from training import lighting_sampling
+    from training.data import lighting_sampling
     powers = [lighting_sampling.sample_h(np.random.default_rng(s)).sum() for s in range(20)]
     assert min(powers) > 0
     y = lighting_sampling.sample_h(np.random.default_rng(3))

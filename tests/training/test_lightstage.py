@@ -92,7 +92,7 @@ def _warp(img, flow):
 
 @pytest.fixture(scope="module")
 def dataset(shared_data):
-    from training.dataset import LightStageDataset
+    from training.data.dataset import LightStageDataset
     torch.set_num_threads(1)
     return LightStageDataset("train", RES, seed=11, length=50, data_root=shared_data)
 
@@ -123,7 +123,7 @@ def test_samples_follow_the_api(dataset):
 
 
 def test_samples_are_deterministic(dataset, shared_data):
-    from training.dataset import LightStageDataset
+    from training.data.dataset import LightStageDataset
     a = dataset[7]
     b = LightStageDataset("train", RES, seed=11, length=50, data_root=shared_data)[7]
     c = LightStageDataset("train", RES, seed=12, length=50, data_root=shared_data)[7]
@@ -133,7 +133,7 @@ def test_samples_are_deterministic(dataset, shared_data):
 
 
 def test_held_out_identities_never_reach_training(dataset, shared_data):
-    from training.dataset import LightStageDataset, split_of_identity
+    from training.data.dataset import LightStageDataset, split_of_identity
     train = set(dataset.ids)
     for split in ("val", "test"):
         held = LightStageDataset(split, RES, data_root=shared_data, length=10)

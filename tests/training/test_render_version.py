@@ -4,22 +4,22 @@ import numpy as np
 
 
 def test_the_light_stage_still_renders_its_golden_probe(shared_data):
-    from training.dataset import renderer_version
-    from training.make_testset import load_probe, probe_differences, render_probe
+    from training.data.dataset import renderer_version
+    from training.data.make_testset import load_probe, probe_differences, render_probe
 
     version, golden = load_probe()
     assert version == renderer_version(), (
         f"the golden probe was written for {version}, the light stage is {renderer_version()}: "
-        "rewrite it with `python -m training.make_testset --write-probe`")
+        "rewrite it with `python -m training.data.make_testset --write-probe`")
     diffs = probe_differences(render_probe(shared_data), golden)
     assert not diffs, (
-        "the light stage's samples changed but training.dataset.RENDER_VERSION did not: if the "
-        "change is meant, bump RENDER_VERSION (caches and the test set then rebuild) and run "
-        "`python -m training.make_testset --write-probe`; differences:\n" + "\n".join(diffs))
+        "the light stage's samples changed but training.data.dataset.RENDER_VERSION did not: if "
+        "the change is meant, bump RENDER_VERSION (caches and the test set then rebuild) and run "
+        "`python -m training.data.make_testset --write-probe`; differences:\n" + "\n".join(diffs))
 
 
 def test_probe_differences_tolerate_rounding_and_a_stray_texel_but_not_a_change():
-    from training.make_testset import probe_differences
+    from training.data.make_testset import probe_differences
 
     rng = np.random.default_rng(0)
     golden = {"img": rng.uniform(0, 2, (2, 3, 40, 40)).astype(np.float32),

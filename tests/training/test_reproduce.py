@@ -111,15 +111,16 @@ def test_each_run_in_the_chain_says_which_light_stage_samples_it_trained_on(tmp_
 @pytest.mark.parametrize("card", ALL_CARDS, ids=[c.stem for c in ALL_CARDS])
 def test_every_committed_card_was_measured_on_the_current_light_stage(card):
     """A card's held-out figures come from the test set of today's render version (bumping
-    training.dataset.RENDER_VERSION means re-measuring the cards: evaluate --update-card)."""
-    from training.dataset import renderer_version
+    training.data.dataset.RENDER_VERSION means re-measuring the cards: evaluate --update-card)."""
+    from training.data.dataset import renderer_version
 
     metrics = json.loads(card.read_text())["metrics"]
     onnx = card.with_suffix(".onnx").relative_to(ROOT)
     assert metrics.get("render_version") == renderer_version(), (
         f"{card.name} was measured on light stage {metrics.get('render_version', 'v1')} samples; "
         f"re-measure: python -m training.evaluate --onnx {onnx} --update-card")
-    assert metrics["testset"] == "training.make_testset" and len(metrics["testset_sha256"]) == 64
+    assert reproduce.current_module(metrics["testset"]) == "training.data.make_testset"
+    assert len(metrics["testset_sha256"]) == 64
 
 
 def test_all_committed_cards_were_measured_on_one_and_the_same_test_set():

@@ -11,7 +11,7 @@ import pytest
 from addon.errors import InputError, ModelError
 from bench import temporal_stability as ts
 from tests.onnx_fixtures import write_toy_model
-from training import lighting_sampling
+from training.data import lighting_sampling
 
 RES = 32  # small: the light stage renders one frame for the whole module
 
@@ -116,8 +116,8 @@ def env(shared_data):
 
 def test_olat_sum_equals_the_light_stage_render(stage, env, shared_data):
     """Linearity: the frame under a light vector is the weighted sum of its OLAT images."""
-    from training.dataset import LightStageDataset
-    from training.make_testset import TEST_SEED
+    from training.data.dataset import LightStageDataset
+    from training.data.make_testset import TEST_SEED
 
     names, bank = env
     scene, t, _ = LightStageDataset("test", RES, seed=TEST_SEED, length=1,

@@ -7,8 +7,8 @@ RES, N = 24, 2
 
 
 def test_two_builds_are_bit_identical_and_load_as_dataset_samples(shared_data, tmp_path):
-    from training.dataset import LightStageDataset
-    from training.make_testset import TEST_SEED, TestSet, build_testset, load_testset
+    from training.data.dataset import LightStageDataset
+    from training.data.make_testset import TEST_SEED, TestSet, build_testset, load_testset
 
     threads = torch.get_num_threads()
     try:
@@ -32,7 +32,7 @@ def test_two_builds_are_bit_identical_and_load_as_dataset_samples(shared_data, t
 
 
 def test_a_missing_test_set_is_built_on_load(shared_data, tmp_path):
-    from training.make_testset import load_testset, testset_path
+    from training.data.make_testset import load_testset, testset_path
 
     assert not testset_path(RES, 1, tmp_path).exists()
     s = load_testset(RES, 1, tmp_path, shared_data)

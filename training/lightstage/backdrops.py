@@ -53,7 +53,7 @@ def _tone_map(rgb: np.ndarray) -> np.ndarray:
 @functools.lru_cache(maxsize=2)
 def photo_bank(data_root) -> tuple[tuple[str, ...], tuple[torch.Tensor, ...]]:
     """(names as lighting_sampling names them, (3, h, WIDTH) albedo bands), one per HDRI."""
-    from .. import lighting_sampling
+    from ..data import lighting_sampling
 
     names, bands = [], []
     for p in lighting_sampling.hdri_paths(data_root):
@@ -138,6 +138,6 @@ def sample(rng: np.random.Generator, h: int, w: int, wall: torch.Tensor, bank,
 
 def pool_for(names, split: str) -> np.ndarray:
     """The photo bank's indices a split draws from: the HDRIs its lighting may use."""
-    from .. import lighting_sampling
+    from ..data import lighting_sampling
 
     return np.unique(lighting_sampling.hdri_pool(names, split))

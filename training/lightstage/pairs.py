@@ -3,7 +3,8 @@
 A sample is two adjacent frames (t, t+1) shaded under three light vectors. The costly part (pose,
 G-buffer, materials, shadow maps, per-light transfer, flow) depends on the frames only; the lighting
 enters through one linear map (shading.relight). So a pair is computed once -- on the fly from a
-Scene, or read back from the frame cache (training/build_cache.py) -- and relit as often as wanted.
+Scene, or read back from the frame cache (training/data/build_cache.py) -- and relit as often as
+wanted.
 
 Both routes end in ``assemble``, the one function that turns a pair and a lighting triplet into a
 sample dict, so cached samples equal on-the-fly samples up to the cache's float16 transfer (a
@@ -70,7 +71,7 @@ def transport(s: shading.ShadeInputs) -> torch.Tensor:
 
 
 def assemble(rec: PairRecord, lights, n_classes: int, with_transport: bool = False) -> dict:
-    """The sample dict (see training/dataset.py) of a pair under the triplet (L^i, L^j, L^k);
+    """The sample dict (see training/data/dataset.py) of a pair under the triplet (L^i, L^j, L^k);
     ``with_transport`` adds each frame's SH transport (``transport_t``, ``transport_t1``)."""
     li, lj, lk = lights
     w = torch.from_numpy(np.stack([layout.weights(x) for x in (li, lk, lj, lk)])).float()

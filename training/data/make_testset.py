@@ -1,25 +1,25 @@
 """The fixed held-out test set: one command rebuilds it bit-identically.
 
-    .venv/bin/python -m training.make_testset [--res 128] [--n 64]     # prints its sha256
+    .venv/bin/python -m training.data.make_testset [--res 128] [--n 64]     # prints its sha256
 
 It is the first ``n`` samples of ``LightStageDataset('test', res, seed=TEST_SEED)`` (the same as
 training.evaluate's default held-out dataset): identities that training never sees (id % 16 == 15),
 and environment lighting drawn half from the four HDRIs held out of training
-(training/lighting_sampling.py), half from the others, plus point lights. Rendered on one torch
+(training/data/lighting_sampling.py), half from the others, plus point lights. Rendered on one torch
 thread, so float reductions run in one order and a rebuild on the same machine gives the same bits.
 
 The file lives under cache/testset/ (git-ignored), named after the resolution, the count and the
-light stage's sample version (training.dataset.RENDER_VERSION), so a change to the renderer builds
-a new set rather than silently mixing two. ``load_testset(res)`` builds it when missing and returns
-the stacked arrays; the sha256 printed (and stored beside it) is of the array contents, so two
-builds can be compared.
+light stage's sample version (training.data.dataset.RENDER_VERSION), so a change to the renderer
+builds a new set rather than silently mixing two. ``load_testset(res)`` builds it when missing and
+returns the stacked arrays; the sha256 printed (and stored beside it) is of the array contents, so
+two builds can be compared.
 
 The golden probe keeps RENDER_VERSION honest: two test-split samples at 40 px (with the transport
 targets, and their images in front of varied backdrops) stored in tests/training/golden/;
 tests/training/test_render_version.py renders them again and compares. After a deliberate change
 to what samples hold, bump RENDER_VERSION and run
 
-    .venv/bin/python -m training.make_testset --write-probe
+    .venv/bin/python -m training.data.make_testset --write-probe
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ import torch
 
 from .dataset import LightStageDataset, renderer_version
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 DEFAULT_DIR = ROOT / "cache" / "testset"
 TEST_SEED = 12345
 DEFAULT_N = 64
@@ -176,7 +176,7 @@ def main(argv=None):
     ap.add_argument("--data-root", help="the shared data folder (default ../shared/data)")
     ap.add_argument("--write-probe", action="store_true",
                     help=f"rewrite the golden probe ({PROBE_PATH.relative_to(ROOT)}) after "
-                         "bumping training.dataset.RENDER_VERSION, and stop")
+                         "bumping training.data.dataset.RENDER_VERSION, and stop")
     a = ap.parse_args(argv)
     if a.write_probe:
         print(f"wrote {write_probe(a.data_root)} ({renderer_version()})")

@@ -1,7 +1,7 @@
 """Build the light-stage frame cache that LightStageDataset(cache_dir=...) reads.
 
-    .venv/bin/python -m training.build_cache --res 128 --pairs 640   # 5.4 GB, 19 min here
-    .venv/bin/python -m training.build_cache --res 256 --pairs 80    # 2.8 GB, 4 min
+    .venv/bin/python -m training.data.build_cache --res 128 --pairs 640   # 5.4 GB, 19 min here
+    .venv/bin/python -m training.data.build_cache --res 256 --pairs 80    # 2.8 GB, 4 min
 
 Writes ``<out>/<split>_<res>/pair_NNNNNN.bin`` (default out: cache/lightstage, git-ignored) and a
 manifest. Each file is one pool pair of two adjacent frames: per foreground pixel and light the
@@ -25,9 +25,9 @@ import time
 import torch
 
 from .dataset import LightStageDataset, cache_folder, renderer_version
-from .lightstage import pairs
+from ..lightstage import pairs
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 DEFAULT_OUT = ROOT / "cache" / "lightstage"
 DEFAULT_PAIRS = {128: 640, 256: 80}
 
@@ -63,7 +63,7 @@ def build(split: str, res: int, n_pairs: int, out=None, jobs: int = 1, identitie
                           or old.get("format") != pairs.FORMAT)
     info = {"split": split, "resolution": int(res), "pairs": int(n_pairs),
             "identities": len(probe.ids), "renderer": renderer_version(),
-            "command": f"python -m training.build_cache --split {split} --res {res} "
+            "command": f"python -m training.data.build_cache --split {split} --res {res} "
                        f"--pairs {n_pairs}"}
     pairs.write_manifest(folder, info)
     t0 = time.perf_counter()

@@ -1,6 +1,6 @@
 """Render the built-in demo clip (demo/): a short synthetic portrait performance by our light stage.
 
-    .venv/bin/python -m training.make_demo_clip            # writes demo/frames/*.png, light.npy
+    .venv/bin/python -m training.data.make_demo_clip       # writes demo/frames/*.png, light.npy
 
 48 frames at 25 fps, 256x256, 8-bit sRGB PNGs, lit by Blender's bundled studio HDRI
 (../shared/data/hdri/blender/studio.exr, CC0) normalised to a mean radiance of 1. Rendered at 2x
@@ -23,12 +23,12 @@ from addon import colour, hdri
 from addon.hdri_io import read_hdri
 
 from .dataset import renderer_version
-from .lightstage import assets
-from .lightstage.png import to_srgb8, write_png
-from .lightstage.scene import Scene
-from .lightstage.subject import FPS, Camera, Performance, sample_identity
+from ..lightstage import assets
+from ..lightstage.png import to_srgb8, write_png
+from ..lightstage.scene import Scene
+from ..lightstage.subject import FPS, Camera, Performance, sample_identity
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 IDENTITY = 20        # a train-split identity with hair, chosen by looking at the candidates
 PERFORMANCE = 77
 HDRI = "blender/studio.exr"
@@ -66,7 +66,7 @@ def render_clip(out: pathlib.Path, frames: int = 48, size: int = 256, supersampl
             "exposure": exposure, "light": "light.npy: (16,16,3) linear, camera frame, "
             "radiance before exposure", "hdri": HDRI, "hdri_yaw_degrees": YAW,
             "identity": IDENTITY, "performance": PERFORMANCE, "render_version": renderer_version(),
-            "command": ".venv/bin/python -m training.make_demo_clip"}
+            "command": ".venv/bin/python -m training.data.make_demo_clip"}
     (out / "clip.json").write_text(json.dumps(meta, indent=1) + "\n")
     write_notice(out, root)
     return meta
