@@ -13,11 +13,11 @@ Knob groups, each with its own error measure (so each has its own frontier):
   (models/*.onnx); width and depth trained at an equal step budget (--research, default
   models/research/: ablation-full, width-narrow, width-deep, each at its working size, its row
   naming widths, blocks, GFLOP, parameters and training steps; absent files are skipped); extra
-  widths and depths exported untrained from training/network.py, only for configs with no trained
-  model here (time only: their accuracy is not measured and is labelled so), working resolution
-  (256, 384, 512, full), the full-resolution detail transfer on/off, precision (fp32, int8 made
-  with onnxruntime.quantization; fp16 made with onnxruntime.transformers.float16, which the CPU
-  provider runs) and execution provider (CPU; GPU providers where present).
+  widths and depths exported untrained from training/model/network.py, only for configs with no
+  trained model here (time only: their accuracy is not measured and is labelled so), working
+  resolution (256, 384, 512, full), the full-resolution detail transfer on/off, precision (fp32,
+  int8 made with onnxruntime.quantization; fp16 made with onnxruntime.transformers.float16, which
+  the CPU provider runs) and execution provider (CPU; GPU providers where present).
 * light stage: the selective-effects shortcut against the full 114-light sum
   (bench/lightstage_throughput.py), relative RMSE of the radiance.
 * lighting conversion: an HDRI down-sampled at several working widths against the Cycles referee
@@ -337,7 +337,7 @@ class Context:
     def cost(self, config: dict | None, ws: int, stride: int) -> dict:
         """GFLOP per frame at the working shape of the test frames padded to the stride (as the
         engine runs it), and parameters, of a network config; {} where the card has none."""
-        from training import network
+        from training.model import network
 
         try:
             net = network.RelightNet(network.NetConfig(**{
@@ -528,7 +528,8 @@ def untrained(ctx: Context, frames, trained_configs: list[dict]) -> list[Variant
     """Speed of the presets and extra width/depth points exported untrained, for the configs
     that no trained model measured here has (and int8 / fp16 of the first): time is what these
     measure; their error is not an accuracy and is not reported."""
-    from training import export, network
+    from training import export
+    from training.model import network
 
     if "untrained" in ctx.args.skip:
         return []

@@ -3,7 +3,7 @@
     .venv/bin/python -m bench.network_speed [--sizes 256 512] [--threads 2] [--no-int8]
 
 Speed does not depend on the weight values, so each preset is exported fresh from
-training/network.py (untrained) unless --models points at shipped models/<name>.onnx files.
+training/model/network.py (untrained) unless --models points at shipped models/<name>.onnx files.
 int8 here is calibrated on random normalised images (enough for timing; shipped int8 models are
 calibrated on light-stage frames by training/export.py). Writes bench/results/network_speed.md
 and .json (--out).
@@ -20,7 +20,8 @@ import tempfile
 import numpy as np
 import torch
 
-from training import export, network, report
+from training import export, report
+from training.model import network
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 

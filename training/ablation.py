@@ -4,7 +4,7 @@
     .venv/bin/python -m training.ablation --out bench/results  # also write ablation.md / .json
 
 Each variant is one training run of the Draft network with one part of the method switched off
-(training/losses.py Switches.ablation; ``--steps`` budget, so every run saw the same number of
+(training/model/losses.py Switches.ablation; ``--steps`` budget, so every run saw the same number of
 steps whatever the machine's load), exported with training/export.py into models/research/.
 "full" is the shipped Draft's recipe: the paper's losses plus the transport supervision of the
 ratio head (``--transport-loss``), without which the network did not learn the light's direction;

@@ -394,7 +394,7 @@ def torch_predictor(net, true_source: bool = False):
         x, target = torch.from_numpy(_pad(img, net.cfg.stride)), torch.from_numpy(light)
         with torch.no_grad():
             if true_source:
-                from .network import to_channels_first
+                from .model.network import to_channels_first
 
                 _, skips, code = net.encoder(x)
                 src = torch.from_numpy(to_channels_first(np.asarray(sample["light_i"],

@@ -21,7 +21,7 @@ import torch
 
 from addon import contract, engine, normalise
 
-from . import network
+from .model import network
 
 OPSET = 17
 # ONNX vs PyTorch agreement required on the relit image (normalised units, values ~0..2), the

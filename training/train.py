@@ -34,7 +34,7 @@ import torch.nn.functional as F
 
 from addon import normalise
 
-from . import losses, network, warp
+from .model import losses, network, warp
 
 VAL_SEED = 777  # val samples (held-out identities) for the curves logged during training
 IMAGE_KEYS = ("img_t", "img_t1", "gt_t", "gt_t1")
@@ -58,7 +58,7 @@ def normalise_sample(sample: dict) -> dict:
     back to absolute (* s) that is R(L^k / k) * k. The decoder sees L^k / k, so its output is
     R(L^k / k) = relit / k, a function of what the network sees. Dividing by s as well made the
     target depend on the absolute source power (unobservable in image / s) and the self-relit
-    path (training.losses) disagree with the target path by that factor."""
+    path (training.model.losses) disagree with the target path by that factor."""
     f32 = lambda a: np.asarray(a, dtype=np.float32)  # noqa: E731
     s = normalise.exposure_scale([_hwc(f32(sample["img_t_i"])), _hwc(f32(sample["img_t1_j"]))])
     unit_k, k = normalise.normalise_light(f32(sample["light_k"]))

@@ -203,7 +203,8 @@ def test_quick_run_without_a_research_folder_skips_the_trained_points(quick_run)
 def _export_research_point(folder, name, steps, **overrides):
     """A tiny untrained draft-family network exported as training/export.py would a trained one:
     the ONNX file and a card from export.make_card, its recipe saying how it trained."""
-    from training import export, network
+    from training import export
+    from training.model import network
 
     net = network.build("draft", **overrides).eval()
     path = export.export_onnx(net, folder / f"{name}.onnx")
@@ -216,7 +217,7 @@ def _export_research_point(folder, name, steps, **overrides):
 
 @pytest.fixture(scope="module")
 def research_run(shared_data, tmp_path_factory):
-    from training import network
+    from training.model import network
 
     tmp = tmp_path_factory.mktemp("frontier-research")
     write_toy_model(tmp / "models")

@@ -52,7 +52,7 @@ def perturbed_net(cfg, seed: int = 0, scale: float = 0.05):
     ``scale`` * N(0, 1) (seeded), so every output depends on the weights and the light."""
     import torch
 
-    from training import network
+    from training.model import network
 
     torch.manual_seed(seed)
     net = network.RelightNet(cfg)

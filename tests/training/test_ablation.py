@@ -7,7 +7,8 @@ import pytest
 import torch
 
 import standin
-from training import ablation, export, network
+from training import ablation, export
+from training.model import network
 
 torch.set_num_threads(1)
 TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,

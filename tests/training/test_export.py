@@ -10,7 +10,8 @@ import torch
 
 import standin
 from addon import contract
-from training import evaluate, export, network
+from training import evaluate, export
+from training.model import network
 
 torch.set_num_threads(1)
 TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,

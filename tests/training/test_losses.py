@@ -1,6 +1,5 @@
 """Losses, flow warping and one training step on the stand-in data."""
 
-import argparse
 import math
 
 import numpy as np
@@ -8,7 +7,8 @@ import pytest
 import torch
 
 import standin
-from training import losses, network, train, warp
+from training import train
+from training.model import losses, network, warp
 
 torch.set_num_threads(1)
 TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,

@@ -37,7 +37,7 @@ def test_a_continued_model_reproduces_its_first_run_then_the_second_then_the_exp
 def test_a_model_trained_further_twice_reproduces_the_whole_chain(tmp_path):
     """train.load_init keeps the parent's own start (nested), completing an older one-level
     record from the parent checkpoint on disk; reproduce runs the chain from the first run."""
-    from training import network
+    from training.model import network
 
     net = network.build("draft")
     cmd = {k: f"python -m training.train --preset draft --steps 5 --out {tmp_path}/{k}"
@@ -87,7 +87,7 @@ def test_each_run_in_the_chain_says_which_light_stage_samples_it_trained_on(tmp_
     """A chain that began on v1 samples and went on under v2: load_init records each parent's
     render version (v1 where the record predates the field), and reproduce names the runs that
     today's renderer cannot repeat weight for weight."""
-    from training import network
+    from training.model import network
 
     net = network.build("draft")
     train.save_checkpoint(tmp_path / "a.pt", net, {"command": "python -m training.train a",

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from addon import lightvec
-from training import losses, network
+from training.model import losses, network
 from training.lightstage import layout, pairs
 
 torch.set_num_threads(1)

@@ -12,7 +12,8 @@ import torch
 import standin
 from addon import colour, engine, normalise, pipeline
 from addon.errors import ModelError
-from training import export, network, train
+from training import export, train
+from training.model import network
 
 torch.set_num_threads(1)
 TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,
@@ -100,7 +101,7 @@ def test_engine_output_matches_training_units_for_an_exported_model(tmp_path):
 def test_trainer_leaves_the_temporal_term_out_until_it_starts():
     """From the first step, the temporal term drove the network to a blurred output that ignores
     the input (temporally consistent, but not relit); train.py turns it on later."""
-    from training import losses
+    from training.model import losses
 
     args = train.parser().parse_args(["--batch", "1"])
     trainer = train.Trainer(network.RelightNet(TINY), losses.Switches(), args)

@@ -52,7 +52,7 @@ def record_pair(scene: Scene, t: float) -> PairRecord:
 def transport_matrix() -> torch.Tensor:
     """(114, 9) Q: a pixel's diffuse transfer D (irradiance = D @ stage weights) times Q is its
     order-2 SH transport T, the weighted least-squares fit of E(L) = T . SH(L) with SH(L) the
-    light vector's projection as training/network.py computes it (basis at cell centres times
+    light vector's projection as training/model/network.py computes it (basis at cell centres times
     solid angle): D @ layout.projection() maps cell power to irradiance, and the fit over the
     cells (weighted by solid angle) gives Q = P^T diag(omega) Y (Y^T diag(omega) Y)^-1."""
     y, omega = shading.cell_sh(torch.float64)
@@ -63,7 +63,7 @@ def transport_matrix() -> torch.Tensor:
 
 def transport(s: shading.ShadeInputs) -> torch.Tensor:
     """(9, H, W) SH transport of the foreground pixels (0 elsewhere): the target of the network's
-    ratio head (training.losses transport term)."""
+    ratio head (training.model.losses transport term)."""
     h, w = s.mask.shape
     out = torch.zeros(9, h * w)
     out[:, s.idx] = (s.diffuse.float() @ transport_matrix()).T

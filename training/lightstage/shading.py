@@ -259,7 +259,7 @@ def _sh9(d: torch.Tensor) -> torch.Tensor:
 def cell_sh(dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
     """The order-2 SH basis at the light vector's cell centres (256, 9) and the cells' solid
     angles (256,): a light vector's SH coefficients are ``light.flatten @ (basis * omega)``
-    (training/network.py's ratio head and the transport targets of pairs.py)."""
+    (training/model/network.py's ratio head and the transport targets of pairs.py)."""
     from addon import lightvec
 
     d = torch.from_numpy(lightvec.directions().reshape(-1, 3)).to(dtype)

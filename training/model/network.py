@@ -302,7 +302,7 @@ def _solid_angles() -> torch.Tensor:
 def _sh_projection() -> torch.Tensor:
     """(256, 9): a light vector's order-2 SH coefficients are ``light.flatten(2) @ this``
     (each cell's basis value at its centre direction times its solid angle)."""
-    from .lightstage.shading import cell_sh
+    from ..lightstage.shading import cell_sh
 
     basis, omega = cell_sh(torch.float32)
     return (basis * omega[:, None]).contiguous()
