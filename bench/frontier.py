@@ -304,7 +304,7 @@ def config_of(card: engine.ModelCard) -> dict | None:
 
 
 def training_steps(card: engine.ModelCard) -> dict:
-    """How long the card's network trained, from its recipe (training/train.py): the step budget
+    """How long the card's network trained, from its recipe (training/run/train.py): the step budget
     (--steps; None for a run boxed in minutes), the steps run, and the exported checkpoint's
     step (best.pt is the best on val, which may come before the end)."""
     training = card.data.get("training") if isinstance(card.data.get("training"), dict) else {}
@@ -356,7 +356,7 @@ TRAINED_KIND = "width/depth (trained, equal steps)"
 
 def research_variants(ctx: Context, skipped: list) -> list[Variant]:
     """The width/depth networks trained at an equal step budget (models/research/, exported by
-    training/export.py), each at its working size like the shipped presets. Missing files are
+    training/run/export.py), each at its working size like the shipped presets. Missing files are
     logged and left out; with none, the group is absent."""
     args, log = ctx.args, ctx.log
     if "research" in args.skip:
@@ -425,7 +425,7 @@ def quantised(session, frames, working: int, fullres, folder: pathlib.Path):
     what the network sees of the test frames (held out from training, not from this)."""
     import onnx
 
-    from training import export
+    from training.run import export
 
     card = session.card
     model = onnx.load(str(card.onnx_path))
@@ -528,7 +528,7 @@ def untrained(ctx: Context, frames, trained_configs: list[dict]) -> list[Variant
     """Speed of the presets and extra width/depth points exported untrained, for the configs
     that no trained model measured here has (and int8 / fp16 of the first): time is what these
     measure; their error is not an accuracy and is not reported."""
-    from training import export
+    from training.run import export
     from training.model import network
 
     if "untrained" in ctx.args.skip:

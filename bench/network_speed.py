@@ -5,7 +5,7 @@
 Speed does not depend on the weight values, so each preset is exported fresh from
 training/model/network.py (untrained) unless --models points at shipped models/<name>.onnx files.
 int8 here is calibrated on random normalised images (enough for timing; shipped int8 models are
-calibrated on light-stage frames by training/export.py). Writes bench/results/network_speed.md
+calibrated on light-stage frames by training/run/export.py). Writes bench/results/network_speed.md
 and .json (--out).
 """
 
@@ -20,7 +20,8 @@ import tempfile
 import numpy as np
 import torch
 
-from training import export, report
+from training import report
+from training.run import export
 from training.model import network
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

@@ -232,7 +232,7 @@ def load_model(path, label: str | None = None, threads: int = 1, stride: int = 3
     if not need <= names:
         raise ModelError(f"{path.name} does not follow the ONNX contract (it needs "
                          f"{sorted(need)}, it has {sorted(names)}); export it with "
-                         "training.export.")
+                         "training.run.export.")
     return Model(label, path, sess, int(stride), times_s, has_card, engine.file_sha256(path))
 
 

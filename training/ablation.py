@@ -5,7 +5,7 @@
 
 Each variant is one training run of the Draft network with one part of the method switched off
 (training/model/losses.py Switches.ablation; ``--steps`` budget, so every run saw the same number of
-steps whatever the machine's load), exported with training/export.py into models/research/.
+steps whatever the machine's load), exported with training/run/export.py into models/research/.
 "full" is the shipped Draft's recipe: the paper's losses plus the transport supervision of the
 ratio head (``--transport-loss``), without which the network did not learn the light's direction;
 "w/o transport supervision" is therefore the paper's own full recipe. Rows: full, w/o structure,
@@ -19,7 +19,7 @@ fixed test set of training/data/make_testset.py.
 Besides the means, each variant's RMSE difference to the full model is given with its paired
 standard error over the test samples: that is the test set's sampling noise only. Each variant is
 one seed, so the training noise (seed to seed) is not in it, and differences of the size of the
-checkpoint-to-checkpoint wobble of the val curves (``python -m training.train --curve RUN``) say
+checkpoint-to-checkpoint wobble of the val curves (``python -m training.run.train --curve RUN``) say
 nothing.
 """
 

@@ -318,14 +318,14 @@ def erode4(mask: np.ndarray) -> np.ndarray:
 
 def _normalised_inputs(sample: dict):
     """The engine's path: one exposure scale for the clip, the target light at unit power."""
-    from . import train  # training-side normalisation == the engine's (addon.normalise)
+    from .model import units  # training-side normalisation == the engine's (addon.normalise)
 
-    n = train.normalise_sample(sample)
+    n = units.normalise_sample(sample)
     return n["img_t"][None], n["light_k"][None], float(n["scale"]), float(n["light_scale"])
 
 
 def _absolute(relit, s, k):
-    from .train import relit_to_absolute  # the one place that defines the output's units
+    from .model.units import relit_to_absolute  # the one place that defines the output's units
 
     return relit_to_absolute(relit, s, k)
 
@@ -415,7 +415,7 @@ def heldout_dataset(resolution: int, seed: int = 12345, split: str = "test"):
 
     if split == "test" and seed == make_testset.TEST_SEED:
         return make_testset.TestSet(resolution)
-    from .train import make_dataset
+    from .data.dataset import make_dataset
 
     return make_dataset(split, resolution, seed)
 
@@ -457,7 +457,7 @@ def update_card(onnx_path, metrics: dict) -> pathlib.Path:
     card_path = onnx_path.with_suffix(".json")
     if not card_path.is_file():
         raise SystemExit(f"--update-card: no card at {card_path}; export the model with "
-                         "training.export, which writes one")
+                         "training.run.export, which writes one")
     card = json.loads(card_path.read_text())
     digest = hashlib.sha256(onnx_path.read_bytes()).hexdigest()
     if card.get("sha256") != digest:
@@ -510,7 +510,7 @@ def main(argv=None):
     if a.run:
         import torch
 
-        from .train import load_checkpoint
+        from .model.checkpoint import load_checkpoint
         torch.set_num_threads(a.threads)
         net, _ = load_checkpoint(f"{a.run}/{a.checkpoint}", raw=a.raw)
         predict = torch_predictor(net, a.true_source)

@@ -56,7 +56,7 @@ def prefs(extension):
 
 
 def card_with_figures(folder):
-    """The toy card with metrics and cost laid out as training/export.py writes them."""
+    """The toy card with metrics and cost laid out as training/run/export.py writes them."""
     card_path = next(folder.glob("*.json"))
     card = json.loads(card_path.read_text())
     card["metrics"] = {"model": {"rmse": 0.0412, "psnr": 27.7, "ssim": 0.91},

@@ -201,9 +201,9 @@ def test_quick_run_without_a_research_folder_skips_the_trained_points(quick_run)
 
 
 def _export_research_point(folder, name, steps, **overrides):
-    """A tiny untrained draft-family network exported as training/export.py would a trained one:
+    """A tiny untrained draft-family network exported as training/run/export.py would a trained one:
     the ONNX file and a card from export.make_card, its recipe saying how it trained."""
-    from training import export
+    from training.run import export
     from training.model import network
 
     net = network.build("draft", **overrides).eval()

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 import standin
-from training import ablation, export
+from training import ablation
+from training.run import export
 from training.model import network
 
 torch.set_num_threads(1)

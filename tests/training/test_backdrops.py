@@ -92,7 +92,9 @@ def test_an_unknown_backdrop_choice_says_which_exist(shared_data):
 
 
 def test_the_training_flag_reaches_the_dataset(shared_data):
-    from training.train import make_dataset, parser
+    from training.data.dataset import make_dataset
+    from training.run.options import parser
+
     args = parser().parse_args(["--backdrops", "varied"])
     ds = make_dataset("train", RES, 0, data_root=shared_data, pool=2, backdrops=args.backdrops)
     assert ds.backdrops == "varied"

@@ -1,8 +1,9 @@
-"""training.train --curve: a run's log as a table, every loss term it trained, '-' for the rest."""
+"""training.run.train --curve: a run's log as a table, every loss term it trained, '-' for the
+rest."""
 
 import json
 
-from training import train
+from training.run import validation
 
 
 def test_curve_lists_val_rows_with_the_mean_terms_since_the_last_one(tmp_path):
@@ -13,7 +14,7 @@ def test_curve_lists_val_rows_with_the_mean_terms_since_the_last_one(tmp_path):
             {"basic": 0.2, "transport": 0.4, "step": 2, "minutes": 0.2},
             {"val": {"model": m, "identity": m, "irradiance_ratio": m}, "step": 2, "minutes": 0.2}]
     (tmp_path / "log.jsonl").write_text("\n".join(json.dumps(r) for r in rows))
-    table = train.curve(tmp_path).splitlines()
+    table = validation.curve(tmp_path).splitlines()
     head = [c.strip() for c in table[0].strip("|").split("|")]
     assert head[-6:] == ["basic", "latent", "parsing", "temporal", "transport", "adv"]
     first = [c.strip() for c in table[2].strip("|").split("|")]

@@ -10,7 +10,8 @@ import torch
 
 import standin
 from addon import contract
-from training import evaluate, export
+from training import evaluate
+from training.run import export
 from training.model import network
 
 torch.set_num_threads(1)

@@ -7,8 +7,10 @@ import pytest
 import torch
 
 import standin
-from training import train
-from training.model import losses, network, warp
+from training.model import checkpoint, losses, network, units, warp
+from training.run import batches, lineage, options, schedule
+from training.run.ema import WeightAverage
+from training.run.trainer import Trainer, _raw
 
 torch.set_num_threads(1)
 TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,
@@ -16,7 +18,8 @@ TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, c
 
 
 def _batch(res=32, n=2, shift=1):
-    return train.collate([train.normalise_sample(standin.sample(res, i, shift)) for i in range(n)])
+    return batches.collate([units.normalise_sample(standin.sample(res, i, shift))
+                            for i in range(n)])
 
 
 # ---- terms
@@ -81,7 +84,7 @@ def test_temporal_pair_is_zero_only_for_consistent_motion():
 
 def test_downsampled_flow_still_warps_correctly():
     b = _batch(32, 1, shift=2)
-    d = train.downsample_batch(b, 2)
+    d = batches.downsample_batch(b, 2)
     assert d["img_t"].shape[-1] == 16 and float(d["flow_fw"][0, 0].mean()) == pytest.approx(1.0)
 
 
@@ -89,7 +92,7 @@ def test_downsampled_flow_still_warps_correctly():
 
 def test_normalise_sample_uses_one_scale_for_both_frames_and_unit_target_power():
     s = standin.sample(32, 0)
-    n = train.normalise_sample(s)
+    n = units.normalise_sample(s)
     scale = float(n["scale"])
     assert np.allclose(n["img_t"] * scale, s["img_t_i"], rtol=1e-5)
     assert np.allclose(n["img_t1"] * scale, s["img_t1_j"], rtol=1e-5)
@@ -102,7 +105,7 @@ def test_normalise_sample_uses_one_scale_for_both_frames_and_unit_target_power()
 def test_all_dark_target_gives_black_ground_truth():
     s = standin.sample(32, 0)
     s["light_k"] = np.zeros_like(s["light_k"])
-    n = train.normalise_sample(s)
+    n = units.normalise_sample(s)
     assert np.all(n["gt_t"] == 0) and np.all(np.isfinite(n["light_k"]))
 
 
@@ -152,8 +155,8 @@ def test_unknown_ablation_is_refused():
 
 def test_a_few_training_steps_reduce_the_loss():
     torch.manual_seed(0)
-    args = train.parser().parse_args(["--lr", "3e-3", "--critic-width", "8"])
-    trainer = train.Trainer(network.RelightNet(TINY), losses.Switches(adversarial=False), args)
+    args = options.parser().parse_args(["--lr", "3e-3", "--critic-width", "8"])
+    trainer = Trainer(network.RelightNet(TINY), losses.Switches(adversarial=False), args)
     b = _batch(32, 2)
     first = trainer.step(b, args.lr, adv_on=False)["total"]
     for _ in range(15):
@@ -162,47 +165,48 @@ def test_a_few_training_steps_reduce_the_loss():
 
 
 def test_adversarial_step_runs_with_bf16_and_channels_last():
-    args = train.parser().parse_args(["--critic-width", "8", "--bf16", "--channels-last"])
-    trainer = train.Trainer(network.RelightNet(TINY), losses.Switches(), args)
+    args = options.parser().parse_args(["--critic-width", "8", "--bf16", "--channels-last"])
+    trainer = Trainer(network.RelightNet(TINY), losses.Switches(), args)
     parts = trainer.step(_batch(32, 2), args.lr, adv_on=True)
     assert {"adv", "critic", "total"} <= set(parts) and all(map(math.isfinite, parts.values()))
 
 
 def test_progressive_schedule():
-    st = train.parse_stages("0.3:4,0.7:2,1:1")
-    assert [train.factor_at(st, f) for f in (0.0, 0.5, 0.9, 1.2)] == [4, 2, 1, 1]
+    st = schedule.parse_stages("0.3:4,0.7:2,1:1")
+    assert [schedule.factor_at(st, f) for f in (0.0, 0.5, 0.9, 1.2)] == [4, 2, 1, 1]
     with pytest.raises(ValueError):
-        train.parse_stages("0.5:2")
-    assert train.lr_at(1.0, 0.0) == pytest.approx(1.0) and train.lr_at(1.0, 1.0) == pytest.approx(0.05)
+        schedule.parse_stages("0.5:2")
+    assert schedule.lr_at(1.0, 0.0) == pytest.approx(1.0)
+    assert schedule.lr_at(1.0, 1.0) == pytest.approx(0.05)
 
 
 def test_warmup_ramps_the_rate_up_to_the_cosine_then_leaves_it():
-    ramp = [train.lr_at(1.0, 0.0, step, warmup=4) for step in range(6)]
+    ramp = [schedule.lr_at(1.0, 0.0, step, warmup=4) for step in range(6)]
     assert ramp == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0, 1.0])
-    assert train.lr_at(1.0, 0.5, 10, warmup=4) == pytest.approx(train.lr_at(1.0, 0.5))
-    assert train.lr_at(2.0, 0.3, 0, warmup=0) == train.lr_at(2.0, 0.3)  # off by default
-    assert train.parser().parse_args(["--warmup-steps", "200"]).warmup_steps == 200
+    assert schedule.lr_at(1.0, 0.5, 10, warmup=4) == pytest.approx(schedule.lr_at(1.0, 0.5))
+    assert schedule.lr_at(2.0, 0.3, 0, warmup=0) == schedule.lr_at(2.0, 0.3)  # off by default
+    assert options.parser().parse_args(["--warmup-steps", "200"]).warmup_steps == 200
 
 
 def test_init_loads_a_checkpoint_of_the_same_network_and_refuses_another(tmp_path):
     cfg = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,
                             light_embed=16, relight="ratio")
     src = standin.perturbed_net(cfg, 9)
-    train.save_checkpoint(tmp_path / "a.pt", src, {"command": "x"}, 123)
+    checkpoint.save_checkpoint(tmp_path / "a.pt", src, {"command": "x"}, 123)
     fresh = network.RelightNet(cfg)
-    info = train.load_init(fresh, tmp_path / "a.pt")
+    info = lineage.load_init(fresh, tmp_path / "a.pt")
     assert info["step"] == 123
     for a, b in zip(fresh.state_dict().values(), src.state_dict().values()):
         assert torch.equal(a, b)
     other = network.RelightNet(network.NetConfig(**{**cfg.to_dict(), "widths": (8, 8, 16, 24)}))
     with pytest.raises(SystemExit, match="same --preset"):
-        train.load_init(other, tmp_path / "a.pt")
+        lineage.load_init(other, tmp_path / "a.pt")
 
 
 def test_weight_average_follows_the_weights_at_its_decay():
     net = network.RelightNet(TINY)
     start = [p.detach().clone() for p in net.parameters()]
-    ema = train.WeightAverage(net, 0.9, warm=True)  # a run from --init: the average starts there
+    ema = WeightAverage(net, 0.9, warm=True)  # a run from --init: the average starts there
     with torch.no_grad():
         for p in net.parameters():
             p.add_(1.0)
@@ -213,28 +217,28 @@ def test_weight_average_follows_the_weights_at_its_decay():
         assert not a.requires_grad
     for p, s in zip(net.parameters(), start):  # the trained weights are left alone
         assert torch.allclose(p, s + 1.0)
-    cold = train.WeightAverage(network.RelightNet(TINY), 0.999, warm=False)
+    cold = WeightAverage(network.RelightNet(TINY), 0.999, warm=False)
     rand = [a.detach().clone() for a in cold.net.parameters()]
     cold.update(net)  # from scratch the random start weighs 2/11 at the first update, not 0.999
     for a, r, p in zip(cold.net.parameters(), rand, net.parameters()):
         assert torch.allclose(a, r * (2 / 11) + p.detach() * (9 / 11), atol=1e-5)
-    assert train.parser().parse_args(["--ema", "0.999"]).ema == 0.999
-    assert train.parser().parse_args([]).ema == 0.0
+    assert options.parser().parse_args(["--ema", "0.999"]).ema == 0.999
+    assert options.parser().parse_args([]).ema == 0.0
 
 
 def test_checkpoint_of_an_averaged_run_loads_the_average_or_the_raw_weights(tmp_path):
     net = network.RelightNet(TINY)
-    ema = train.WeightAverage(net, 0.5, warm=True)
+    ema = WeightAverage(net, 0.5, warm=True)
     with torch.no_grad():
         for p in net.parameters():
             p.add_(1.0)
     ema.update(net)
-    train.save_checkpoint(tmp_path / "c.pt", ema.net, {"command": "x"}, 7, train._raw(ema, net))
-    avg, _ = train.load_checkpoint(tmp_path / "c.pt")
-    raw, _ = train.load_checkpoint(tmp_path / "c.pt", raw=True)
+    checkpoint.save_checkpoint(tmp_path / "c.pt", ema.net, {"command": "x"}, 7, _raw(ema, net))
+    avg, _ = checkpoint.load_checkpoint(tmp_path / "c.pt")
+    raw, _ = checkpoint.load_checkpoint(tmp_path / "c.pt", raw=True)
     for a, r, e, p in zip(avg.parameters(), raw.parameters(), ema.net.parameters(),
                           net.parameters()):
         assert torch.equal(a, e) and torch.equal(r, p) and not torch.equal(a, r)
-    train.save_checkpoint(tmp_path / "plain.pt", net, {"command": "x"}, 7, train._raw(None, net))
+    checkpoint.save_checkpoint(tmp_path / "plain.pt", net, {"command": "x"}, 7, _raw(None, net))
     with pytest.raises(SystemExit, match="leave out --raw"):
-        train.load_checkpoint(tmp_path / "plain.pt", raw=True)
+        checkpoint.load_checkpoint(tmp_path / "plain.pt", raw=True)

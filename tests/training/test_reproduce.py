@@ -1,14 +1,16 @@
-"""training.reproduce: the shipped cards' recipes are valid commands of today's training CLI."""
+"""training.run.reproduce: the shipped cards' recipes are valid commands of today's training CLI."""
 
+import importlib.util
 import json
 import pathlib
 import shlex
 
 import pytest
 
-from training import export, reproduce, train
 from training.intrinsic import export as intrinsic_export
 from training.intrinsic import train as intrinsic_train
+from training.model import checkpoint
+from training.run import export, lineage, options, reproduce
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 CARDS = sorted((ROOT / "models").glob("*.json"))
@@ -24,10 +26,13 @@ def _card(init=None, preset="draft", name="relight-draft"):
 
 
 def test_a_continued_model_reproduces_its_first_run_then_the_second_then_the_export():
+    """The card records the commands as run (here under the modules' former names); reproduce
+    runs them under today's names."""
     first = "python -m training.train --preset draft --steps 5 --out runs/a"
     cmds = reproduce.commands(_card(init=first))
-    assert cmds[0] == first and "--out runs/b" in cmds[1]
-    assert cmds[2] == ("python -m training.export --run runs/b --checkpoint best.pt --name "
+    assert cmds[0] == "python -m training.run.train --preset draft --steps 5 --out runs/a"
+    assert cmds[1].startswith("python -m training.run.train ") and "--out runs/b" in cmds[1]
+    assert cmds[2] == ("python -m training.run.export --run runs/b --checkpoint best.pt --name "
                        "relight-draft --threads 1 --eval 64")
     assert len(reproduce.commands(_card())) == 2
     int8 = reproduce.commands(_card(preset="final-int8", name="relight-final-int8"))
@@ -35,24 +40,24 @@ def test_a_continued_model_reproduces_its_first_run_then_the_second_then_the_exp
 
 
 def test_a_model_trained_further_twice_reproduces_the_whole_chain(tmp_path):
-    """train.load_init keeps the parent's own start (nested), completing an older one-level
+    """lineage.load_init keeps the parent's own start (nested), completing an older one-level
     record from the parent checkpoint on disk; reproduce runs the chain from the first run."""
     from training.model import network
 
     net = network.build("draft")
-    cmd = {k: f"python -m training.train --preset draft --steps 5 --out {tmp_path}/{k}"
+    cmd = {k: f"python -m training.run.train --preset draft --steps 5 --out {tmp_path}/{k}"
            for k in "abc"}
-    train.save_checkpoint(tmp_path / "a.pt", net, {"command": cmd["a"]}, 5)
+    checkpoint.save_checkpoint(tmp_path / "a.pt", net, {"command": cmd["a"]}, 5)
     old_style = {"checkpoint": str(tmp_path / "a.pt"), "step": 5, "recipe": cmd["a"]}
-    train.save_checkpoint(tmp_path / "b.pt", net, {"command": cmd["b"], "init": old_style}, 5)
-    init = train.load_init(network.build("draft"), tmp_path / "b.pt")
+    checkpoint.save_checkpoint(tmp_path / "b.pt", net, {"command": cmd["b"], "init": old_style}, 5)
+    init = lineage.load_init(network.build("draft"), tmp_path / "b.pt")
     assert init["recipe"] == cmd["b"] and init["init"]["recipe"] == cmd["a"]
     assert init["init"]["init"] is None  # a run from scratch ends the chain
     card = {"name": "relight-draft", "preset": "draft", "training": {"recipe": {
         "command": cmd["c"], "args": {"out": f"{tmp_path}/c"}, "init": init}}}
     assert reproduce.commands(card)[:3] == [cmd["a"], cmd["b"], cmd["c"]]
     # a parent not on disk: the record stays as it was
-    assert train.resolve_lineage({"checkpoint": str(tmp_path / "gone.pt"), "recipe": "x"}) == {
+    assert lineage.resolve_lineage({"checkpoint": str(tmp_path / "gone.pt"), "recipe": "x"}) == {
         "checkpoint": str(tmp_path / "gone.pt"), "recipe": "x"}
 
 
@@ -62,20 +67,33 @@ def test_every_shipped_card_gives_commands_the_current_cli_accepts(card):
     for c in cmds:
         args = shlex.split(c)
         assert args[:2] == ["python", "-m"]
-        if args[2] == "training.train":
-            parsed = train.parser().parse_args(args[3:])
+        if args[2] == "training.run.train":
+            parsed = options.parser().parse_args(args[3:])
             assert parsed.steps > 0  # step budgets: the same work on any machine
         elif args[2] == "training.intrinsic.train":
             intrinsic_train.parser().parse_args(args[3:])
         elif args[2] == "training.intrinsic.export":
             intrinsic_export.parser().parse_args(args[3:])
         else:
-            assert args[2] == "training.export"
+            assert args[2] == "training.run.export"
             export.parser().parse_args(args[3:])
-    trains = [c for c in cmds if shlex.split(c)[2] in ("training.train", "training.intrinsic.train")]
+    trains = [c for c in cmds
+              if shlex.split(c)[2] in ("training.run.train", "training.intrinsic.train")]
     for before, after in zip(trains, trains[1:]):  # each run starts from the one before it
         out = shlex.split(before)[shlex.split(before).index("--out") + 1]
         assert f"--init {out}/" in after
+
+
+def test_moved_modules_run_under_their_present_names():
+    """MOVED maps each module name a card may have recorded to a module that exists today, and
+    only the module of ``python -m`` is renamed."""
+    for old, new in reproduce.MOVED.items():
+        assert old != new and importlib.util.find_spec(new) is not None, new
+    assert reproduce.current_command("python -m training.train --out runs/training.train") == (
+        "python -m training.run.train --out runs/training.train")
+    assert reproduce.current_command("python -m training.intrinsic.train --out x") == (
+        "python -m training.intrinsic.train --out x")
+    assert reproduce.current_module("training.make_testset") == "training.data.make_testset"
 
 
 def test_a_missing_card_says_what_to_pass(tmp_path, capsys):
@@ -90,13 +108,13 @@ def test_each_run_in_the_chain_says_which_light_stage_samples_it_trained_on(tmp_
     from training.model import network
 
     net = network.build("draft")
-    train.save_checkpoint(tmp_path / "a.pt", net, {"command": "python -m training.train a",
+    checkpoint.save_checkpoint(tmp_path / "a.pt", net, {"command": "python -m training.train a",
                                                    "git_commit": "abc123"}, 5)
-    init = train.load_init(network.build("draft"), tmp_path / "a.pt")
+    init = lineage.load_init(network.build("draft"), tmp_path / "a.pt")
     assert init["render_version"] == "v1" and init["git_commit"] == "abc123"
-    train.save_checkpoint(tmp_path / "b.pt", net, {"command": "python -m training.train b",
+    checkpoint.save_checkpoint(tmp_path / "b.pt", net, {"command": "python -m training.train b",
                                                    "init": init, "render_version": "v2"}, 5)
-    init_b = train.load_init(network.build("draft"), tmp_path / "b.pt")
+    init_b = lineage.load_init(network.build("draft"), tmp_path / "b.pt")
     assert init_b["render_version"] == "v2" and init_b["init"]["render_version"] == "v1"
     card = {"name": "relight-draft", "preset": "draft", "training": {"recipe": {
         "command": "python -m training.train c", "args": {"out": "runs/c"}, "init": init_b,

@@ -72,7 +72,8 @@ def test_objective_has_a_transport_term_only_when_switched_on():
     net = network.RelightNet(network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1),
                                                expand=2, code=8, light_embed=16,
                                                relight="ratio"))
-    from training.train import collate, normalise_sample
+    from training.model.units import normalise_sample
+    from training.run.batches import collate
 
     samples = []
     for i in range(2):

@@ -1,4 +1,4 @@
-"""Units of the network's inputs and targets (training.train.normalise_sample), and the engine
+"""Units of the network's inputs and targets (training.model.units.normalise_sample), and the engine
 bringing an exported model's output back exactly as training and evaluation do.
 
 The first Draft model trained against ground truth relit / (s k): a target that depends on the
@@ -12,8 +12,9 @@ import torch
 import standin
 from addon import colour, engine, normalise, pipeline
 from addon.errors import ModelError
-from training import export, train
-from training.model import network
+from training.model import network, units
+from training.run import batches, export, options
+from training.run.trainer import Trainer
 
 torch.set_num_threads(1)
 TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,
@@ -33,7 +34,7 @@ def _brighter_source(sample: dict, c: float) -> dict:
 @pytest.mark.parametrize("c", [0.1, 7.0])
 def test_targets_depend_only_on_what_the_network_sees(c):
     s = standin.sample(32, 3)
-    a, b = train.normalise_sample(s), train.normalise_sample(_brighter_source(s, c))
+    a, b = units.normalise_sample(s), units.normalise_sample(_brighter_source(s, c))
     for key in SEEN:  # the exposure scale hides the source power from the network ...
         np.testing.assert_allclose(a[key], b[key], rtol=1e-5, atol=1e-7)
     for key in TARGETS:  # ... so the target must not depend on it either
@@ -46,15 +47,15 @@ def test_target_path_agrees_with_the_self_relit_path():
     (RelightNet.relight_by), so unit-light target * source power must be the input."""
     s = standin.sample(32, 5)
     s["light_k"], s["gt_t_k"] = s["light_i"], s["img_t_i"]
-    n = train.normalise_sample(s)
+    n = units.normalise_sample(s)
     power = network.light_power(torch.from_numpy(n["src_t"][None]))[0].item()
     np.testing.assert_allclose(n["gt_t"] * power, n["img_t"], rtol=1e-4, atol=1e-6)
 
 
 def test_relit_to_absolute_inverts_the_target():
     s = standin.sample(32, 7)
-    n = train.normalise_sample(s)
-    back = train.relit_to_absolute(n["gt_t"], float(n["scale"]), float(n["light_scale"]))
+    n = units.normalise_sample(s)
+    back = units.relit_to_absolute(n["gt_t"], float(n["scale"]), float(n["light_scale"]))
     np.testing.assert_allclose(back, s["gt_t_k"], rtol=1e-5, atol=1e-7)
 
 
@@ -82,11 +83,11 @@ def test_engine_output_matches_training_units_for_an_exported_model(tmp_path):
     session = engine.new_session(onnx_path, threads=1)
 
     s = standin.sample(64, 11)
-    n = train.normalise_sample(s)
+    n = units.normalise_sample(s)
     with torch.no_grad():
         relit, source, _ = net(torch.from_numpy(n["img_t"][None]),
                                torch.from_numpy(n["light_k"][None]))
-    want = train.relit_to_absolute(relit[0].numpy(), float(n["scale"]), float(n["light_scale"]))
+    want = units.relit_to_absolute(relit[0].numpy(), float(n["scale"]), float(n["light_scale"]))
 
     relit_low, source_hwc, _, k = pipeline.infer_planar(session, n["img_t"], s["light_k"])
     plan = pipeline.Plan(colour.lookup("Linear Rec.709"), float(n["scale"]), (64, 64), (64, 64),
@@ -100,12 +101,12 @@ def test_engine_output_matches_training_units_for_an_exported_model(tmp_path):
 
 def test_trainer_leaves_the_temporal_term_out_until_it_starts():
     """From the first step, the temporal term drove the network to a blurred output that ignores
-    the input (temporally consistent, but not relit); train.py turns it on later."""
+    the input (temporally consistent, but not relit); the trainer turns it on later."""
     from training.model import losses
 
-    args = train.parser().parse_args(["--batch", "1"])
-    trainer = train.Trainer(network.RelightNet(TINY), losses.Switches(), args)
-    b = train.collate([train.normalise_sample(standin.sample(32, 1))])
+    args = options.parser().parse_args(["--batch", "1"])
+    trainer = Trainer(network.RelightNet(TINY), losses.Switches(), args)
+    b = batches.collate([units.normalise_sample(standin.sample(32, 1))])
     assert "temporal" not in trainer.step(b, 1e-4, adv_on=False, temporal_on=False)
     assert "temporal" in trainer.step(b, 1e-4, adv_on=False, temporal_on=True)
     assert args.temporal_start > 0  # the default recipe starts without it

@@ -213,3 +213,9 @@ class LightStageDataset:
         out = pairs.assemble(rec, lights, len(PARSING_CLASSES), with_transport=self.transport)
         assert torch.get_num_threads() == torch_threads
         return out
+
+
+def make_dataset(split: str, resolution: int, seed: int, sampling: bool = True, **kwargs):
+    """The light stage as training and evaluation build it: ``LightStageDataset``, with the
+    lighting sampling off for the "w/o sampling" ablation (``sampling=False``)."""
+    return LightStageDataset(split, resolution, seed, sampling=sampling, **kwargs)

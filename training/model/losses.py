@@ -9,8 +9,8 @@
 
 Norms are means (per pixel, texel or code element), so every term is O(1) whatever the image size
 and the weights of 1.0 stay meaningful. Every image here is in the network's normalised units
-(training.train.normalise_sample): inputs ``img / s``, target-relit ground truth ``gt / (s k)``,
-self-relit ground truth the normalised input itself, source lights ``light / s``.
+(training.model.units.normalise_sample): inputs ``img / s``, target-relit ground truth
+``gt / (s k)``, self-relit ground truth the normalised input itself, source lights ``light / s``.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Export a trained network to ONNX with its model card (the contract in addon/contract.py).
 
-    python -m training.export --run runs/draft-01 --name relight-draft [--checkpoint best.pt] [--int8]
+    python -m training.run.export --run runs/draft-01 --name relight-draft \
+        [--checkpoint best.pt] [--int8]
 
 Steps: export (opset 17, dynamic N, H, W; names from addon.contract), verify onnxruntime against
 PyTorch on several sizes within ``TOLERANCE``, optionally quantise to int8 (static, QDQ, calibrated
@@ -21,7 +22,7 @@ import torch
 
 from addon import contract, engine, normalise
 
-from .model import network
+from ..model import network
 
 OPSET = 17
 # ONNX vs PyTorch agreement required on the relit image (normalised units, values ~0..2), the
@@ -29,7 +30,7 @@ OPSET = 17
 TOLERANCE = {"atol": 1e-4, "rtol": 1e-3}
 VERIFY_SIZES = ((64, 64), (96, 160))
 CALIBRATION_SEED = 4242  # int8 calibration frames: training identities, not the eval samples
-MODELS = pathlib.Path(__file__).resolve().parents[1] / "models"
+MODELS = pathlib.Path(__file__).resolve().parents[2] / "models"
 
 
 def export_onnx(net: network.RelightNet, path, opset: int = OPSET) -> pathlib.Path:
@@ -90,7 +91,7 @@ def verify(net: network.RelightNet, path, sizes=VERIFY_SIZES, seed: int = 0) -> 
 
 def calibration_feeds(samples, stride: int) -> list[dict]:
     """Network inputs from light-stage samples, normalised exactly as at inference."""
-    from .train import normalise_sample
+    from ..model.units import normalise_sample
 
     feeds = []
     for s in samples:
@@ -234,8 +235,9 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None):
-    from . import evaluate
-    from .train import load_checkpoint, resolve_lineage, samples_version
+    from .. import evaluate
+    from ..model.checkpoint import load_checkpoint
+    from .lineage import resolve_lineage, samples_version
 
     a = parser().parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -271,9 +273,8 @@ def main(argv=None):
 
 
 def export_int8(a, net, fp32_path, ds, training, res, working, fp32_cost):
-    from . import evaluate
-
-    from .train import make_dataset
+    from .. import evaluate
+    from ..data.dataset import make_dataset
 
     train_ds = make_dataset("train", res, CALIBRATION_SEED)  # training identities: never the test set
     calib = [train_ds[i] for i in range(16)]

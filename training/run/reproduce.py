@@ -1,12 +1,12 @@
 """Reproduce a shipped model from its card: one command.
 
-    .venv/bin/python -m training.reproduce models/relight-draft.json          # print the commands
-    .venv/bin/python -m training.reproduce models/relight-draft.json --run    # and run them
+    .venv/bin/python -m training.run.reproduce models/relight-draft.json          # print them
+    .venv/bin/python -m training.run.reproduce models/relight-draft.json --run    # and run them
 
 A card's ``training.recipe`` holds the exact training command (every argument) and, for a model
 trained further from another run (``--init``), that run's command too, and the command of the run
 that one started from, back to a run from scratch; the commands run in order (each writes the
-checkpoint the next starts from), then ``training.export`` writes the
+checkpoint the next starts from), then ``training.run.export`` writes the
 ONNX and the card again (``--int8`` for an int8 card, from the same run). On this project's
 2-core CPU the shipped presets take 40-120 minutes each; a GPU runs the same step budgets.
 
@@ -26,13 +26,16 @@ import sys
 
 from addon import contract
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 MOVED = {
     "training.build_cache": "training.data.build_cache",
     "training.dataset": "training.data.dataset",
+    "training.export": "training.run.export",
     "training.lighting_sampling": "training.data.lighting_sampling",
     "training.make_demo_clip": "training.data.make_demo_clip",
     "training.make_testset": "training.data.make_testset",
+    "training.reproduce": "training.run.reproduce",
+    "training.train": "training.run.train",
 }
 
 
@@ -56,7 +59,7 @@ def chain(card: dict) -> list[dict]:
 
     recipe = card["training"]["recipe"]
     runs, init = [], recipe.get("init")
-    while init:  # the run it started from, that run's own start, ... (training.train lineage)
+    while init:  # the run it started from, that run's own start, ... (training.run.lineage)
         if init.get("recipe"):
             runs.append(run(init["recipe"], init))
         init = init.get("init")
@@ -84,7 +87,7 @@ def commands(card: dict) -> list[str]:
         out.append(f"python -m training.intrinsic.export --run {recipe['args']['out']} "
                    f"--checkpoint {checkpoint} --name {name}")
         return out
-    out.append(f"python -m training.export --run {recipe['args']['out']} --checkpoint "
+    out.append(f"python -m training.run.export --run {recipe['args']['out']} --checkpoint "
                f"{checkpoint} --name {name} --threads 1 --eval 64" + (" --int8" if int8 else ""))
     return out
 
@@ -98,7 +101,7 @@ def main(argv=None) -> int:
     if not path.is_file():
         print(f"reproduce: no model card at {path}; pass models/<name>.json", file=sys.stderr)
         return 2
-    from .data.dataset import renderer_version
+    from ..data.dataset import renderer_version
 
     card = json.loads(path.read_text())
     cmds = commands(card)
