@@ -498,7 +498,7 @@ def _write_uncompressed(tmp: str, stored: np.ndarray, names) -> None:
             f.write(buf[:n].data)
 
 
-_HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname() or "host")
+HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname() or "host")
 # <final name>.<host>_<pid>_<thread>.partial, and this module's older <final>.<pid>.partial
 _PARTIAL = re.compile(r"^(?P<final>.+?)\.(?:(?P<host>[A-Za-z0-9-]+)_(?P<pid>\d+)_\d+"
                       r"|(?P<old_pid>\d+)(?:\.\d+)?)\.partial$")
@@ -507,7 +507,7 @@ _PARTIAL = re.compile(r"^(?P<final>.+?)\.(?:(?P<host>[A-Za-z0-9-]+)_(?P<pid>\d+)
 def partial_path(path) -> str:
     """The temporary name a file is written under before it is renamed into place; it names the
     writing machine and process, so a later run can tell a dead writer's leftovers."""
-    return f"{path}.{_HOST}_{os.getpid()}_{threading.get_ident()}.partial"
+    return f"{path}.{HOST}_{os.getpid()}_{threading.get_ident()}.partial"
 
 
 def stale_partial(name: str) -> str | None:
@@ -516,13 +516,14 @@ def stale_partial(name: str) -> str | None:
     m = _PARTIAL.match(name)
     if not m:
         return None
-    if m.group("host") is not None and m.group("host") != _HOST:
+    if m.group("host") is not None and m.group("host") != HOST:
         return None  # another machine's (shared storage): it may still be writing
     pid = int(m.group("pid") or m.group("old_pid"))
-    return None if pid == os.getpid() or _pid_alive(pid) else m.group("final")
+    return None if pid == os.getpid() or pid_alive(pid) else m.group("final")
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` of this machine is running."""
     if sys.platform == "win32":  # os.kill(pid, 0) would send Ctrl+C there
         import ctypes
         k32 = ctypes.WinDLL("kernel32", use_last_error=True)

@@ -20,7 +20,8 @@ Outputs (i = 0-based clip frame index): relit/relit_{i:06d}.exr, matte/matte_{i:
 source_light/source_{i:06d}.npy, and relight_run.json (the run's identity). A frame is finished
 when its relit file exists: it is renamed into place last, after its matte and source light.
 Files are written under a temporary name first (frames.partial_path); a run sweeps away those
-that a killed process of this machine left behind (see sweep_partials).
+that a killed process of this machine left behind (see sweep_partials). A run holds its folder
+(runlock.FolderLock): processes of one run (farm chunks) share it, another run is refused.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from . import (colour, contract, detail, engine, framing, frames, lightvec, normalise,
-               portrait)
+               portrait, runlock)
 from .errors import Cancelled, InputError, LightingError, ModelError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
 
@@ -312,11 +313,7 @@ def _check_not_source(clip: ClipSpec, out_dir: str) -> None:
                               f"lives ({f}); choose another output folder.")
 
 
-def prepare_output(out_dir: str, identity: dict, overwrite: bool,
-                   same_run: tuple = ()) -> dict | None:
-    """Create the folders; return the stored run record when resuming, else None. Refuses a
-    folder holding another run (or unknown relit frames) unless ``overwrite``. ``same_run``:
-    older spellings of ``identity`` that also mean this run."""
+def _create_folder(out_dir: str) -> None:
     try:
         for sub in ("relit", "matte", "source_light"):
             os.makedirs(os.path.join(out_dir, sub), exist_ok=True)
@@ -325,6 +322,15 @@ def prepare_output(out_dir: str, identity: dict, overwrite: bool,
                           "you can write to.") from err
     if not os.access(out_dir, os.W_OK):
         raise OutputError(f"The output folder {out_dir} is not writable; choose another.")
+
+
+def prepare_output(out_dir: str, identity: dict, overwrite: bool,
+                   same_run: tuple = ()) -> dict | None:
+    """Create the folders; return the stored run record when resuming, else None. Refuses a
+    folder holding another run (or unknown relit frames) unless ``overwrite``. ``same_run``:
+    older spellings of ``identity`` that also mean this run. Called under the folder's setup
+    lock (runlock.FolderLock)."""
+    _create_folder(out_dir)
     stored = _read_run(out_dir)
     if stored is not None and stored.get("identity") in (identity, *same_run):
         return stored
@@ -652,43 +658,48 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
         raise InputError(f"The working size must be positive, got {working}.")
     _check_not_source(clip, out_dir)
     identity = run_identity(clip, lights, options, session.card, working)
-    stored = prepare_output(out_dir, identity, options.overwrite,
-                            same_run=({**identity, "source": _legacy_source(clip)},))
-    swept = sweep_partials(out_dir)
-    if swept:
-        out.info(f"Removed {len(swept)} unfinished file(s) that an interrupted run left.")
-    plan = Plan(space, 1.0, (info.width, info.height),
-                detail.working_shape(info.height, info.width, working),
-                options.detail_transfer, options.write_matte, options.exr_compression)
-    fullres = detail.FullRes(threads=1)
-    if stored is not None:
-        scale = float(stored["exposure_scale"])
-    else:
-        scale = clip_exposure(clip, plan, fullres)
-        _atomic_write_text(os.path.join(out_dir, RUN_FILE), json.dumps(
-            {"identity": identity, "exposure_scale": scale, "model": session.card.name,
-             "providers": session.providers, "source_path": os.path.realpath(clip.path)},
-            indent=2))
-    plan = Plan(space, scale, plan.size, plan.working, plan.detail_transfer, plan.write_matte,
-                plan.compression, relit_times_s(session.card), options.background)
-    out.info(f"Relighting {len(selected)} frames at {plan.working[1]}x{plan.working[0]} with "
-             f"{session.card.name} on {session.providers[0]}; exposure scale {scale:.6g}.")
+    _create_folder(out_dir)
+    run = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
+    # Held until the run ends, however it ends: another run cannot write here meanwhile.
+    with runlock.FolderLock(out_dir, run, note=out.warn, should_cancel=should_cancel) as lock:
+        stored = prepare_output(out_dir, identity, options.overwrite,
+                                same_run=({**identity, "source": _legacy_source(clip)},))
+        swept = sweep_partials(out_dir)
+        if swept:
+            out.info(f"Removed {len(swept)} unfinished file(s) that an interrupted run left.")
+        plan = Plan(space, 1.0, (info.width, info.height),
+                    detail.working_shape(info.height, info.width, working),
+                    options.detail_transfer, options.write_matte, options.exr_compression)
+        fullres = detail.FullRes(threads=1)
+        if stored is not None:
+            scale = float(stored["exposure_scale"])
+        else:
+            scale = clip_exposure(clip, plan, fullres)
+            _atomic_write_text(os.path.join(out_dir, RUN_FILE), json.dumps(
+                {"identity": identity, "exposure_scale": scale, "model": session.card.name,
+                 "providers": session.providers, "source_path": os.path.realpath(clip.path)},
+                indent=2))
+        lock.end_setup()  # what the folder holds is settled: other chunks of this run may start
+        plan = Plan(space, scale, plan.size, plan.working, plan.detail_transfer, plan.write_matte,
+                    plan.compression, relit_times_s(session.card), options.background)
+        out.info(f"Relighting {len(selected)} frames at {plan.working[1]}x{plan.working[0]} with "
+                 f"{session.card.name} on {session.providers[0]}; exposure scale {scale:.6g}.")
 
-    todo = [i for i in selected if not os.path.isfile(relit_path(out_dir, i))]
-    resumed = len(selected) - len(todo)
-    if resumed:
-        out.info(f"Resuming: {resumed} of {len(selected)} frames are already done.")
-    boxes = None
-    if isinstance(session, engine.IntrinsicSession) and todo:
-        boxes, missing = portrait_boxes(clip, plan, session, out_dir, identity, fullres,
-                                        should_cancel)
-        missed = len(set(missing) & set(todo))
-        if missed:
-            out.warn(f"No portrait was found in {missed} frame(s); they are framed like their "
-                     "neighbours (a frame with no subject comes out unchanged). The subject's "
-                     "face must be visible and at least a few pixels across.")
-    written = _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed,
-                          len(selected), on_progress, should_cancel, out, boxes)
+        todo = [i for i in selected if not os.path.isfile(relit_path(out_dir, i))]
+        resumed = len(selected) - len(todo)
+        if resumed:
+            out.info(f"Resuming: {resumed} of {len(selected)} frames are already done.")
+        boxes = None
+        if isinstance(session, engine.IntrinsicSession) and todo:
+            boxes, missing = portrait_boxes(clip, plan, session, out_dir, identity, fullres,
+                                            should_cancel)
+            missed = len(set(missing) & set(todo))
+            if missed:
+                out.warn(f"No portrait was found in {missed} frame(s); they are framed like their "
+                         "neighbours (a frame with no subject comes out unchanged). The subject's "
+                         "face must be visible and at least a few pixels across.")
+        written = _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed,
+                              len(selected), on_progress, should_cancel, out, boxes)
     return RunResult(out_dir, [relit_path(out_dir, i) for i in selected],
                      [matte_path(out_dir, i) for i in selected] if options.write_matte else [],
                      written, resumed, scale, out.warnings)
