@@ -103,6 +103,28 @@ class RunResult:
     warnings: list[str] = field(default_factory=list)
 
 
+# Device names Windows reserves in every folder, with or without an extension.
+_RESERVED = {"con", "prn", "aux", "nul", *(f"{d}{i}" for d in ("com", "lpt") for i in range(10))}
+_HASHED = re.compile(r"_[0-9a-f]{8}$")
+
+
+def folder_name(name: str) -> str:
+    """The folder a strip called ``name`` writes into: the name itself where it is a plain,
+    lower-case ASCII name (letters, digits, '.', '_', '-' inside), else a readable slug of it plus
+    8 hex digits of the sha256 of the exact name. Distinct names never share a folder, even on
+    file systems that ignore case (Windows, macOS): '顔' and '名前', or 'a/b', 'a b' and 'a_b',
+    would otherwise all share one, and Overwrite on one strip deleted another's frames."""
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._-")
+    plain = (slug and slug == name and name == name.lower() and not _HASHED.search(name)
+             and name.split(".")[0] not in _RESERVED)
+    if plain:
+        return name
+    folder = f"{slug or 'strip'}_{hashlib.sha256(name.encode('utf-8')).hexdigest()[:8]}"
+    if folder.split(".")[0].lower() in _RESERVED:  # 'con.mov_...' is still 'con' to Windows
+        folder = folder.replace(".", "_", 1)
+    return folder
+
+
 def relit_path(out_dir, i) -> str:
     return os.path.join(str(out_dir), "relit", f"relit_{int(i):06d}.exr")
 

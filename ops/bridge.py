@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-import re
 
 import bpy
 
@@ -266,15 +265,17 @@ def frames_to_run(strip, frame_range: tuple[int, int] | None) -> list[int]:
 
 
 def output_dir(scene, strip, folder: str) -> pathlib.Path:
-    """<output folder>/<strip name>: one folder per strip, so runs never mix."""
+    """<output folder>/<folder for the strip's name>: one folder per strip, so runs never mix
+    (addon.pipeline.folder_name: readable, and distinct for distinct names)."""
+    from ..addon.pipeline import folder_name
+
     if not folder:
         raise OutputError("No output folder is set; choose one in the Relight panel.")
     base = pathlib.Path(bpy.path.abspath(folder))
     if folder.startswith("//") and not bpy.data.filepath:
         raise OutputError("The output folder is relative to the .blend file, which is not saved "
                           "yet. Save the file or choose an absolute output folder.")
-    name = re.sub(r"[^A-Za-z0-9._-]+", "_", strip.name).strip("._") or "strip"
-    return base / name
+    return base / folder_name(strip.name)
 
 
 ORT_PROVIDERS = {

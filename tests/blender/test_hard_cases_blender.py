@@ -12,7 +12,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from conftest import ROOT, footage_scene
+from conftest import ROOT, footage_scene, write_png_sequence
 
 SCRIPT = ROOT / "scripts" / "relight_batch.py"
 
@@ -155,3 +155,32 @@ def test_black_or_nan_scene_lighting_is_refused_saying_what_to_set(extension, to
     bpy.data.objects["Fill"].data.energy = 100.0  # a lamp with energy lights the subject
     assert relight() == {'FINISHED'}
     assert len(list((tmp_path / "out").rglob("relit_*.exr"))) == 2
+
+
+def test_strips_whose_names_share_a_slug_never_share_a_folder(extension, toy_models, tmp_path):
+    """'顔' and '名前' (no ASCII at all), 'a b' and 'a_b': each strip gets its own folder, so
+    Overwrite on one never deletes another's frames."""
+    first = footage_scene(tmp_path, count=2)
+    files = write_png_sequence(tmp_path / "other", count=2, prefix="other_")
+    bpy.ops.relight.import_footage(filepath=str(files[0]), frame_start=1)
+    second = bpy.context.scene.sequence_editor.active_strip
+    assert second != first
+    out = tmp_path / "out"
+
+    def relight(strip):
+        return bpy.ops.relight.relight_strip(strip=strip.name, models_dir=str(toy_models))
+
+    for a, b in (("顔", "名前"), ("a b", "a_b")):
+        first.name, second.name = a, b
+        assert relight(first) == {'FINISHED'} and relight(second) == {'FINISHED'}
+    folders = sorted(p.name for p in out.iterdir())
+    assert len(folders) == 4 and "a_b" in folders, folders
+    assert all(len(list((out / f / "relit").glob("relit_*.exr"))) == 2 for f in folders)
+    before = {f: stamps(out / f) for f in folders}
+    settings = bpy.context.scene.relight
+    settings.exposure, settings.overwrite = 1.0, True
+    assert relight(second) == {'FINISHED'}  # 'a_b' replaced under other lighting
+    after = {f: stamps(out / f) for f in folders}
+    assert after["a_b"] != before["a_b"]
+    assert {f: v for f, v in after.items() if f != "a_b"} == \
+        {f: v for f, v in before.items() if f != "a_b"}
