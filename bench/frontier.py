@@ -9,7 +9,7 @@ frontier.
 Knob groups, each with its own error measure (so each has its own frontier):
 * network: the per-frame path of addon/pipeline.py (shrink -> network -> guided coefficients ->
   full-resolution finish; decoding and writing excluded) against the light stage's ground truth,
-  RMSE on the portrait region as training/evaluate.py defines it. Knobs: the shipped presets
+  RMSE on the portrait region as training/eval/evaluate.py defines it. Knobs: the shipped presets
   (models/*.onnx); width and depth trained at an equal step budget (--research, default
   models/research/: ablation-full, width-narrow, width-deep, each at its working size, its row
   naming widths, blocks, GFLOP, parameters and training steps; absent files are skipped); extra
@@ -52,7 +52,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(ROOT))
 
 from addon import colour, contract, detail, engine, normalise, pipeline  # noqa: E402
-from training.report import machine, machine_line  # noqa: E402
+from training.eval.report import machine, machine_line  # noqa: E402
 
 FULL_SIZES = (256, 384, 512)  # plus "full": the test set's own resolution
 LINEAR = colour.lookup("Linear Rec.709")
@@ -247,10 +247,10 @@ class Variant:
 
 
 def accuracy_of(v: Variant, frames, fullres) -> dict:
-    """Mean held-out RMSE / PSNR / SSIM on the portrait region (training/evaluate.py)."""
-    from training import evaluate
+    """Mean held-out RMSE / PSNR / SSIM on the portrait region (training/eval/evaluate.py)."""
+    from training.eval import metrics
 
-    m = [evaluate.image_metrics(np.moveaxis(v.run(f, fullres).astype(np.float32), -1, 0),
+    m = [metrics.image_metrics(np.moveaxis(v.run(f, fullres).astype(np.float32), -1, 0),
                                 f.gt, f.mask) for f in frames]
     return {k: float(np.mean([x[k] for x in m])) for k in m[0]}
 
@@ -558,13 +558,13 @@ def untrained(ctx: Context, frames, trained_configs: list[dict]) -> list[Variant
 
 
 def reference_rows(samples) -> list[Row]:
-    from training import evaluate
+    from training.eval import metrics
 
     rows = []
-    for name, fn, note in (("identity (input unchanged)", evaluate.baseline_identity, ""),
+    for name, fn, note in (("identity (input unchanged)", metrics.baseline_identity, ""),
                            ("irradiance ratio (oracle source light)",
-                            evaluate.baseline_irradiance_ratio, "uses the true source light")):
-        m = [evaluate.image_metrics(fn(s), s["gt_t_k"], s["mask_t"][0] > 0.5) for s in samples]
+                            metrics.baseline_irradiance_ratio, "uses the true source light")):
+        m = [metrics.image_metrics(fn(s), s["gt_t_k"], s["mask_t"][0] > 0.5) for s in samples]
         rows.append(Row("reference", "baseline", name, float(np.mean([x["rmse"] for x in m])),
                         None, note=note,
                         extra={"psnr": float(np.mean([x["psnr"] for x in m])),
@@ -739,7 +739,7 @@ def card_entry(card, result, settings, info) -> dict:
             "test_set": info["test_set"], "machine": machine_line(info["machine"]),
             "date": info["machine"]["date"], "command": info["command"],
             "what": "per-frame pipeline time (shrink, network, detail transfer, finish) and "
-                    "held-out RMSE on the portrait region (training/evaluate.py)"}
+                    "held-out RMSE on the portrait region (training/eval/evaluate.py)"}
 
 
 def write_cards(per_card: dict, info: dict) -> list[str]:

@@ -31,7 +31,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(ROOT))
 
-from training import report  # noqa: E402
+from training.eval import report  # noqa: E402
 EXT_ID = "portrait_relight"
 RADIUS = 1.0  # the sphere (subject) radius in metres; everything scales with it
 ORTHO_SCALE = 2.2 * RADIUS

@@ -51,7 +51,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(ROOT))
 
 from bench import light_conversion  # noqa: E402
-from training import report  # noqa: E402
+from training.eval import report  # noqa: E402
 from training.lightstage import assets, layout, materials, shading  # noqa: E402
 from training.lightstage.png import to_srgb8, write_png  # noqa: E402
 from training.lightstage.scene import Scene  # noqa: E402

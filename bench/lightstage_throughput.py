@@ -28,7 +28,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(ROOT))
 
 from addon.errors import InputError  # noqa: E402
-from training import report  # noqa: E402
+from training.eval import report  # noqa: E402
 from training.data import lighting_sampling  # noqa: E402
 from training.data.build_cache import DEFAULT_OUT, build  # noqa: E402
 from training.data.dataset import LightStageDataset  # noqa: E402

@@ -20,7 +20,7 @@ import tempfile
 import numpy as np
 import torch
 
-from training import report
+from training.eval import report
 from training.run import export
 from training.model import network
 

@@ -37,7 +37,7 @@ import numpy as np
 from addon import engine, frames, lightvec, pipeline
 from addon import colour as colour_mod
 from tests.onnx_fixtures import write_conv_model
-from training import report
+from training.eval import report
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 

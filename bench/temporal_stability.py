@@ -25,7 +25,7 @@ Protocol (every choice is an option; the defaults are recorded in the JSON):
   is brought back by k (or s k for cards that say relit_scale "s*k"). onnxruntime on the CPU,
   ``--threads`` (1) intra-op threads, ``--batch`` frames per call.
 * Metric: mean over adjacent pairs (i, i+1) of the RMSE between the two output frames, in the
-  held-out evaluation's units (training/evaluate.py): every frame is divided by the ground
+  held-out evaluation's units (training/eval/evaluate.py): every frame is divided by the ground
   truth's 99th-percentile channel value inside the portrait mask, clipped to [0, 1] and
   sRGB-encoded; the RMSE is over the mask's pixels (the static frame's coverage > 0.5). Also per
   speed-up: the same metric for "output = input" (how much the input itself changes) and for the
@@ -52,7 +52,7 @@ import numpy as np
 
 from addon import contract, engine, normalise
 from addon.errors import InputError, LightingError, ModelError, RelightError
-from training import evaluate, report
+from training.eval import metrics, report
 from training.data import lighting_sampling
 from training.lightstage import layout
 
@@ -148,9 +148,9 @@ def _pair_rmse(px: np.ndarray) -> np.ndarray:
 
 
 def to_unit(frames: np.ndarray, white: float) -> np.ndarray:
-    """Absolute frames -> training/evaluate.py's [0, 1] display units (non-finite values as
-    evaluate.image_metrics treats them)."""
-    return evaluate.to_unit(np.nan_to_num(frames, nan=0.0, posinf=white, neginf=0.0), white)
+    """Absolute frames -> training/eval/evaluate.py's [0, 1] display units (non-finite values as
+    metrics.image_metrics treats them)."""
+    return metrics.to_unit(np.nan_to_num(frames, nan=0.0, posinf=white, neginf=0.0), white)
 
 
 class Tracker:
@@ -261,7 +261,7 @@ def measure_clip(stage: Stage, lights: np.ndarray, predictors: dict, gt: np.ndar
                  batch: int = 10) -> dict:
     """Per predictor (label -> predict(frames_abs, s)) the Tracker result over one clip."""
     mask = stage.mask
-    white = evaluate.white_level(gt, mask)
+    white = metrics.white_level(gt, mask)
     s = clip_exposure(stage, lights)
     trackers = {name: Tracker(to_unit(gt[:, mask], white)) for name in predictors}
     for start in range(0, len(lights), batch):
@@ -275,7 +275,7 @@ def run(stage: Stage, models: list[Model], base: np.ndarray, target: np.ndarray,
         frames: int, speedups, batch: int = 10, on_progress=None) -> dict:
     """{"input": {f: stats}, "ground_truth": {f: stats}, <label>: {f: stats}} per speed-up f."""
     gt = stage.render(target[None])[0]
-    gt_unit = to_unit(gt, evaluate.white_level(gt, stage.mask))
+    gt_unit = to_unit(gt, metrics.white_level(gt, stage.mask))
     zero = float(adjacent_rmse(np.stack([gt_unit, gt_unit]), stage.mask)[0])  # static target
     predictors = {"input": lambda x, s: x}
     predictors.update({m.label: model_predictor(m, target) for m in models})
@@ -297,8 +297,8 @@ def markdown(results: dict, labels: list[str]) -> str:
     speedups = sorted(results["input"])
     keys = ["ground_truth", "input", *labels]
     cols = [SHOWN.get(k, k) for k in keys]
-    lines = ["Adjacent-frame RMSE (lower = more stable; [0, 1] sRGB units of training/evaluate.py"
-             ", portrait region)", "",
+    lines = ["Adjacent-frame RMSE (lower = more stable; [0, 1] sRGB units of "
+             "training/eval/evaluate.py, portrait region)", "",
              "| speed-up | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for f in speedups:
         lines.append(f"| {f} | " + " | ".join(f"{results[k][f]['adjacent_rmse']:.5f}"
@@ -449,7 +449,7 @@ def main(argv=None) -> dict:
             "normalisation": "pipeline: one exposure s per clip (addon.normalise), light / k, "
                              "relit * k",
             "units": "RMSE of [0,1] sRGB values over the portrait mask after dividing by the "
-                     "ground truth's 99th-percentile in-mask value (training/evaluate.py)",
+                     "ground truth's 99th-percentile in-mask value (training/eval/evaluate.py)",
             "threads": a.threads, "batch": a.batch},
         "models": {m.label: {"onnx": str(m.path), "sha256": m.sha256, "card": m.card,
                              "network_seconds": round(m.seconds, 2),

@@ -1,4 +1,4 @@
-"""training/ablation.py: the ablation table from exported variants, with paired differences."""
+"""training/eval/ablation.py: the ablation table from exported variants, with paired differences."""
 
 import json
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import standin
-from training import ablation
+from training.eval import ablation
 from training.run import export
 from training.model import network
 

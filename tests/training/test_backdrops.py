@@ -102,7 +102,7 @@ def test_the_training_flag_reaches_the_dataset(shared_data):
 
 
 def test_background_error_scores_a_kept_backdrop_and_a_repainted_one(shared_data):
-    from training.evaluate import background_error
+    from training.eval.evaluate import background_error
     exact = background_error(lambda s: (s["gt_t_k"], {}), n=3, resolution=RES,
                              data_root=shared_data)
     assert exact["samples"] == 3 and exact["model"] < 1e-6
@@ -119,7 +119,7 @@ def test_background_error_scores_a_kept_backdrop_and_a_repainted_one(shared_data
 def test_the_relit_background_choice_with_the_true_source_light_matches_the_stage(shared_data):
     """pipeline.wall_gain (the product's "relit" background) and the light stage's wall agree:
     given the true matte and source light, the kept-and-relit background is nearly exact."""
-    from training.evaluate import background_error
+    from training.eval.evaluate import background_error
 
     def oracle(s):
         return s["gt_t_k"], {"foreground": s["mask_t"][0], "source_light": s["light_i"]}

@@ -10,7 +10,7 @@ import torch
 
 import standin
 from addon import contract
-from training import evaluate
+from training.eval import evaluate, metrics, predictors
 from training.run import export
 from training.model import network
 
@@ -77,12 +77,12 @@ def test_int8_quantisation_stays_close_to_fp32(net, onnx_path, tmp_path):
     assert np.abs(a - b).mean() < 0.05 * np.abs(a).mean()
 
 
-# ---- held-out metrics (training/evaluate.py)
+# ---- held-out metrics (training/eval/evaluate.py)
 
 def test_metrics_of_a_perfect_prediction():
     s = standin.sample(48, 0)
     mask = s["mask_t"][0] > 0.5
-    m = evaluate.image_metrics(s["gt_t_k"], s["gt_t_k"], mask)
+    m = metrics.image_metrics(s["gt_t_k"], s["gt_t_k"], mask)
     assert m["rmse"] == 0.0 and m["psnr"] >= 199 and m["ssim"] == pytest.approx(1.0)
 
 
@@ -91,9 +91,9 @@ def test_metrics_only_see_the_portrait_region():
     mask = s["mask_t"][0] > 0.5
     pred = s["gt_t_k"].copy()
     pred[:, ~mask] = 100.0  # garbage outside the portrait
-    assert evaluate.image_metrics(pred, s["gt_t_k"], mask)["rmse"] == 0.0
+    assert metrics.image_metrics(pred, s["gt_t_k"], mask)["rmse"] == 0.0
     pred = s["gt_t_k"] * 0.5
-    worse = evaluate.image_metrics(pred, s["gt_t_k"], mask)
+    worse = metrics.image_metrics(pred, s["gt_t_k"], mask)
     assert 0.05 < worse["rmse"] < 1 and worse["ssim"] < 1
 
 
@@ -102,15 +102,15 @@ def test_irradiance_ratio_baseline_is_exact_for_a_scaled_light():
     s["light_k"] = s["light_i"] * 3.0
     s["gt_t_k"] = s["img_t_i"] * 3.0
     mask = s["mask_t"][0] > 0.5
-    m = evaluate.image_metrics(evaluate.baseline_irradiance_ratio(s), s["gt_t_k"], mask)
+    m = metrics.image_metrics(metrics.baseline_irradiance_ratio(s), s["gt_t_k"], mask)
     assert m["rmse"] < 1e-6
-    assert evaluate.image_metrics(evaluate.baseline_identity(s), s["gt_t_k"], mask)["rmse"] > 0.1
+    assert metrics.image_metrics(metrics.baseline_identity(s), s["gt_t_k"], mask)["rmse"] > 0.1
 
 
 def test_evaluate_runs_onnx_and_torch_predictors_alike(net, onnx_path):
     ds = standin.StandinDataset(resolution=64, n=2)
-    a = evaluate.evaluate(evaluate.onnx_predictor(export.session(onnx_path), TINY.stride), ds)
-    b = evaluate.evaluate(evaluate.torch_predictor(net), ds, baselines=False)
+    a = evaluate.evaluate(predictors.onnx_predictor(export.session(onnx_path), TINY.stride), ds)
+    b = evaluate.evaluate(predictors.torch_predictor(net), ds, baselines=False)
     assert a["samples"] == 2 and set(a) >= {"model", "identity", "irradiance_ratio"}
     assert a["model"]["rmse"] == pytest.approx(b["model"]["rmse"], abs=1e-4)
     assert 0 <= a["model"]["foreground_iou"] <= 1
@@ -123,11 +123,11 @@ def test_the_true_source_diagnostic_feeds_the_decoder_the_sample_light():
 
     net = standin.perturbed_net(dataclasses.replace(TINY, relight="ratio"), 0)
     s = standin.sample(32, 0)
-    plain, extras = evaluate.torch_predictor(net)(s)
-    echoed, _ = evaluate.torch_predictor(net, true_source=True)(
+    plain, extras = predictors.torch_predictor(net)(s)
+    echoed, _ = predictors.torch_predictor(net, true_source=True)(
         {**s, "light_i": extras["source_light"]})
     assert np.allclose(echoed, plain, rtol=1e-4, atol=1e-6)
-    other, _ = evaluate.torch_predictor(net, true_source=True)(
+    other, _ = predictors.torch_predictor(net, true_source=True)(
         {**s, "light_i": extras["source_light"] * np.array([2.0, 1.0, 0.5], np.float32)})
     assert np.isfinite(other).all() and not np.allclose(other, plain, rtol=1e-3)
 
@@ -135,7 +135,7 @@ def test_the_true_source_diagnostic_feeds_the_decoder_the_sample_light():
 def test_empty_mask_is_refused():
     s = standin.sample(32, 0)
     with pytest.raises(ValueError, match="empty"):
-        evaluate.image_metrics(s["gt_t_k"], s["gt_t_k"], np.zeros((32, 32), bool))
+        metrics.image_metrics(s["gt_t_k"], s["gt_t_k"], np.zeros((32, 32), bool))
 
 
 def test_every_resize_in_the_graph_is_bilinear(onnx_path):
@@ -153,12 +153,12 @@ def test_shading_correlation_scores_the_spatial_pattern_of_the_change():
     yy, xx = np.mgrid[0:32, 0:32] / 32.0
     shade = (0.3 + xx)[None].astype(np.float32)           # light from the right
     gt = inp * shade
-    assert evaluate.shading_correlation(gt * 1.7, inp, gt, mask) == pytest.approx(1.0)   # level free
-    assert evaluate.shading_correlation(inp / shade, inp, gt, mask) == pytest.approx(-1.0, abs=0.02)
-    assert evaluate.shading_correlation(inp * 2.0, inp, gt, mask) == 0.0  # a global change
-    assert evaluate.shading_correlation(inp, inp, gt, mask) == 0.0        # no change
+    assert metrics.shading_correlation(gt * 1.7, inp, gt, mask) == pytest.approx(1.0)   # level free
+    assert metrics.shading_correlation(inp / shade, inp, gt, mask) == pytest.approx(-1.0, abs=0.02)
+    assert metrics.shading_correlation(inp * 2.0, inp, gt, mask) == 0.0  # a global change
+    assert metrics.shading_correlation(inp, inp, gt, mask) == 0.0        # no change
     other = inp * (0.3 + yy)[None].astype(np.float32)     # light from below: unrelated pattern
-    assert abs(evaluate.shading_correlation(other, inp, gt, mask)) < 0.3
+    assert abs(metrics.shading_correlation(other, inp, gt, mask)) < 0.3
 
 
 def test_lateral_response_tells_a_light_blind_model_from_one_that_follows_the_lamp():
@@ -179,8 +179,9 @@ def test_lateral_response_tells_a_light_blind_model_from_one_that_follows_the_la
 
 
 def test_error_breakdown_splits_the_error_by_region_and_level():
-    """training.evaluate.error_breakdown: a prediction off by one colour gain everywhere has all
-    its error in level (the fit removes it); a patch of wrong pixels puts its error in its class."""
+    """training.eval.evaluate.error_breakdown: a prediction off by one colour gain everywhere has
+    all its error in level (the fit removes it); a patch of wrong pixels puts its error in its
+    class."""
     rng = np.random.default_rng(0)
     h = w = 24
     mask = np.zeros((h, w), bool)
@@ -224,10 +225,10 @@ def test_level_fit_rmse_forgives_an_overall_level_and_tint_only():
     mask = s["mask_t"][0] > 0.5
     gt = s["gt_t_k"]
     tinted = gt * np.array([1.4, 0.9, 0.7], np.float32)[:, None, None]
-    assert evaluate.image_metrics(tinted, gt, mask)["rmse"] > 0.03
-    assert evaluate.level_fit_rmse(tinted, gt, mask) < 1e-6
+    assert metrics.image_metrics(tinted, gt, mask)["rmse"] > 0.03
+    assert metrics.level_fit_rmse(tinted, gt, mask) < 1e-6
     flat = np.broadcast_to(gt[:, mask].mean(1)[:, None, None], gt.shape)  # no spatial pattern
-    assert evaluate.level_fit_rmse(flat, gt, mask) > 0.03
+    assert metrics.level_fit_rmse(flat, gt, mask) > 0.03
 
 
 def test_update_card_rewrites_only_the_metrics_of_the_card_that_describes_the_file(tmp_path):
@@ -251,9 +252,9 @@ def test_update_card_rewrites_only_the_metrics_of_the_card_that_describes_the_fi
 def test_paired_difference_is_the_mean_change_over_the_same_samples_with_its_error():
     a = [{"rmse": 0.1}, {"rmse": 0.2}, {"rmse": 0.3}]
     b = [{"rmse": 0.1}, {"rmse": 0.1}, {"rmse": 0.4}]
-    d, se = evaluate.paired_difference(a, b)
+    d, se = metrics.paired_difference(a, b)
     assert d == pytest.approx(0.0)
     assert se == pytest.approx(np.std([0, -0.1, 0.1], ddof=1) / 3 ** 0.5)
-    assert evaluate.paired_difference(a, a) == (0.0, 0.0)
+    assert metrics.paired_difference(a, a) == (0.0, 0.0)
     with pytest.raises(SystemExit):  # --compare needs --onnx
         evaluate.main(["--run", "runs/x", "--compare", "m.onnx"])

@@ -11,7 +11,7 @@ import pytest
 
 from addon import pipeline
 from addon.errors import InputError
-from training import footage_sheet as fs
+from training.eval import footage_sheet as fs
 from training.lightstage.png import read_png
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]

@@ -136,7 +136,7 @@ def test_every_committed_card_was_measured_on_the_current_light_stage(card):
     onnx = card.with_suffix(".onnx").relative_to(ROOT)
     assert metrics.get("render_version") == renderer_version(), (
         f"{card.name} was measured on light stage {metrics.get('render_version', 'v1')} samples; "
-        f"re-measure: python -m training.evaluate --onnx {onnx} --update-card")
+        f"re-measure: python -m training.eval.evaluate --onnx {onnx} --update-card")
     assert reproduce.current_module(metrics["testset"]) == "training.data.make_testset"
     assert len(metrics["testset_sha256"]) == 64
 

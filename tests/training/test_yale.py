@@ -1,4 +1,4 @@
-"""CroppedYale real-data check (training/yale_eval.py): file names, directions, linear sums, the
+"""CroppedYale real-data check (training/eval/yale.py): file names, directions, linear sums, the
 HDRI restriction, and the end-to-end evaluation with a tiny ONNX model. Data tests skip without
 ../shared/data; nothing here writes pictures of the data outside tmp_path."""
 
@@ -9,7 +9,7 @@ import pytest
 
 from addon import lightvec
 from addon.errors import InputError
-from training import yale_eval as ye
+from training.eval import yale as ye
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,8 @@
     .venv/bin/python -m training.data.make_testset [--res 128] [--n 64]     # prints its sha256
 
 It is the first ``n`` samples of ``LightStageDataset('test', res, seed=TEST_SEED)`` (the same as
-training.evaluate's default held-out dataset): identities that training never sees (id % 16 == 15),
-and environment lighting drawn half from the four HDRIs held out of training
+training.eval.evaluate's default held-out dataset): identities that training never sees
+(id % 16 == 15), and environment lighting drawn half from the four HDRIs held out of training
 (training/data/lighting_sampling.py), half from the others, plus point lights. Rendered on one torch
 thread, so float reductions run in one order and a rebuild on the same machine gives the same bits.
 

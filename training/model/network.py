@@ -288,7 +288,7 @@ class RelightNet(nn.Module):
 
     def relight_from(self, image, target_light, skips, code, source):
         """``forward`` after the encoder, with the source light given: the contract's estimate,
-        or (a diagnostic, training.evaluate --true-source) the true one."""
+        or (a diagnostic, training.eval.evaluate --true-source) the true one."""
         relit, logits = self.decoder(image, target_light, skips, code, source)
         return relit.clamp(min=0.0), source, torch.sigmoid(logits)
 

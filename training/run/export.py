@@ -235,7 +235,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None):
-    from .. import evaluate
+    from ..eval import evaluate, predictors
     from ..model.checkpoint import load_checkpoint
     from .lineage import resolve_lineage, samples_version
 
@@ -256,7 +256,7 @@ def main(argv=None):
     check = verify(net, onnx_path)
     print("verified:", json.dumps(check))
     ds = evaluate.heldout_dataset(res)
-    predict = evaluate.onnx_predictor(session(onnx_path, a.threads), net.cfg.stride)
+    predict = predictors.onnx_predictor(session(onnx_path, a.threads), net.cfg.stride)
     metrics = evaluate.card_metrics(predict, ds, a.eval, res)
     print("metrics:", json.dumps(metrics))
     cost = {"cpu": measure_cost(onnx_path, threads=a.threads),
@@ -273,7 +273,7 @@ def main(argv=None):
 
 
 def export_int8(a, net, fp32_path, ds, training, res, working, fp32_cost):
-    from .. import evaluate
+    from ..eval import evaluate, predictors
     from ..data.dataset import make_dataset
 
     train_ds = make_dataset("train", res, CALIBRATION_SEED)  # training identities: never the test set
@@ -281,7 +281,7 @@ def export_int8(a, net, fp32_path, ds, training, res, working, fp32_cost):
     q_path = quantize_int8(fp32_path, fp32_path.with_name(f"{a.name}-int8.onnx"),
                            calibration_feeds(calib, net.cfg.stride))
     cost = {"cpu": measure_cost(q_path, threads=a.threads), "machine": fp32_cost["machine"]}
-    metrics = evaluate.card_metrics(evaluate.onnx_predictor(session(q_path, a.threads),
+    metrics = evaluate.card_metrics(predictors.onnx_predictor(session(q_path, a.threads),
                                                             net.cfg.stride), ds, a.eval, res)
     speedup = fp32_cost["cpu"]["per_size"]["512"]["ms"] / cost["cpu"]["per_size"]["512"]["ms"]
     print(f"int8: {json.dumps(metrics)} speed-up at 512: {speedup:.2f}x")

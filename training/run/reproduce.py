@@ -28,14 +28,21 @@ from addon import contract
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 MOVED = {
+    "training.ablation": "training.eval.ablation",
+    "training.before_after": "training.eval.before_after",
     "training.build_cache": "training.data.build_cache",
+    "training.contact_sheet": "training.data.contact_sheet",
     "training.dataset": "training.data.dataset",
+    "training.evaluate": "training.eval.evaluate",
     "training.export": "training.run.export",
+    "training.footage_sheet": "training.eval.footage_sheet",
     "training.lighting_sampling": "training.data.lighting_sampling",
     "training.make_demo_clip": "training.data.make_demo_clip",
     "training.make_testset": "training.data.make_testset",
+    "training.report": "training.eval.report",
     "training.reproduce": "training.run.reproduce",
     "training.train": "training.run.train",
+    "training.yale_eval": "training.eval.yale",
 }
 
 

@@ -1,5 +1,5 @@
 """Validation during a run and its curve: val metrics of the model and both baselines on held-out
-identities (training/evaluate.py's), never the test set."""
+identities (training/eval/evaluate.py's), never the test set."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pathlib
 
 import numpy as np
 
-from .. import evaluate
+from ..eval import evaluate, predictors
 from ..data.dataset import make_dataset
 
 VAL_SEED = 777  # val samples (held-out identities) for the curves logged during training
@@ -23,11 +23,11 @@ def validation_samples(resolution: int, n: int) -> list:
 
 
 def validate(net, samples) -> dict:
-    """Val RMSE / PSNR / SSIM of the model and both baselines (training.evaluate's metrics)."""
+    """Val RMSE / PSNR / SSIM of the model and both baselines (training.eval.evaluate's metrics)."""
     was_training = net.training
     net.eval()
     try:
-        res = evaluate.evaluate(evaluate.torch_predictor(net), samples)
+        res = evaluate.evaluate(predictors.torch_predictor(net), samples)
     finally:
         net.train(was_training)
     return {name: {k: round(v, 4) for k, v in res[name].items()}

@@ -1,6 +1,6 @@
 """Relight the real footage through the product pipeline and lay out contact sheets to look at.
 
-    .venv/bin/python -m training.footage_sheet [--models models/relight-draft.json ...]
+    .venv/bin/python -m training.eval.footage_sheet [--models models/relight-draft.json ...]
         [--out out/footage] [--frames 24] [--clips d0 s18] [--lightings key-left ...]
 
 Each clip of ``../shared/data/footage/*.mp4`` (first ``--frames`` frames) goes through
@@ -37,9 +37,9 @@ import numpy as np
 from addon import colour, detail, frames, hdri, hdri_io, lamps, lightvec, normalise, pipeline
 from addon.errors import InputError, RelightError
 
-from .lightstage.png import write_png
+from ..lightstage.png import write_png
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"
 COLOURSPACE = "sRGB"  # what Blender assumes for a movie strip
 SUBJECT_RADIUS = 0.15  # metres: the bridge's default head-sized subject
@@ -297,7 +297,8 @@ def pick(items, names, what: str):
 
 
 def parse_args(argv):
-    p = argparse.ArgumentParser(prog="training.footage_sheet", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="training.eval.footage_sheet",
+                                description=__doc__.split("\n")[0])
     p.add_argument("--models", nargs="+", default=[str(ROOT / "models" / "relight-draft.json")],
                    help="model cards (.json) or .onnx files (default: the shipped Draft)")
     p.add_argument("--out", default=str(ROOT / "out" / "footage"), help="output folder")

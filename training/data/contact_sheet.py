@@ -1,6 +1,6 @@
 """A contact sheet of the synthetic light stage, to look at.
 
-    .venv/bin/python -m training.contact_sheet [--out demo/lightstage_sheet.png] [--size 96]
+    .venv/bin/python -m training.data.contact_sheet [--out demo/lightstage_sheet.png] [--size 96]
 
 Rows: 16 of the 114 OLAT images of one frame (every 7th light, auto-exposed each); the same frame
 under six HDRIs and two point-light sets; parsing labels, forward flow and its valid mask, the
@@ -19,13 +19,13 @@ import torch
 
 from addon.contract import PARSING_CLASSES
 
-from .data import lighting_sampling
-from .lightstage import assets, backdrops
-from .lightstage.png import to_srgb8, write_png
-from .lightstage.scene import Scene
-from .lightstage.subject import FPS, Performance, sample_camera, sample_identity
+from . import lighting_sampling
+from ..lightstage import assets, backdrops
+from ..lightstage.png import to_srgb8, write_png
+from ..lightstage.scene import Scene
+from ..lightstage.subject import FPS, Performance, sample_camera, sample_identity
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 PALETTE = np.array([[0, 0, 0], [230, 180, 150], [90, 60, 30], [40, 20, 10], [60, 120, 255],
                     [220, 40, 60], [255, 255, 230], [170, 120, 200], [60, 180, 90]], np.uint8)
 

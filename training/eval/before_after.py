@@ -1,6 +1,6 @@
 """The README's picture: a frame of the built-in demo clip and the same frame relit.
 
-    .venv/bin/python -m training.before_after [--preset portrait] [--out demo/before_after.png]
+    .venv/bin/python -m training.eval.before_after [--preset portrait] [--out demo/before_after.png]
 
 Each relit frame is what the product writes (``addon.relight_image``, the pipeline's own path)
 under lamps converted in Blender's units (``addon.lamps``); the demo clip is our own synthetic
@@ -16,9 +16,9 @@ import numpy as np
 
 from addon import api, colour, lamps
 
-from .lightstage.png import read_png, write_png
+from ..lightstage.png import read_png, write_png
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 SUBJECT_RADIUS = 0.15  # metres: the demo head's scale
 
 

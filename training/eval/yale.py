@@ -1,8 +1,8 @@
 """Real faces: relighting checked against CroppedYale, real one-light-at-a-time data.
 
-    .venv/bin/python -m training.yale_eval --onnx models/relight-draft.onnx [--onnx ...]
-    .venv/bin/python -m training.yale_eval --onnx models/relight-draft.onnx --quick
-    .venv/bin/python -m training.yale_eval --check-data      # the data checks quoted below
+    .venv/bin/python -m training.eval.yale --onnx models/relight-draft.onnx [--onnx ...]
+    .venv/bin/python -m training.eval.yale --onnx models/relight-draft.onnx --quick
+    .venv/bin/python -m training.eval.yale --check-data      # the data checks quoted below
 
 A subject's image under any lighting made of the 64 light directions is the weighted sum of its
 single-light images (light transport is linear), so every relighting here has real ground truth.
@@ -54,7 +54,7 @@ buffers, the renderer's effects, the ratio at full resolution). The grayscale im
 to three channels on the way in and the output turned back to gray by Rec.709 luminance
 (normalise.luminance).
 
-Metrics: training/evaluate.py's image_metrics on the single gray channel (white level = the
+Metrics: training/eval/evaluate.py's image_metrics on the single gray channel (white level = the
 ground truth's 99th percentile, clipped, sRGB-encoded; RMSE, PSNR, SSIM), over a centred ellipse
 (semi-axes 0.40 W x 0.46 H: cheeks, forehead, chin; the crop's corners hold hair and background)
 minus saturated pixels. Two views, the same for every method:
@@ -66,11 +66,11 @@ minus saturated pixels. Two views, the same for every method:
 * ``scale_invariant``: every output times its own least-squares gain (linear, over the mask)
   against the ground truth, pair by pair: only the shape of the shading counts. Under gray light
   both baselines are the input times a number, so here they coincide (a check, not a bug).
-Baselines (as training/evaluate.py): ``identity`` (output = input) and ``irradiance_ratio`` (input
-times total power of B over that of A: an oracle on the lighting). A third, light-blind
-reference, ``flattened_ratio`` = ratio * sqrt(input * mean(input)), halves the input's contrast
-(in log terms) without knowing where B's light comes from: a model that beats the baselines only
-by flattening the shading scores about as well as it.
+Baselines (as training/eval/evaluate.py): ``identity`` (output = input) and ``irradiance_ratio``
+(input times total power of B over that of A: an oracle on the lighting). A third, light-blind
+reference, ``flattened_ratio`` = ratio * sqrt(input * mean(input)), halves the input's contrast (in
+log terms) without knowing where B's light comes from: a model that beats the baselines only by
+flattening the shading scores about as well as it.
 
 Subjects 01-10 are ``tune`` (only the calibration gains come from them), the other 28 ``test``;
 tables and the verdict use ``test`` only. Pairs (A, B) are drawn per subject from a fixed seed.
@@ -92,9 +92,11 @@ import numpy as np
 from addon import api, hdri, lightvec, normalise
 from addon.errors import InputError
 
-from . import evaluate, report
+from . import report
+from .metrics import (baseline_identity, baseline_irradiance_ratio, image_metrics, mean_metrics,
+                      srgb_encode, to_unit, white_level)
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 TUNE_SUBJECTS = tuple(range(1, 11))
 KINDS = ("hdri", "single", "few")
 VIEWS = ("calibrated", "scale_invariant")
@@ -118,7 +120,7 @@ _TOKEN = re.compile(rb"\S+")
 
 
 def default_root() -> pathlib.Path:
-    from .lightstage import assets
+    from ..lightstage import assets
 
     return assets.default_data_root() / "yale" / "CroppedYale"
 
@@ -310,7 +312,7 @@ class HdriBank:
     """The shared HDRIs, read on first use and down-sampled to light vectors at a given yaw."""
 
     def __init__(self, data_root):
-        from .data.lighting_sampling import hdri_paths
+        from ..data.lighting_sampling import hdri_paths
 
         self.paths = hdri_paths(data_root)
         self.names = [f"{p.parent.name}/{p.stem}" for p in self.paths]
@@ -412,7 +414,7 @@ class PipelineRelighter:
 
 
 def baselines(gray_a: np.ndarray, light_a: np.ndarray, light_b: np.ndarray) -> dict:
-    """training/evaluate.py's two baselines on the gray image (replicated, then luminance), and
+    """training/eval/evaluate.py's two baselines on the gray image (replicated, then luminance), and
     the light-blind FLATTENED reference: ratio * sqrt(input * mean(input))."""
     sample = {"img_t_i": np.repeat(np.asarray(gray_a, np.float32)[None], 3, axis=0),
               "light_i": light_a, "light_k": light_b}
@@ -420,9 +422,9 @@ def baselines(gray_a: np.ndarray, light_a: np.ndarray, light_b: np.ndarray) -> d
     power_a, power_b = (float(normalise.luminance(lightvec.total_power(x).astype(np.float32)))
                         for x in (light_a, light_b))
     ratio = power_b / power_a if power_a > 0 else 0.0
-    return {"identity": normalise.luminance(evaluate.baseline_identity(sample).transpose(1, 2, 0)),
+    return {"identity": normalise.luminance(baseline_identity(sample).transpose(1, 2, 0)),
             "irradiance_ratio": normalise.luminance(
-                evaluate.baseline_irradiance_ratio(sample).transpose(1, 2, 0)),
+                baseline_irradiance_ratio(sample).transpose(1, 2, 0)),
             FLATTENED: np.float32(ratio) * np.sqrt(gray * np.float32(gray.mean()))}
 
 
@@ -434,7 +436,7 @@ def ls_gain(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
 
 
 def metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
-    return evaluate.image_metrics(pred[None], gt[None], mask)
+    return image_metrics(pred[None], gt[None], mask)
 
 
 @dataclasses.dataclass
@@ -472,15 +474,15 @@ def fit_gains(results) -> dict:
     subset of each mask) over the given pairs (the tune subjects')."""
     store: dict[str, list] = {}
     for r in results:
-        white = evaluate.white_level(r.gt[None], r.mask)
-        target = evaluate.to_unit(r.gt[r.mask][::GAIN_SEARCH_STRIDE], white)
+        white = white_level(r.gt[None], r.mask)
+        target = to_unit(r.gt[r.mask][::GAIN_SEARCH_STRIDE], white)
         for name, y in r.outputs.items():
             store.setdefault(name, []).append((y[r.mask][::GAIN_SEARCH_STRIDE] / white, target))
     return {name: best_gain(pairs) for name, pairs in store.items()}
 
 
 def mean_rmse(pairs, gain: float) -> float:
-    return float(np.mean([np.sqrt(np.mean((evaluate.srgb_encode(gain * p) - t) ** 2))
+    return float(np.mean([np.sqrt(np.mean((srgb_encode(gain * p) - t) ** 2))
                           for p, t in pairs]))
 
 
@@ -544,7 +546,7 @@ def summarise(rows: list[tuple]) -> dict:
             for kind in (*KINDS, "all"):
                 sel = [s[view][m] for k, s, *_ in rows if kind in ("all", k)]
                 if sel:
-                    out[view][m][kind] = {**evaluate.mean_metrics(sel), "pairs": len(sel)}
+                    out[view][m][kind] = {**mean_metrics(sel), "pairs": len(sel)}
     return out
 
 
@@ -619,10 +621,10 @@ def verdict(summary: dict, models: list[str], against=BASELINES) -> dict:
 
 def sheet_row(r: PairResult, gains: dict, order: list[str]) -> np.ndarray:
     """input | each method (calibrated) | ground truth | B's light map, display-normalised."""
-    white = evaluate.white_level(r.gt[None], r.mask)
-    tiles = [r.inputs * (white / max(evaluate.white_level(r.inputs[None], r.mask), 1e-12))]
+    white = white_level(r.gt[None], r.mask)
+    tiles = [r.inputs * (white / max(white_level(r.inputs[None], r.mask), 1e-12))]
     tiles += [gains.get(m, 1.0) * r.outputs[m] for m in order] + [r.gt]
-    gray = [evaluate.to_unit(t, white) for t in tiles]
+    gray = [to_unit(t, white) for t in tiles]
     h, w = r.gt.shape
     preview = np.kron(lightvec.to_preview(r.light_b), np.ones((w // 16, w // 16, 1)))
     pad = np.zeros((h, w, 3))
@@ -631,7 +633,7 @@ def sheet_row(r: PairResult, gains: dict, order: list[str]) -> np.ndarray:
 
 
 def write_sheet(path, rows: list[np.ndarray]) -> None:
-    from .lightstage.png import write_png
+    from ..lightstage.png import write_png
 
     img = np.concatenate(rows, axis=0)
     path = pathlib.Path(path)
@@ -738,7 +740,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
     if sheet_path and sheet:
         write_sheet(sheet_path, [sheet_row(r, gains, [*models, *REFERENCES]) for r in sheet])
     return {
-        "what": "CroppedYale real-data relighting check (training/yale_eval.py)",
+        "what": "CroppedYale real-data relighting check (training/eval/yale.py)",
         "models": {m: {"onnx": str(relighters[m].card.onnx_path.relative_to(ROOT))
                        if relighters[m].card.onnx_path.is_relative_to(ROOT)
                        else str(relighters[m].card.onnx_path),
@@ -806,12 +808,12 @@ def main(argv=None) -> int:
         res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
                   progress=lambda msg: print(msg, file=sys.stderr))
     except InputError as e:  # bad data or models: the message says what to do
-        print(f"yale_eval: {e}", file=sys.stderr)
+        print(f"yale: {e}", file=sys.stderr)
         return 2
     models = list(res["models"])
     table = markdown(res["results"], models, res["paired"])
     res.update({"table_markdown": table, "date": m["date"], "machine": report.machine_line(m),
-                "command": "python -m training.yale_eval " + " ".join(argv if argv is not None
+                "command": "python -m training.eval.yale " + " ".join(argv if argv is not None
                                                                      else sys.argv[1:])})
     print(table)
     print("beats both baselines (overall RMSE, test subjects):", res["beats_both_baselines"])

@@ -1,20 +1,20 @@
 """The paper's ablation table (its Table 2) on our held-out synthetic test set.
 
-    .venv/bin/python -m training.ablation                       # models/research/ablation-*.onnx
-    .venv/bin/python -m training.ablation --out bench/results  # also write ablation.md / .json
+    .venv/bin/python -m training.eval.ablation                  # models/research/ablation-*.onnx
+    .venv/bin/python -m training.eval.ablation --out bench/results  # also ablation.md, .json
 
 Each variant is one training run of the Draft network with one part of the method switched off
 (training/model/losses.py Switches.ablation; ``--steps`` budget, so every run saw the same number of
 steps whatever the machine's load), exported with training/run/export.py into models/research/.
-"full" is the shipped Draft's recipe: the paper's losses plus the transport supervision of the
-ratio head (``--transport-loss``), without which the network did not learn the light's direction;
-"w/o transport supervision" is therefore the paper's own full recipe. Rows: full, w/o structure,
-w/o temporal, w/o parsing, w/o sampling, w/o transport supervision, then the two baselines
-(output = input; input scaled by the ratio of total irradiance, which is given the true source
-light). ``shading corr`` and ``lateral response`` say whether the light acts where it should
-(training/evaluate.py; both baselines change the whole image alike, so their lateral response is 1).
-Metrics are training/evaluate.py's (portrait region, values normalised to [0, 1]), on the
-fixed test set of training/data/make_testset.py.
+"full" is the shipped Draft's recipe: the paper's losses plus the transport supervision of the ratio
+head (``--transport-loss``), without which the network did not learn the light's direction; "w/o
+transport supervision" is therefore the paper's own full recipe. Rows: full, w/o structure, w/o
+temporal, w/o parsing, w/o sampling, w/o transport supervision, then the two baselines (output =
+input; input scaled by the ratio of total irradiance, which is given the true source light).
+``shading corr`` and ``lateral response`` say whether the light acts where it should
+(training/eval/evaluate.py; both baselines change the whole image alike, so their lateral response
+is 1). Metrics are training/eval/evaluate.py's (portrait region, values normalised to [0, 1]), on
+the fixed test set of training/data/make_testset.py.
 
 Besides the means, each variant's RMSE difference to the full model is given with its paired
 standard error over the test samples: that is the test set's sampling noise only. Each variant is
@@ -30,9 +30,9 @@ import json
 import pathlib
 import time
 
-from . import evaluate
+from . import evaluate, metrics, predictors
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 VARIANTS = ("full", "no_structure", "no_temporal", "no_parsing", "no_sampling", "no_transport")
 LABELS = {"full": "full (ours)", "no_structure": "w/o structure", "no_temporal": "w/o temporal",
           "no_parsing": "w/o parsing", "no_sampling": "w/o sampling",
@@ -52,7 +52,7 @@ def run(paths: dict, dataset, n: int, threads: int) -> dict:
     """Per-variant metrics and per-sample rows; the baselines come with the first variant."""
     out, baselines = {}, None
     for name, path in paths.items():
-        predict, card = evaluate.onnx_file_predictor(path, threads)
+        predict, card = predictors.onnx_file_predictor(path, threads)
         res = evaluate.evaluate(predict, dataset, n, baselines=baselines is None, per_sample=True)
         rows = res.pop("per_sample")
         if baselines is None:
@@ -67,7 +67,7 @@ def run(paths: dict, dataset, n: int, threads: int) -> dict:
     return {"variants": out, "baselines": baselines or {}}
 
 
-paired = evaluate.paired_difference  # mean of b - a over the same samples, its standard error
+paired = metrics.paired_difference  # mean of b - a over the same samples, its standard error
 
 
 def table(result: dict) -> str:
@@ -118,7 +118,7 @@ def main(argv=None):
     md = table(result)
     ident = evaluate.dataset_id(ds)
     head = (f"Held-out test set: {min(a.n, len(ds))} samples at {a.resolution} px "
-            f"({json.dumps(ident)}); `python -m training.ablation`, "
+            f"({json.dumps(ident)}); `python -m training.eval.ablation`, "
             f"{time.perf_counter() - t0:.0f} s.")
     print(head + "\n\n" + md)
     if a.out:
