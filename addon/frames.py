@@ -36,6 +36,8 @@ MOVIE_EXTS = (".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr")
 HALF_MAX = 65504.0
 COMPRESSIONS = ("none", "rle", "zips", "zip", "piz")
+DAMAGED = ("The file is damaged or not an image: replace it with an intact copy (re-render or "
+           "re-export the frame), or trim the strip to leave it out.")
 
 
 @dataclass(frozen=True)
@@ -147,7 +149,7 @@ def _read_exr(path, planar: bool = False) -> tuple[np.ndarray, bool]:
     except InputError:
         raise
     except Exception as err:  # OpenEXR raises plain RuntimeError for unreadable files
-        raise InputError(f"Cannot read the EXR file {path} ({err}).") from err
+        raise InputError(f"Cannot read the EXR file {path} ({err}). {DAMAGED}") from err
     if len(planes) == 1:
         planes = planes * 3
     return np.stack(planes, axis=0 if planar else -1), alpha
@@ -185,7 +187,7 @@ def _read_image(path, planar: bool = False) -> tuple[np.ndarray, bool]:
             frame = next(c.decode(video=0))
             return (_to_planes if planar else _to_rgb)(frame), _frame_alpha(frame.format)
     except (av.FFmpegError, StopIteration, OSError) as err:
-        raise InputError(f"Cannot read the image {path} ({err}).") from err
+        raise InputError(f"Cannot read the image {path} ({err}). {DAMAGED}") from err
 
 
 def _probe_image(path) -> tuple[int, int, int, bool, int]:
@@ -267,25 +269,39 @@ def _index_runs(indices: list[int]) -> list[list[int]]:
     return runs
 
 
-def iter_movie(path, indices, planar: bool = False):
+def iter_movie(path, indices, planar: bool = False, name=None):
     """Yield (index, pixels) for the 0-based ``indices`` in increasing order: a seek to the first
     of each run of nearby indices, then sequential decoding (frames before a target are decoded
     and dropped, so every frame is exact). Pixels are (H, W, 3), or (3, H, W) when ``planar``.
-    Raises InputError if the movie ends too early."""
+    Raises InputError if the movie ends too early or cannot be decoded; ``name(index)`` says
+    how messages name a frame (see iter_frames)."""
     indices = sorted(set(int(i) for i in indices))
     if not indices:
         return
+    name = name or _source_frame
+    av = _av()
     with _open_movie(path) as c:
         s = c.streams.video[0]
         s.thread_type = "AUTO"
         fps = _stream_fps(s)
         start = s.start_time or 0
         for run in _index_runs(indices):
-            yield from _decode_run(c, s, run, fps, start, path,
-                                   _to_planes if planar else _to_rgb)
+            state = {"target": run[0]}
+            try:
+                yield from _decode_run(c, s, run, fps, start, path,
+                                       _to_planes if planar else _to_rgb, state, name)
+            except av.FFmpegError as err:
+                raise InputError(
+                    f"Cannot decode the movie {path} at {name(state['target'])} ({err}): the "
+                    "file is damaged. Re-encode or re-export it, or trim the strip to leave "
+                    "the damaged part out.") from err
 
 
-def _decode_run(c, s, run, fps, start, path, convert):
+def _source_frame(i: int) -> str:
+    return f"source frame {int(i)} (0-based)"
+
+
+def _decode_run(c, s, run, fps, start, path, convert, state, name):
     want = iter(run)
     target = next(want)
     if target > 0 and fps:
@@ -300,13 +316,14 @@ def _decode_run(c, s, run, fps, start, path, convert):
         if idx < target:
             continue
         if idx > target:
-            raise InputError(f"{path}: frame {target} could not be decoded (the stream jumps "
-                             f"to frame {idx}); re-encode the movie.")
+            raise InputError(f"The movie {path} skips {name(target)} (the stream jumps to "
+                             f"source frame {idx}); re-encode the movie.")
         yield idx, convert(frame)
-        target = next(want, None)
+        target = state["target"] = next(want, None)
         if target is None:
             return
-    raise InputError(f"{path} ended before frame {target}; the strip is longer than the file.")
+    raise InputError(f"The movie {path} ended before {name(target)}; the strip is longer "
+                     "than the file. Trim the strip to the movie's length.")
 
 
 # ---- public ---------------------------------------------------------------------------------
@@ -348,30 +365,43 @@ class Decoded:
 
 
 def iter_frames(kind: str, path: str, files, indices, size: tuple[int, int] | None = None,
-                planar: bool = False):
+                planar: bool = False, name=None):
     """Yield Decoded frames for sorted 0-based ``indices`` of a movie or an image sequence.
 
     ``size`` (width, height): every frame must have it (a sequence that changes size mid-way
-    is refused rather than stretched). ``planar``: pixels channels-first (3, H, W)."""
+    is refused rather than stretched). ``planar``: pixels channels-first (3, H, W). ``name``:
+    source index -> how messages name that frame (the pipeline gives scene frames); every
+    message names the file and says what to do."""
+    name = name or _source_frame
     if kind == "movie":
-        source = ((i, px, False) for i, px in iter_movie(path, indices, planar))
+        source = ((i, px, False, path) for i, px in iter_movie(path, indices, planar, name))
     elif kind == "images":
         def _images():
             for i in sorted(indices):
                 if not 0 <= i < len(files):
-                    raise InputError(f"Frame {i} is outside the image sequence of "
-                                     f"{len(files)} frames.")
-                px, alpha = _read_image(files[i], planar)
-                yield i, px, alpha
+                    raise InputError(f"The image sequence has {len(files)} frames; "
+                                     f"{name(i)} is not one of them. Trim the strip to the "
+                                     "images it has.")
+                try:
+                    px, alpha = _read_image(files[i], planar)
+                except InputError as err:
+                    raise InputError(f"{_capital(name(i))}: {err}") from err
+                yield i, px, alpha, files[i]
         source = _images()
     else:
         raise InputError(f"Unknown clip kind '{kind}' (expected 'movie' or 'images').")
-    for i, px, alpha in source:
+    for i, px, alpha, file in source:
         h, w = px.shape[1:] if planar else px.shape[:2]
         if size is not None and (w, h) != tuple(size):
-            raise InputError(f"Frame {i} is {w}x{h} but the clip is "
-                             f"{size[0]}x{size[1]}; all frames of a clip must have one size.")
+            raise InputError(
+                f"{_capital(name(i))} ({file}) is {w}x{h}, but the clip is {size[0]}x{size[1]}: "
+                "every frame of a clip must have one size. Re-export the sequence at one size, "
+                "or trim the strip to the frames of one size.")
         yield Decoded(i, px, alpha)
+
+
+def _capital(text: str) -> str:
+    return text[:1].upper() + text[1:]
 
 
 def to_half(rgb: np.ndarray) -> tuple[np.ndarray, int]:

@@ -67,6 +67,11 @@ def frame_name(clip: ClipSpec, i: int) -> str:
     return f"clip frame {int(i)} (0-based)"
 
 
+def source_frame_name(clip: ClipSpec):
+    """frame_name for an index into the source (the movie, or the image strip's files)."""
+    return lambda index: frame_name(clip, int(index) - clip.first)
+
+
 # What stands behind the relit subject: "network" its own output (the models repaint backgrounds),
 # "keep" the source's background as it was, "relit" the source's background brightened and tinted
 # by the change of light on a matte wall facing the camera (wall_gain, with the network's own
@@ -581,7 +586,8 @@ def clip_exposure(clip: ClipSpec, plan: Plan, fullres: detail.FullRes) -> float:
     probe = Plan(plan.space, 1.0, plan.size, plan.working, False, False, plan.compression)
     lows = [shrink_planar(linearise(d.pixels, probe)[0], probe, fullres).transpose(1, 2, 0)
             for d in frames.iter_frames(clip.kind, clip.path, clip.files,
-                                        [clip.first + i for i in idx], plan.size, planar=True)]
+                                        [clip.first + i for i in idx], plan.size, planar=True,
+                                        name=source_frame_name(clip))]
     return normalise.exposure_scale(lows)
 
 
@@ -607,7 +613,8 @@ def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: 
     probe = sorted(set(range(0, clip.count, FRAMING_STEP)) | {clip.count - 1})
     raw: list = [None] * clip.count
     for d in frames.iter_frames(clip.kind, clip.path, clip.files,
-                                [clip.first + i for i in probe], plan.size, planar=True):
+                                [clip.first + i for i in probe], plan.size, planar=True,
+                                name=source_frame_name(clip)):
         if should_cancel and should_cancel():
             raise Cancelled("Cancelled while framing the portrait; nothing was written, run "
                             "again to start.")
@@ -744,7 +751,8 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
     def produce():
         try:
             for d in frames.iter_frames(clip.kind, clip.path, clip.files,
-                                        [clip.first + i for i in todo], plan.size, planar=True):
+                                        [clip.first + i for i in todo], plan.size, planar=True,
+                                        name=source_frame_name(clip)):
                 if stop.is_set():
                     return
                 x_full, bad, x_max = linearise(d.pixels, plan)

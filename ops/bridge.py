@@ -226,7 +226,8 @@ def image_files(strip) -> list[str]:
 def clip_spec(strip, scene):
     """The visible part of a footage strip as an addon.pipeline.ClipSpec.
 
-    A trimmed strip gives only its visible frames; colour space and fps come from the strip."""
+    A trimmed strip gives only its visible frames; colour space and fps come from the strip, and
+    its first visible scene frame lets messages name frames as the timeline shows them."""
     from ..addon.pipeline import ClipSpec
 
     check_footage_strip(strip)
@@ -239,14 +240,16 @@ def clip_spec(strip, scene):
     if strip.type == 'MOVIE':
         path = bpy.path.abspath(strip.filepath)
         return ClipSpec(kind="movie", path=path, files=(), first=first, count=count,
-                        colorspace=colorspace, fps=float(strip.fps))
+                        colorspace=colorspace, fps=float(strip.fps),
+                        scene_start=int(strip.frame_final_start))
     files = image_files(strip)
     if first + count > len(files):
         raise InputError(f"The strip '{strip.name}' shows {first + count - len(files)} frames "
                          "past the end of its image sequence; trim it to the images it has.")
     fps = scene.render.fps / scene.render.fps_base
     return ClipSpec(kind="images", path=str(pathlib.Path(files[0]).parent), files=tuple(files),
-                    first=first, count=count, colorspace=colorspace, fps=float(fps))
+                    first=first, count=count, colorspace=colorspace, fps=float(fps),
+                    scene_start=int(strip.frame_final_start))
 
 
 def frames_to_run(strip, frame_range: tuple[int, int] | None) -> list[int]:

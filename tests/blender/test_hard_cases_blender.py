@@ -4,6 +4,7 @@ non-zero exit with a message and nothing written or replaced."""
 
 import hashlib
 import pathlib
+import re
 import subprocess
 import sys
 
@@ -184,3 +185,19 @@ def test_strips_whose_names_share_a_slug_never_share_a_folder(extension, toy_mod
     assert after["a_b"] != before["a_b"]
     assert {f: v for f, v in after.items() if f != "a_b"} == \
         {f: v for f, v in before.items() if f != "a_b"}
+
+
+def test_bad_frames_are_named_by_file_and_scene_frame(extension, toy_models, tmp_path):
+    """A frame of another size and a damaged frame: the message names the file and the frame
+    as the timeline shows it, and says what to do."""
+    footage_scene(tmp_path, count=4, frame_start=10)
+    odd = write_png_sequence(tmp_path / "footage", count=1, size=(32, 32), start=3)[0]
+    relight = lambda: bpy.ops.relight.relight_strip(models_dir=str(toy_models))  # noqa: E731
+    path = re.escape(str(odd))
+    with pytest.raises(RuntimeError, match=rf"Scene frame 12 \({path}\) is 32x32, but the clip "
+                                           r"is 64x64.*Re-export the sequence at one size"):
+        relight()
+    odd.write_bytes(b"not a png at all")
+    with pytest.raises(RuntimeError, match=rf"Scene frame 12: Cannot read the image {path} .*"
+                                           "replace it with an intact copy"):
+        relight()

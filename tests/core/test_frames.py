@@ -43,7 +43,7 @@ def test_h264_mp4_decodes_close_to_source(tmp_path):
 
 def test_movie_shorter_than_asked(movie):
     path, _ = movie
-    with pytest.raises(InputError, match="ended before frame 15"):
+    with pytest.raises(InputError, match="ended before source frame 15"):
         list(frames.iter_frames("movie", str(path), (), [10, 15]))
 
 
