@@ -52,6 +52,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(ROOT))
 
 from addon import colour, contract, detail, engine, normalise, pipeline  # noqa: E402
+from training.eval import report  # noqa: E402
 from training.eval.report import machine, machine_line  # noqa: E402
 
 FULL_SIZES = (256, 384, 512)  # plus "full": the test set's own resolution
@@ -711,22 +712,54 @@ def markdown(rows: list[Row], info: dict) -> str:
 
 
 def make_plot(path, rows: list[Row], info: dict) -> None:
-    from bench import png_plot
+    """frontier.png: one panel per group (network, light stage, lighting conversion) of error
+    against time (log), points coloured by knob, each front's Pareto frontier ringed and joined in
+    red (report.HIGHLIGHT) with its labels, and the baselines, which take no time, as dashed lines
+    in the network panel."""
+    from matplotlib.ticker import LogLocator, NullFormatter, StrMethodFormatter
 
-    panels = []
-    for group in ("network", "light stage", "lighting conversion"):
-        pts = [{"ms": r.ms, "error": r.error, "kind": r.kind, "frontier": r.frontier,
-                "front": front_of(r), "label": r.label} for r in rows
-               if r.group == group and r.error is not None and r.ms]
-        refs = [(r.error, r.label) for r in rows if r.group == "reference"
-                and group == "network"]
-        if pts:
-            panels.append((group, TIME_NAMES[group] + " (log)", ERROR_NAMES[group], pts, refs))
+    groups = [g for g in ("network", "light stage", "lighting conversion")
+              if any(r.group == g and r.error is not None and r.ms for r in rows)]
     m = info["machine"]
     load = f"load {m['load_avg_1_5_15'][0]}" + (f"-{m['load_avg_end']}" if m.get(
         "load_avg_end") is not None else "")
-    png_plot.plot(path, panels, f"{m['cpu']}, {m['cores']} cores, {load}, {m['date']}. "
-                                "Ringed + red line: Pareto frontier. Dashed: baselines.")
+    fig, axes = report.figure(len(groups), f"{m['cpu']}, {m['cores']} cores, {load}, {m['date']}. "
+                                           "Ringed + red line: Pareto frontier. Dashed: baselines.")
+    if not groups:
+        axes[0].text(0.5, 0.5, "no data", ha="center", va="center", transform=axes[0].transAxes)
+    for ax, group in zip(axes, groups):
+        pts = [r for r in rows if r.group == group and r.error is not None and r.ms]
+        for i, kind in enumerate(sorted({r.kind for r in pts})):
+            sel = [r for r in pts if r.kind == kind]
+            ax.scatter([r.ms for r in sel], [r.error for r in sel], s=30, marker="s",
+                       color=report.COLOURS[i % len(report.COLOURS)], label=kind, zorder=3)
+        for front in sorted({front_of(r) for r in pts}):
+            line = sorted((r for r in pts if r.frontier and front_of(r) == front),
+                          key=lambda r: r.ms)
+            ax.plot([r.ms for r in line], [r.error for r in line], color=report.HIGHLIGHT, lw=2,
+                    zorder=2)
+            ax.scatter([r.ms for r in line], [r.error for r in line], s=150, facecolors="none",
+                       edgecolors=report.HIGHLIGHT, linewidths=1.5, zorder=4)
+            for r in line:
+                ax.annotate(r.label[:24], (r.ms, r.error), xytext=(5, 6),
+                            textcoords="offset points", fontsize=6)
+        if group == "network":
+            for r in rows:
+                if r.group == "reference" and r.error is not None:
+                    ax.axhline(r.error, color="grey", ls="--", lw=1, zorder=1)
+                    ax.annotate(r.label[:40], (1.0, r.error), xycoords=("axes fraction", "data"),
+                                ha="right", va="bottom", fontsize=6, color="dimgrey")
+        ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_ylim(bottom=min(0.0, min(r.error for r in pts)))
+        ax.set_title(group)
+        ax.set_xlabel(TIME_NAMES[group] + " (log)")
+        ax.set_ylabel(ERROR_NAMES[group])
+        ax.grid(True, which="major", alpha=0.25)
+        ax.legend(loc="lower left", fontsize=6)  # the fast and accurate corner stays empty
+    fig.savefig(path)
 
 
 def card_entry(card, result, settings, info) -> dict:

@@ -312,70 +312,30 @@ def markdown(results: dict, labels: list[str]) -> str:
     return "\n".join(lines)
 
 
-def _line_panel(c, top, left, h, w, title, ylabel, series):
-    """series: (label, xs, ys, colour, dashed) drawn as lines with square markers."""
-    from bench.png_plot import _fmt, _nice_ticks
-
-    c.text(top, left + w // 2, title, anchor="centre")
-    y0, x0, y1, x1 = top + 40, left + 80, top + h - 50, left + w - 20
-    c.rect(y0, x0, y1, x0, (0, 0, 0))
-    c.rect(y1, x0, y1, x1, (0, 0, 0))
-    xs_all = [x for _, xs, _, _, _ in series for x in xs]
-    ys_all = [y for _, _, ys, _, _ in series for y in ys if math.isfinite(y)]
-    xlo, xhi = min(xs_all) - 0.5, max(xs_all) + 0.5
-    yhi = max(ys_all) * 1.1 if ys_all and max(ys_all) > 0 else 1.0
-
-    def xy(x, y):
-        return y1 - y / yhi * (y1 - y0), x0 + (x - xlo) / (xhi - xlo) * (x1 - x0)
-
-    for x in sorted(set(xs_all)):
-        _, xx = xy(x, 0)
-        c.rect(y1, xx, y1 + 4, xx, (0, 0, 0))
-        c.text(y1 + 8, xx, str(x), anchor="centre")
-    for v in _nice_ticks(0.0, yhi):
-        yy, _ = xy(xlo, v)
-        c.rect(yy, x0 - 4, yy, x0, (0, 0, 0))
-        c.text(yy - 5, x0 - 8, _fmt(v), anchor="right")
-    c.text(y1 + 28, (x0 + x1) // 2, "LIGHTING SPEED-UP FACTOR", anchor="centre")
-    c.text(y0 - 18, left + 10, ylabel)
-    for i, (label, xs, ys, colour, dashed) in enumerate(series):
-        pts = [xy(x, y) for x, y in zip(xs, ys) if math.isfinite(y)]
-        for (ya, xa), (yb, xb) in zip(pts, pts[1:]):
-            if dashed:  # dashes along the segment
-                for t in np.arange(0.0, 1.0, 0.2):
-                    c.line(ya + t * (yb - ya), xa + t * (xb - xa), ya + (t + 0.1) * (yb - ya),
-                           xa + (t + 0.1) * (xb - xa), colour, width=2)
-            else:
-                c.line(ya, xa, yb, xb, colour, width=2)
-        for y, x in pts:
-            c.rect(y - 3, x - 3, y + 3, x + 3, colour)
-        yy = y0 + 6 + 14 * i  # legend, top left
-        c.rect(yy, x0 + 10, yy + 6, x0 + 16, colour)
-        c.text(yy, x0 + 22, label[:40], scale=1)
-
-
 def plot(path, results: dict, labels: list[str], footer: str = "") -> None:
-    from bench.png_plot import PALETTE, Canvas, write_png
-
+    """temporal_stability.png: adjacent-frame RMSE against the speed-up (with both references,
+    then the models alone) and the RMSE to the ground truth; the references dashed."""
     fs = sorted(results["input"])
-    grey = (128, 128, 128)
-
-    def line(name, key, colour, dashed=False):
-        return (SHOWN.get(name, name), fs, [results[name][f][key] for f in fs], colour, dashed)
-
-    def models(key):
-        return [line(n, key, PALETTE[i % len(PALETTE)]) for i, n in enumerate(labels)]
-
-    stab = [line("input", "adjacent_rmse", grey, True),
-            line("ground_truth", "adjacent_rmse", (0, 0, 0), True)] + models("adjacent_rmse")
-    acc = [line("input", "rmse_to_gt", grey, True)] + models("rmse_to_gt")
-    ph, pw = 420, 520
-    c = Canvas(ph + 30, 3 * pw)
-    _line_panel(c, 10, 0, ph, pw, "ADJACENT-FRAME RMSE", "RMSE", stab)
-    _line_panel(c, 10, pw, ph, pw, "ADJACENT-FRAME RMSE, MODELS", "RMSE", stab[1:])
-    _line_panel(c, 10, 2 * pw, ph, pw, "RMSE TO GROUND TRUTH", "RMSE", acc)
-    c.text(ph + 12, 10, footer[:190], scale=1)
-    write_png(path, c.px)
+    refs = {"input": {"color": "grey", "ls": "--"}, "ground_truth": {"color": "black", "ls": "--"}}
+    style = {**refs, **{n: {"color": report.COLOURS[i % len(report.COLOURS)]}
+                        for i, n in enumerate(labels)}}
+    panels = (("Adjacent-frame RMSE", "adjacent_rmse", ["input", "ground_truth", *labels]),
+              ("Adjacent-frame RMSE, models", "adjacent_rmse", ["ground_truth", *labels]),
+              ("RMSE to the ground truth", "rmse_to_gt", ["input", *labels]))
+    fig, axes = report.figure(len(panels), footer[:190])
+    for ax, (title, key, names) in zip(axes, panels):
+        for name in names:
+            ys = [results[name][f][key] for f in fs]
+            ax.plot(fs, [y if math.isfinite(y) else math.nan for y in ys], marker="s", ms=4, lw=2,
+                    label=SHOWN.get(name, name), **style[name])
+        ax.set_title(title)
+        ax.set_xlabel("lighting speed-up factor")
+        ax.set_ylabel("RMSE")
+        ax.set_xticks(fs)
+        ax.set_ylim(bottom=0.0)
+        ax.grid(True, alpha=0.25)
+        ax.legend(loc="upper left", fontsize=7)
+    fig.savefig(path)
 
 
 # ---- command line -------------------------------------------------------------------------
@@ -461,9 +421,9 @@ def main(argv=None) -> dict:
     }
     out = pathlib.Path(a.out)
     write_report(out / "temporal_stability", data)
-    footer = (f"{a.frames} FRAMES, STATIC HELD-OUT PERFORMER (ID {stage.info['identity']}), "
-              f"{a.source_hdri} TURNING 360 DEG / {a.period} FRAMES AT SPEED-UP 1 -> "
-              f"{a.target_hdri}")
+    footer = (f"{a.frames} frames, static held-out performer (identity "
+              f"{stage.info['identity']}), {a.source_hdri} turning 360 deg per {a.period} frames "
+              f"at speed-up 1 -> {a.target_hdri}")
     plot(out / "temporal_stability.png", results, labels, footer)
     print(f"\n{a.frames} frames x {len(a.speedups)} speed-ups, {len(models)} model(s): "
           f"{wall:.0f} s wall ({t_stage:.0f} s stage); wrote {out / 'temporal_stability.json'} "

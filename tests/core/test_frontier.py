@@ -1,45 +1,31 @@
-"""bench/frontier.py's pieces: the Pareto frontier, the PNG writer, and the
-network group end to end on the toy model (the whole harness, Cycles included, runs in
+"""bench/frontier.py's pieces: the Pareto frontier, the plot, and the network group end to end on
+the toy model (the whole harness, Cycles included, runs in
 tests/blender/test_frontier_harness.py)."""
 
 import json
-import pathlib
-import struct
 import time
-import zlib
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from PIL import Image
 
-from bench import frontier, png_plot
+from bench import frontier
 from tests.onnx_fixtures import write_toy_model
+from training.eval import report
 
 
-def read_png(path) -> np.ndarray:
-    """Decode the 8-bit RGB, filter-0 PNGs png_plot writes (an independent check of the bytes)."""
-    data = pathlib.Path(path).read_bytes()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n"
-    pos, chunks = 8, {}
-    while pos < len(data):
-        (n,) = struct.unpack(">I", data[pos:pos + 4])
-        kind, body = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + n]
-        (crc,) = struct.unpack(">I", data[pos + 8 + n:pos + 12 + n])
-        assert crc == zlib.crc32(kind + body) & 0xFFFFFFFF
-        chunks[kind] = chunks.get(kind, b"") + body
-        pos += 12 + n
-    w, h, depth, ctype = struct.unpack(">IIBB", chunks[b"IHDR"][:10])
-    assert (depth, ctype) == (8, 2)
-    raw = np.frombuffer(zlib.decompress(chunks[b"IDAT"]), np.uint8).reshape(h, 1 + 3 * w)
-    assert not raw[:, 0].any()
-    return raw[:, 1:].reshape(h, w, 3)
+def read_rgb(path) -> np.ndarray:
+    """A PNG as (H, W, 3) uint8 (decoded by Pillow, independently of matplotlib's writer)."""
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
 
 
-def test_png_round_trip(tmp_path):
-    img = np.random.default_rng(0).integers(0, 256, (7, 11, 3), dtype=np.uint8)
-    png_plot.write_png(tmp_path / "x.png", img)
-    np.testing.assert_array_equal(read_png(tmp_path / "x.png"), img)
+def colour_pixels(img: np.ndarray, hex_colour: str, tol: int = 8) -> int:
+    """How many pixels are within ``tol`` (per channel, 0-255) of ``hex_colour``."""
+    rgb = np.array([int(hex_colour[i:i + 2], 16) for i in (1, 3, 5)])
+    return int((np.abs(img.astype(int) - rgb) <= tol).all(-1).sum())
 
 
 def _rows(points):
@@ -135,8 +121,15 @@ def test_quick_run_writes_table_plot_and_card(quick_run):
     m = result["info"]["machine"]
     assert m["cpu"] in md and f"{m['cores']} cores" in md and m["date"] in md
     assert "| preset x resolution | toy fp32 16 |" in md
-    png = read_png(tmp / "results" / "frontier.png")
-    assert png.shape[0] > 300 and (png == png_plot.FRONTIER).all(-1).any()
+    png = read_rgb(tmp / "results" / "frontier.png")
+    panels = {r.group for r in result["rows"] if r.error is not None and r.ms
+              and r.group != "reference"}
+    assert panels == {"network", "light stage"}  # --skip conversion; the baselines take no time
+    w, h = report.PANEL_PIXELS
+    assert png.shape == (h, w * len(panels), 3)
+    assert colour_pixels(png, report.HIGHLIGHT) > 50  # the frontier's line and rings
+    assert colour_pixels(png, "#1f77b4") > 20  # the first knob's points (tab10's blue)
+    assert (png == 255).all(-1).mean() > 0.5  # mostly white: a plot, not noise
     data = json.loads((tmp / "results" / "frontier.json").read_text())
     assert len(data["rows"]) == len(result["rows"])
     assert "toy fp32 full" in md

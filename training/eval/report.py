@@ -1,5 +1,5 @@
 """Where measurements are written: one Markdown file (and its JSON) per benchmark or evaluation,
-saying the command that produced it and the machine it ran on.
+saying the command that produced it and the machine it ran on, and its plots (matplotlib).
 
     report.write(ROOT / "bench/results/yale", "Real faces: CroppedYale", command, body_md, data)
 
@@ -13,6 +13,7 @@ import json
 import os
 import pathlib
 import platform
+import textwrap
 
 
 def cpu_name() -> str:
@@ -71,3 +72,26 @@ class Lines:
 
     def text(self) -> str:
         return "\n".join(self.lines)
+
+
+# Plots: matplotlib's tab10 colours in order, without its red, which marks what a plot is about
+# (the Pareto frontier).
+COLOURS = ("C0", "C1", "C2", "C4", "C5", "C6", "C7", "C8", "C9")
+HIGHLIGHT = "#d62728"  # tab10's red
+PANEL_PIXELS = (520, 450)  # width, height of one panel
+DPI = 100
+
+
+def figure(panels: int, footer: str = ""):
+    """(figure, axes): ``panels`` matplotlib axes side by side, PANEL_PIXELS each, with ``footer``
+    (the machine, what the plot shows) in small type below them. Save with ``figure.savefig``.
+    Built without pyplot: no global state and no display needed."""
+    from matplotlib.figure import Figure
+
+    n = max(int(panels), 1)
+    fig = Figure(figsize=(PANEL_PIXELS[0] * n / DPI, PANEL_PIXELS[1] / DPI), dpi=DPI,
+                 layout="constrained")
+    axes = fig.subplots(1, n, squeeze=False)[0]
+    if footer:  # wrapped to the figure's width (about 100 characters of 7-point type a panel)
+        fig.supxlabel(textwrap.fill(footer, 100 * n), fontsize=7, color="dimgrey")
+    return fig, list(axes)
