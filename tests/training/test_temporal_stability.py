@@ -1,5 +1,5 @@
-"""bench/temporal_stability.py: the lighting sequence, the metric, the static performer and an end
-to end run with the tiny ONNX toy (tests/onnx_fixtures.py)."""
+"""training/eval/temporal_stability.py: the lighting sequence, the metric, the static performer and
+an end to end run with the tiny ONNX toy (tests/onnx_fixtures.py)."""
 
 import json
 import math
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from addon.errors import InputError, ModelError
-from bench import temporal_stability as ts
 from tests.onnx_fixtures import write_toy_model
 from training.data import lighting_sampling
+from training.eval import temporal_stability as ts
 
 RES = 32  # small: the light stage renders one frame for the whole module
 

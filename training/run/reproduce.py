@@ -28,6 +28,7 @@ from addon import contract
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 MOVED = {
+    "bench.temporal_stability": "training.eval.temporal_stability",
     "training.ablation": "training.eval.ablation",
     "training.before_after": "training.eval.before_after",
     "training.build_cache": "training.data.build_cache",

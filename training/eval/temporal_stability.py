@@ -1,9 +1,9 @@
 """Temporal stability under changing light, as in the paper (sec. 5.2, Fig. "10x"): a static
 performer whose input lighting changes ever faster, relit into one static light.
 
-    .venv/bin/python -m bench.temporal_stability --onnx models/relight-draft.onnx \
+    .venv/bin/python -m training.eval.temporal_stability --onnx models/relight-draft.onnx \
         --onnx models/relight-standard.onnx                     # 1000 frames, speed-ups 1..10
-    .venv/bin/python -m bench.temporal_stability --onnx runs/x.onnx --label full --quick
+    .venv/bin/python -m training.eval.temporal_stability --onnx runs/x.onnx --label full --quick
 
 Protocol (every choice is an option; the defaults are recorded in the JSON):
 * Performer: one frame of one held-out identity, the scene of sample ``--sample`` of the fixed
@@ -52,11 +52,11 @@ import numpy as np
 
 from addon import contract, engine, normalise
 from addon.errors import InputError, LightingError, ModelError, RelightError
-from training.eval import metrics, report
-from training.data import lighting_sampling
-from training.lightstage import layout
+from ..data import lighting_sampling
+from ..lightstage import layout
+from . import metrics, report
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 DEFAULT_OUT = ROOT / "bench" / "results"
 SPEEDUPS = tuple(range(1, 11))
 QUICK_SPEEDUPS = (1, 5, 10)
@@ -119,8 +119,8 @@ def build_stage(resolution: int = 128, sample: int = 0, data_root=None) -> Stage
     camera and backdrop; its random lighting is not used)."""
     import torch
 
-    from training.data.dataset import LightStageDataset
-    from training.data.make_testset import TEST_SEED
+    from ..data.dataset import LightStageDataset
+    from ..data.make_testset import TEST_SEED
 
     ds = LightStageDataset("test", resolution, seed=TEST_SEED, length=sample + 1,
                            data_root=data_root)
@@ -371,7 +371,7 @@ def parse_args(argv=None):
 def main(argv=None) -> dict:
     import torch
 
-    from training.lightstage import assets
+    from ..lightstage import assets
 
     a = parse_args(argv)
     torch.set_num_threads(max(1, a.threads))
@@ -398,7 +398,7 @@ def main(argv=None) -> dict:
     print(table)
     wall = time.perf_counter() - t0
     data = {
-        "command": "python -m bench.temporal_stability " + " ".join(
+        "command": "python -m training.eval.temporal_stability " + " ".join(
             sys.argv[1:] if argv is None else argv),
         "protocol": {
             "performer": stage.info, "mask_pixels": int(stage.mask.sum()),
