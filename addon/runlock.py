@@ -9,10 +9,12 @@ both find a folder free, nor one clear frames another has just claimed.
 
 Both are files in the output folder created atomically (``O_CREAT | O_EXCL``) holding the process
 id, the machine and the time; a holder file also names its run (a digest of the run's identity).
-They are removed when the run ends, however it ends (``with`` / ``finally``). A file left by a
-process that died (killed, crashed) on this machine is taken over with a note; one from another
-machine cannot be checked, so the message says which run it names and to delete it if that run
-is no longer running.
+They are removed when the run ends, however it ends (``with`` / ``finally``; the batch script
+turns Ctrl-C and SIGTERM into such an end). A file left by a process that died (killed,
+crashed) on this machine is taken over with a note; another machine's process cannot be
+checked, so its holder file is honoured and the message says which run it names and to delete
+it if that run is no longer running (its setup lock, held for seconds, is taken over after an
+hour).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from .frames import HOST, pid_alive
 SETUP_FILE = "relight_setup.lock"
 HOLDER_PREFIX, HOLDER_SUFFIX = "relight_run_", ".lock"
 SETUP_WAIT_S = 300.0  # a setup reads a few sample frames; wait this long for another's
+SETUP_STALE_S = 3600.0  # a setup lock of another machine this old was left by a crash
 UNREADABLE_AFTER_S = 10.0  # a lock file still empty or garbled after this was left by a crash
 _counter = itertools.count()  # several runs of one process (threads) each hold their own file
 
@@ -60,16 +63,20 @@ def _read(path: str) -> dict | None:
         return {}
 
 
-def _dead(path: str, record: dict) -> bool:
+def _dead(path: str, record: dict, max_age: float | None = None) -> bool:
     """Whether the lock file ``path`` was left by a process that no longer runs: one of this
-    machine whose pid is gone, or a file still unreadable long after it was made."""
+    machine whose pid is gone, a file still unreadable long after it was made, or (given
+    ``max_age``) one older than that from another machine."""
     if not record:
         try:
             return time.time() - os.stat(path).st_mtime > UNREADABLE_AFTER_S
         except FileNotFoundError:
             return True
-    if record.get("host") != HOST:
-        return False  # another machine's process: it cannot be checked from here
+    if record.get("host") != HOST:  # another machine's process cannot be checked from here
+        try:
+            return max_age is not None and time.time() - float(record.get("time")) > max_age
+        except (TypeError, ValueError):
+            return False
     try:
         return not pid_alive(int(record.get("pid")))
     except (TypeError, ValueError):
@@ -133,7 +140,7 @@ class FolderLock:
             record = _read(self.setup_path)
             if record is None:
                 continue  # released just now: try again
-            if _dead(self.setup_path, record):
+            if _dead(self.setup_path, record, max_age=SETUP_STALE_S):
                 self.note(f"Took over the lock of a relight run that ended without releasing "
                           f"the output folder ({describe(self.setup_path, record)}).")
                 _remove(self.setup_path)

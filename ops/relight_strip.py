@@ -9,6 +9,7 @@ from __future__ import annotations
 import pathlib
 import threading
 import time
+import traceback
 
 import bpy
 import numpy as np
@@ -18,6 +19,11 @@ from . import bridge, preview_light
 
 RELIT_SUFFIX = " relit"
 MATTE_SUFFIX = " matte"
+
+# The exception that ended the last synchronous run (execute), None after a run that finished:
+# for scripts that need its kind, not only the reported text (scripts/relight_batch.py turns
+# it into its exit status and, with --debug, shows its traceback).
+last_error = None
 
 
 def schedule_lights(context, job: bridge.Job):
@@ -101,6 +107,10 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
                                     description="Strip to relight; empty uses the active strip")
     models_dir: bpy.props.StringProperty(name="Models Folder", options={'SKIP_SAVE', 'HIDDEN'},
                                          description="Overrides the preferences' models folder")
+    show_traceback: bpy.props.BoolProperty(
+        name="Show Traceback", default=True, options={'SKIP_SAVE', 'HIDDEN'},
+        description="Print an unexpected error's traceback to the console; a caller that shows "
+                    "it itself (the batch script) turns this off")
 
     _timer = None
     _thread = None
@@ -138,13 +148,31 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
 
     # Synchronous: background mode, scripts, and tests.
     def execute(self, context):
+        global last_error
         started = time.perf_counter()
+        last_error = None
         try:
             job, lights, warnings = self._prepare(context)
             result = run_pipeline(job, lights, on_progress=_print_progress, log=_print_log)
             self._finish(context, job, result, warnings, time.perf_counter() - started)
         except RelightError as err:
+            last_error = err
             self.report({'ERROR'}, str(err))
+            return {'CANCELLED'}
+        except KeyboardInterrupt:  # Ctrl-C in a console or batch run: a cancel like Esc
+            last_error = Cancelled("Cancelled; the finished frames are kept, run again to "
+                                   "resume.")
+            self.report({'WARNING'}, str(last_error))
+            return {'CANCELLED'}
+        except Exception as err:  # a bug: one report line; its traceback once, on the console
+            # Left to Blender, the traceback would be printed and then reported as the error's
+            # text, which bpy.ops hands to scripts: twice, and as if it were a user error.
+            last_error = err
+            if self.show_traceback:
+                traceback.print_exception(err)
+            text = " ".join(str(err).split())
+            self.report({'ERROR'}, f"Unexpected error ({type(err).__name__}: {text}); this is a "
+                                   "bug, please report it with the console's traceback.")
             return {'CANCELLED'}
         return {'FINISHED'}
 

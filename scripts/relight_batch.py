@@ -7,8 +7,16 @@
 
 Without a lighting option the lighting set in the .blend's Relight panel is used. --frames takes
 scene frames; outputs do not depend on how a clip is split, so chunks may run anywhere, in any
-order, at the same time. Exit status: 0 done; 1 a problem with the input, model or output (the
-message says what to do); 2 bad arguments; 3 an unexpected error (rerun with --debug).
+order, at the same time (chunks of one run share the output folder; another run is refused
+while one is writing there).
+
+Exit status, with one line on stderr saying what happened (tracebacks only with --debug):
+  0    done
+  1    a problem with the input, lighting, model or output; the message says what to do
+  2    bad arguments (unknown options, a non-finite or absurd --exposure or --rotation, ...)
+  3    an unexpected error, a bug: rerun with --debug for the traceback and report it
+  130  cancelled with Ctrl-C (143: stopped by SIGTERM); finished frames are kept, run again
+       to resume
 """
 
 from __future__ import annotations
@@ -20,8 +28,10 @@ import math
 import importlib.util
 import pathlib
 import re
+import signal
 import sys
 import time
+import traceback
 
 EXT_ID = "portrait_relight"
 HERE = pathlib.Path(__file__).resolve().parent
@@ -48,8 +58,31 @@ def frame_range(text: str) -> tuple[int, int]:
     return start, end
 
 
+def bounded_float(name: str, unit: str, limit: float):
+    """An argparse type: a finite number within +-``limit``."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not a number of {unit}") from None
+        if not math.isfinite(value) or abs(value) > limit:
+            raise argparse.ArgumentTypeError(f"{name} must be a finite number of {unit} between "
+                                             f"{-limit:g} and {limit:g}, got '{text}'")
+        return value
+    return parse
+
+
+MAX_EXPOSURE = 128.0  # stops: 2^128 takes any light past float32's range
+MAX_ROTATION = 36000.0  # degrees: a hundred turns is already more than anyone means
+
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="relight_batch", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="relight_batch", description=__doc__.split("\n\n")[0],
+                                epilog="Exit status: 0 done, 1 input/lighting/model/output "
+                                       "problem (the message says what to do), 2 bad "
+                                       "arguments, 3 unexpected error (rerun with --debug), "
+                                       "130 cancelled with Ctrl-C (143 by SIGTERM; run again "
+                                       "to resume).")
     p.add_argument("blend", nargs="?", help="the .blend file to open (with the bpy module)")
     p.add_argument("--strip", help="name of the movie or image strip to relight")
     p.add_argument("--demo", action="store_true", help="relight the built-in demo clip")
@@ -58,8 +91,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     light.add_argument("--scene-lights", action="store_true", help="light with the scene's lamps")
     light.add_argument("--world", action="store_true", help="light with the scene's world HDRI")
     light.add_argument("--studio", metavar="NAME", help="light with a bundled studio HDRI")
-    p.add_argument("--rotation", type=float, metavar="DEG", help="turn the lighting (degrees)")
-    p.add_argument("--exposure", type=float, metavar="EV", help="scale the lighting by 2^EV")
+    p.add_argument("--rotation", type=bounded_float("--rotation", "degrees", MAX_ROTATION),
+                   metavar="DEG", help="turn the lighting (degrees)")
+    p.add_argument("--exposure", type=bounded_float("--exposure", "stops", MAX_EXPOSURE),
+                   metavar="EV", help="scale the lighting by 2^EV")
     p.add_argument("--preset", help="quality preset (model) to use")
     p.add_argument("--models", metavar="DIR", help="folder of models (default: preferences)")
     p.add_argument("--out", metavar="DIR", help="output folder (default: the .blend's setting)")
@@ -222,6 +257,26 @@ def call(op, **kwargs) -> None:
         raise BatchError(re.sub(r"^Error:\s*", "", str(err).strip())) from None
 
 
+def relight(ext, strip: str, models: str) -> None:
+    """Run the relight operator. Its failure is raised as the exception that ended it (the
+    operator keeps it: a RelightError for the user, a Cancelled, or a bug), so main() can
+    choose the exit status and show a bug's traceback only with --debug."""
+    import bpy
+
+    module = ext.ops.relight_strip
+    module.last_error = None
+    try:
+        done = bpy.ops.relight.relight_strip(strip=strip, models_dir=models, show_traceback=False)
+    except RuntimeError as err:
+        if module.last_error is not None:
+            raise module.last_error from None
+        raise BatchError(re.sub(r"^Error:\s*", "", str(err).strip())) from None
+    if module.last_error is not None:
+        raise module.last_error
+    if done != {'FINISHED'}:
+        raise BatchError(f"the relight operator ended with {sorted(done)}")
+
+
 def run(args) -> None:
     import bpy
 
@@ -233,7 +288,7 @@ def run(args) -> None:
     strip = set_up_demo(ext, args) if args.demo else args.strip
     apply_settings(bpy.context.scene, args)
     started = time.perf_counter()
-    call(bpy.ops.relight.relight_strip, strip=strip, models_dir=args.models or "")
+    relight(ext, strip, args.models or "")
     scene = bpy.context.scene
     out = ext.ops.bridge.output_dir(scene, scene.sequence_editor.strips[strip],
                                     scene.relight.output_dir)
@@ -245,26 +300,63 @@ def run(args) -> None:
         bpy.ops.wm.save_mainfile()
 
 
+def _stop(signum, frame):
+    """SIGTERM (a farm manager stopping the job) cancels like Ctrl-C: the run stops at once,
+    keeps its finished frames and releases its output folder."""
+    _stop.signum = signum
+    raise KeyboardInterrupt
+
+
+_stop.signum = signal.SIGINT
+
+
 def main(argv=None) -> int:
     args = parse_args(script_args(sys.argv if argv is None else argv))
+    # Ctrl-C raises KeyboardInterrupt here, under Blender too (which has its own handler).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _stop)
     try:
-        import bpy  # noqa: F401  (Blender, or the bpy module)
-    except ImportError:
-        print("relight_batch: error: needs Blender (blender -b -P ...) or the bpy module "
-              "(pip install bpy)", file=sys.stderr)
-        return 1
-    try:
+        try:
+            import bpy  # noqa: F401  (Blender, or the bpy module)
+        except ImportError:
+            print("relight_batch: error: needs Blender (blender -b -P ...) or the bpy module "
+                  "(pip install bpy)", file=sys.stderr)
+            return 1
         run(args)
     except BatchError as err:
         print(f"relight_batch: error: {err}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        return _cancelled()
     except Exception as err:  # noqa: BLE001 - the last line of defence: one clear line
+        if _relight_error(err, "Cancelled"):
+            return _cancelled()
+        if _relight_error(err, "RelightError"):
+            print(f"relight_batch: error: {err}", file=sys.stderr)
+            return 1
         if args.debug:
-            raise
-        print(f"relight_batch: unexpected error ({type(err).__name__}: {err}); rerun with "
-              "--debug for the traceback and report it", file=sys.stderr)
+            traceback.print_exception(err)
+        print(f"relight_batch: unexpected error ({type(err).__name__}: {_one_line(err)}); "
+              + ("this is a bug, please report it with the traceback above" if args.debug else
+                 "rerun with --debug for the traceback and report it"), file=sys.stderr)
         return 3
     return 0
+
+
+def _one_line(err: BaseException) -> str:
+    return " ".join(str(err).split())
+
+
+def _relight_error(err: BaseException, name: str) -> bool:
+    """Whether ``err`` is the extension's error class ``name`` (addon/errors.py), by name: the
+    script may run beside an installed copy of the extension with classes of its own."""
+    return any(c.__name__ == name and c.__module__.endswith("addon.errors")
+               for c in type(err).__mro__)
+
+
+def _cancelled() -> int:
+    print("relight_batch: cancelled, run again to resume", file=sys.stderr)
+    return 128 + int(_stop.signum)
 
 
 if __name__ == "__main__":

@@ -164,6 +164,11 @@ def test_a_lock_of_another_machine_is_never_taken_over(toy, movie, tmp_path):
         pipeline.relight_clip(clip(movie), UNIFORM, out, opts(toy))
     assert not list((out / "relit").glob("*.exr")) and holder.is_file()
     assert lock_files(out) == [holder.name]  # the refused run left nothing behind
+    # Its setup lock (held for seconds) is another matter once it is an hour old.
+    holder.unlink()
+    (out / runlock.SETUP_FILE).write_text(json.dumps({**other, "time": time.time() - 7200}))
+    res = pipeline.relight_clip(clip(movie), UNIFORM, out, opts(toy))
+    assert res.written == N and any("render-node-7" in w for w in res.warnings)
 
 
 def test_waiting_for_another_setup_can_be_cancelled_or_times_out(tmp_path):
