@@ -154,6 +154,13 @@ def test_black_or_nan_scene_lighting_is_refused_saying_what_to_set(extension, to
         relight()
     assert not (tmp_path / "out").exists()
     bpy.data.objects["Fill"].data.energy = 100.0  # a lamp with energy lights the subject
+    for name, value, match in (("exposure", 2000.0, "exposure is 2000 on frame 1"),
+                               ("rotation", float("nan"), "rotation is nan on frame 1")):
+        setattr(settings, name, value)  # the panel's properties have no hard limits
+        with pytest.raises(RuntimeError, match=match):
+            relight()
+        setattr(settings, name, 0.0)
+    assert not (tmp_path / "out").exists()
     assert relight() == {'FINISHED'}
     assert len(list((tmp_path / "out").rglob("relit_*.exr"))) == 2
 
