@@ -26,6 +26,9 @@ from .validation import validate, validation_samples
 
 
 class Trainer:
+    """The optimisers of a run and one step: the generator's objective (the losses ``sw`` keeps
+    on), then ``--n-critic`` critic updates while adversarial training is on."""
+
     def __init__(self, net, sw: losses.Switches, args, device="cpu"):
         self.net, self.sw, self.args, self.device = net, sw, args, device
         if args.optim == "rmsprop":  # the paper: RMSprop 5e-5 for every network
@@ -98,9 +101,8 @@ def train(args) -> pathlib.Path:
                 if args.cache else None)
     recipe = {"command": "python -m training.run.train " + " ".join(sys.argv[1:]),
               "args": vars(args), "switches": sw.to_dict(), "net": net.cfg.to_dict(),
-              "git_commit": git_commit(),
-              "data_seed": args.seed, "machine": machine(), "device": str(device),
-              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "init": init,
+              "git_commit": git_commit(), "data_seed": args.seed, "machine": machine(),
+              "device": str(device), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "init": init,
               "render_version": (rendered.get("renderer", "v1") if rendered
                                  else renderer_version())}
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
