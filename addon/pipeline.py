@@ -269,7 +269,7 @@ def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,
         "settings": {"working_size": working, "detail_transfer": options.detail_transfer,
                      "write_matte": options.write_matte,
                      # only when set, so runs made before the option existed still resume
-                     # ("keep" is written as session 2's keep_background flag was)
+                     # ("keep" is written as the earlier keep_background flag was)
                      **({} if options.background == "network" else
                         {"keep_background": True} if options.background == "keep" else
                         {"background": options.background})},
