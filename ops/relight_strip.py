@@ -21,9 +21,14 @@ RELIT_SUFFIX = " relit"
 MATTE_SUFFIX = " matte"
 
 # The exception that ended the last synchronous run (execute), None after a run that finished:
-# for scripts that need its kind, not only the reported text (scripts/relight_batch.py turns
-# it into its exit status and, with --debug, shows its traceback).
+# for scripts that need its kind, not only the reported text (the batch run, ops/batch.py,
+# turns it into its exit status and, with --debug, shows its traceback).
 last_error = None
+
+# Where a synchronous run (execute) sends its progress (done, total, text) and log lines; None
+# prints them. The batch run's --progress json (ops/batch.py) sets its own.
+progress_sink = None
+log_sink = None
 
 
 def schedule_lights(context, job: bridge.Job):
@@ -153,7 +158,8 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
         last_error = None
         try:
             job, lights, warnings = self._prepare(context)
-            result = run_pipeline(job, lights, on_progress=_print_progress, log=_print_log)
+            result = run_pipeline(job, lights, on_progress=progress_sink or _print_progress,
+                                  log=log_sink or _print_log)
             self._finish(context, job, result, warnings, time.perf_counter() - started)
         except RelightError as err:
             last_error = err

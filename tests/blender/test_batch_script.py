@@ -123,29 +123,23 @@ def test_failures_exit_non_zero_with_a_message(extension, toy_models, tmp_path, 
     assert not list(tmp_path.glob("**/relit_*.exr"))
 
 
-def test_blender_style_arguments_after_double_dash():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("relight_batch", SCRIPT)
-    batch = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(batch)
+def test_blender_style_arguments_after_double_dash(extension):
+    batch = extension.ops.batch  # the code the script and `blender -c relight` both run
     argv = ["blender", "-b", "shot.blend", "-P", "relight_batch.py", "--", "--strip", "A",
             "--frames", "10-20"]
     args = batch.parse_args(batch.script_args(argv))
     assert (args.strip, args.frames, args.blend) == ("A", (10, 20), None)
     assert batch.script_args(["relight_batch.py", "s.blend", "--demo"]) == ["s.blend", "--demo"]
+    for text, frames in (("-10--5", (-10, -5)), ("-3-4", (-3, 4)), ("-7", (-7, -7))):
+        assert batch.parse_args(["--strip", "A", "--frames", text]).frames == frames
 
 
 def test_background_choices_are_the_pipelines(extension):
-    """The script parses its flags before the extension loads, so it spells the choices out; they
-    must stay the pipeline's (and the panel's) list."""
-    import importlib.util
-
+    """The batch run spells the choices out (importing the pipeline to read them would load it
+    whenever the extension registers); they must stay the pipeline's (and the panel's) list."""
     from portrait_relight.addon import pipeline
 
-    spec = importlib.util.spec_from_file_location("relight_batch", SCRIPT)
-    batch = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(batch)
+    batch = extension.ops.batch
     for choice in pipeline.BACKGROUNDS:
         assert batch.parse_args(["--demo", "--background", choice]).background == choice
     with pytest.raises(SystemExit):

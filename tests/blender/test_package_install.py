@@ -25,6 +25,9 @@ print("RESULT " + json.dumps({
     "enabled": [k for k in bpy.context.preferences.addons.keys() if "relight" in k],
     "operator_module": bpy.types.RELIGHT_OT_relight_strip.__module__,
     "installed": sys.modules["bl_ext.user_default.portrait_relight"].__file__,
+    # `blender -c relight` exists once the extension is enabled (its registration handle).
+    "cli_command": sys.modules["bl_ext.user_default.portrait_relight.ops.batch"]._cli_handle
+                   is not None,
 }))
 """
 
@@ -105,6 +108,7 @@ def test_installed_copy_relights_a_clip(extension, linux_zip, toy_models, tmp_pa
     installed, _ = run_driver(INSTALL, [linux_zip], env)
     assert installed["enabled"] == ["bl_ext.user_default.portrait_relight"]
     assert installed["operator_module"].startswith("bl_ext.user_default.portrait_relight.")
+    assert installed["cli_command"]
     ext_dir = pathlib.Path(installed["installed"]).parent
     assert ext_dir.is_relative_to(user)
 
