@@ -7,6 +7,7 @@ import json
 import math
 import pathlib
 import shutil
+import signal
 import subprocess
 import sys
 import types
@@ -142,6 +143,33 @@ def test_json_progress_is_all_that_goes_to_stdout(toy_models, tmp_path):
     bad = run("--input", plate, "--progress", "json", "--exposure", "nan")
     assert bad.returncode == 2
     assert [json.loads(x)["exit"] for x in bad.stdout.splitlines()] == [2]
+
+
+def test_sigterm_is_a_cancel_with_exit_143_said_in_json_and_the_rerun_resumes(toy_models,
+                                                                               tmp_path):
+    plate = exr_plate(tmp_path / "plate", count=24)
+    cmd = [sys.executable, str(SCRIPT), "--input", str(plate), "--studio", "city", "--models",
+           str(toy_models), "--out", str(tmp_path / "out"), "--progress", "json"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    lines = []
+    for line in proc.stdout:
+        lines.append(json.loads(line))
+        if lines[-1]["state"] == "frame" and lines[-1]["frame"] >= 2:
+            proc.send_signal(signal.SIGTERM)  # a farm manager stopping the task
+            break
+    rest, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, rest + err
+    lines += [json.loads(x) for x in rest.splitlines()]
+    assert lines[-1]["state"] == "cancelled" and lines[-1]["exit"] == 143
+    assert 2 <= lines[-1]["frame"] < 24
+    assert "relight_batch: cancelled, run again to resume" in err
+    assert not list((tmp_path / "out").rglob("*.lock"))
+    resumed = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    started = json.loads(resumed.stdout.splitlines()[0])
+    assert started["state"] == "started" and started["frame"] >= 2  # resumed, not redone
+    assert len(list((tmp_path / "out" / "shot").glob("relit.*.exr"))) == 24
 
 
 def test_help_shows_both_forms_the_exit_statuses_presets_and_studios(toy_models):
