@@ -48,12 +48,18 @@ def session(model_path, threads: int | None = None):
 
 def relight_image(image, light, preset: str = "standard", models_dir=None, *, model=None,
                   threads: int | None = None,
-                  background: str = pipeline.DEFAULT_BACKGROUND) -> np.ndarray:
+                  background: str = pipeline.DEFAULT_BACKGROUND,
+                  exposure: str = pipeline.DEFAULT_EXPOSURE_MODE) -> np.ndarray:
     """Relight ``image`` ((H, W, 3) float32 scene-linear Rec.709) to ``light`` ((16, 16, 3), the
     light-vector convention) with the preset's model and return (H, W, 3) scene linear.
     ``model``: a path to an .onnx (with its card) instead of a preset; ``background``: the
     pipeline's choice for the end-to-end presets (intrinsic presets always keep the footage's
-    background). NaN, infinite and negative pixels are taken as 0, as the pipeline does."""
+    background); ``exposure``: the pipeline's exposure mode ("keep": the subject keeps this
+    image's luminance; "physical": absolute units). NaN, infinite and negative pixels are taken
+    as 0, as the pipeline does."""
+    if exposure not in pipeline.EXPOSURE_MODES:
+        raise InputError(f"Unknown exposure mode {exposure!r}; use one of "
+                         f"{', '.join(pipeline.EXPOSURE_MODES)}.")
     img = np.asarray(image, dtype=np.float32)
     if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
         raise InputError(f"The image must be (H, W, 3), got shape {img.shape}.")
@@ -64,13 +70,14 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
     if isinstance(sess, engine.IntrinsicSession):
         fullres = portrait.shared_fullres()
         res = portrait.relight_frame(sess, x, light, portrait.find_box(sess, x, fullres),
-                                     fullres=fullres)
+                                     exposure=exposure, fullres=fullres)
         y = fullres.finish_planar(x, res.a, res.b, float(x.max(initial=0.0)))[0]
         return np.ascontiguousarray(y.astype(np.float32).transpose(1, 2, 0))
-    return _network_frame(sess, x, light, background)
+    return _network_frame(sess, x, light, background, exposure)
 
 
-def _network_frame(sess, x: np.ndarray, light: np.ndarray, background: str) -> np.ndarray:
+def _network_frame(sess, x: np.ndarray, light: np.ndarray, background: str,
+                   exposure: str) -> np.ndarray:
     """The end-to-end network's path through the pipeline's per-frame stages."""
     h, w = x.shape[1:]
     s = normalise.exposure_scale([x.transpose(1, 2, 0)])
@@ -82,5 +89,8 @@ def _network_frame(sess, x: np.ndarray, light: np.ndarray, background: str) -> n
     relit_low, source, fg, k = pipeline.infer_planar(sess, x_low, light)
     ab = pipeline.coefficients_planar(x_low, relit_low, k, plan, fullres)
     ab = pipeline.with_background(ab, fg, light, source * np.float32(s), plan)
+    if exposure == "keep" and ab is not None:
+        gain = portrait.clip_gain([pipeline.subject_luminance(x_low, ab, fg, s)], "keep")
+        ab = pipeline.subject_gain(ab, fg, gain)
     y = pipeline.finish_planar(xn, ab, float(xn.max()) if xn.size else 0.0, fullres)[0]
     return np.ascontiguousarray(y.astype(np.float32).transpose(1, 2, 0))

@@ -45,6 +45,7 @@ SHADOW_SOFTNESS = 3.0       # pixels of height over which an occluder fades in
 SHADOW_BIAS = (2.0, 0.1)    # pixels, plus pixels per pixel marched: the height is approximate
 SKIN_ROUGHNESS = 0.38
 SKIN_F0 = 0.028
+SKIN_ALBEDO = 0.35          # luminance albedo of skin: absolute units for highlights and "physical"
 RATIO_MAX = 16.0            # a region the footage had in deep shadow is not amplified without bound
 
 
@@ -265,6 +266,7 @@ class Shading:
     ratio: np.ndarray     # (3, h, w) multiplies the footage
     highlight: np.ndarray  # (3, h, w) added, in the footage's units
     plan: Plan
+    unit: float = 1.0     # the footage's skin radiance per unit of fitted shading (its units)
 
 
 def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan | None = None,
@@ -305,7 +307,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     skin = fg & (bufs.face > 0.5)
     unit = float(np.median((lum / e_src)[skin])) if skin.sum() > 8 else float(
         np.median((lum / e_src)[fg])) if fg.any() else 1.0
-    highlight = spec * (unit * math.pi * 0.35)  # GGX radiance scaled from skin albedo ~0.35
+    highlight = spec * (unit * math.pi * SKIN_ALBEDO)  # GGX radiance scaled from skin albedo
     if keep_exposure and fg.any():
         w = bufs.matte
         before = float((lum * w).sum())
@@ -314,4 +316,4 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         after = float(((luminance(ratio * image_chw) + luminance(highlight)) * w).sum())
         k = before / after if after > 1e-12 else 1.0
         ratio, highlight = ratio * k, highlight * k
-    return Shading(ratio.astype(np.float32), highlight.astype(np.float32), effects)
+    return Shading(ratio.astype(np.float32), highlight.astype(np.float32), effects, unit)

@@ -33,7 +33,7 @@ import pathlib
 import queue
 import re
 import threading
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,7 +45,10 @@ from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's A
 RUN_FILE = "relight_run.json"
 BOXES_FILE = "relight_boxes.json"  # intrinsic models: the clip's smoothed portrait boxes
 FRAMING_STEP = 3  # frames between two framing passes (a head moves little in 3 frames at 25 fps)
-RUN_FORMAT = "relight-run/1"
+RUN_FORMAT = "relight-run/2"
+EXPOSURE_MODES = ("keep", "physical")
+DEFAULT_EXPOSURE_MODE = "keep"
+GAIN_SAMPLES = 8  # frames, evenly spaced over the clip, that set its exposure gain
 
 
 @dataclass(frozen=True)
@@ -95,6 +98,10 @@ class RelightOptions:
     # a wall facing the camera (the default: the models repaint backgrounds; training/evaluate.py
     # measures it).
     background: str = DEFAULT_BACKGROUND
+    # "keep": the subject keeps the footage's overall exposure (one gain for the clip; the light
+    # sets direction, colour and contrast, and an animated light still brightens and dims it);
+    # "physical": absolute units, for scenes lit to scale (exposure_gain).
+    exposure_mode: str = DEFAULT_EXPOSURE_MODE
 
 
 @dataclass
@@ -236,17 +243,6 @@ def _file_stamp(path) -> list:
     return [os.path.basename(path), st.st_size, st.st_mtime_ns // 1000]
 
 
-def _legacy_source(clip: ClipSpec) -> dict:
-    """The source part of identities written before sources were identified by their files
-    alone (by the path as given), so folders made then still resume."""
-    stamps = []
-    for f in _source_files(clip):
-        st = os.stat(f)
-        stamps.append([os.path.abspath(f), st.st_size, st.st_mtime_ns])
-    return {"kind": clip.kind, "path": os.path.abspath(clip.path),
-            "files_sha256": hashlib.sha256(json.dumps(stamps).encode()).hexdigest()}
-
-
 def _source_files(clip: ClipSpec) -> list[str]:
     if clip.kind == "movie":
         return [clip.path]
@@ -267,12 +263,8 @@ def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,
         "lights_sha256": light_hash,
         "model_sha256": card.sha256,
         "settings": {"working_size": working, "detail_transfer": options.detail_transfer,
-                     "write_matte": options.write_matte,
-                     # only when set, so runs made before the option existed still resume
-                     # ("keep" is written as the earlier keep_background flag was)
-                     **({} if options.background == "network" else
-                        {"keep_background": True} if options.background == "keep" else
-                        {"background": options.background})},
+                     "write_matte": options.write_matte, "background": options.background,
+                     "exposure_mode": options.exposure_mode},
     }
 
 
@@ -351,15 +343,13 @@ def _create_folder(out_dir: str) -> None:
         raise OutputError(f"The output folder {out_dir} is not writable; choose another.")
 
 
-def prepare_output(out_dir: str, identity: dict, overwrite: bool,
-                   same_run: tuple = ()) -> dict | None:
+def prepare_output(out_dir: str, identity: dict, overwrite: bool) -> dict | None:
     """Create the folders; return the stored run record when resuming, else None. Refuses a
-    folder holding another run (or unknown relit frames) unless ``overwrite``. ``same_run``:
-    older spellings of ``identity`` that also mean this run. Called under the folder's setup
-    lock (runlock.FolderLock)."""
+    folder holding another run (or unknown relit frames) unless ``overwrite``. Called under the
+    folder's setup lock (runlock.FolderLock)."""
     _create_folder(out_dir)
     stored = _read_run(out_dir)
-    if stored is not None and stored.get("identity") in (identity, *same_run):
+    if stored is not None and stored.get("identity") == identity:
         return stored
     has_frames = any(pathlib.Path(out_dir, "relit").glob("relit_*.exr"))
     if stored is None and not has_frames:
@@ -395,7 +385,7 @@ class Plan:
 def relit_times_s(card) -> bool:
     """Whether the card's relit output is brought back by s * k ('s*k', cards written before the
     key existed) or by k alone ('k': image / s is the scene under lights / s, so a decoder fed
-    light / k renders relit / k; see training.train.normalise_sample)."""
+    light / k renders relit / k; see training.model.units.normalise_sample)."""
     value = card.data.get("relit_scale", "s*k")
     if value not in ("s*k", "k"):
         raise ModelError(f"The model card of {card.name} has relit_scale {value!r}; expected "
@@ -628,6 +618,57 @@ def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: 
     return boxes, missing
 
 
+def exposure_gain(clip: ClipSpec, lights: np.ndarray, plan: Plan, session, fullres,
+                  boxes, mode: str) -> float:
+    """The clip's exposure gain under ``mode`` (EXPOSURE_MODES), from GAIN_SAMPLES frames evenly
+    spaced over the whole clip (never the chunk, so farm chunks agree): "keep", the subject's
+    luminance summed over those frames is the footage's; "physical", absolute units (the
+    end-to-end networks' own level; for intrinsic presets skin of albedo
+    intrinsic.SKIN_ALBEDO under the target's irradiance, portrait.clip_gain)."""
+    if mode == "physical" and boxes is None:
+        return 1.0
+    n = min(GAIN_SAMPLES, clip.count)
+    idx = sorted({int(round(v)) for v in np.linspace(0, clip.count - 1, n)})
+    stats = []
+    for d in frames.iter_frames(clip.kind, clip.path, clip.files, [clip.first + i for i in idx],
+                                plan.size, planar=True, name=source_frame_name(clip)):
+        i = d.index - clip.first
+        x_full = linearise(d.pixels, plan)[0]
+        light = lights[min(i, len(lights) - 1)]
+        if boxes is not None:
+            stats.append(portrait.relight_frame(session, x_full, light, boxes[i], exposure=1.0,
+                                                fullres=fullres, scale=plan.scale))
+            continue
+        x_low = shrink_planar(x_full, plan, fullres)
+        relit_low, source, fg, k = infer_planar(session, x_low, light)
+        ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
+        if ab is None:
+            continue
+        ab = with_background(ab, fg, light, source * np.float32(plan.scale), plan)
+        stats.append(subject_luminance(x_low, ab, fg, plan.scale))
+    return portrait.clip_gain(stats, mode, plan.scale)
+
+
+def subject_luminance(x_low: np.ndarray, ab, fg: np.ndarray, scale: float):
+    """The subject's luminance (weighted by the matte ``fg``) summed in the footage and in the
+    relit frame out = a x_low + b, both in the footage's units (x_low is the footage / scale),
+    as a portrait.FrameResult for clip_gain."""
+    lum = np.asarray(colour.REC709_LUMA, np.float32)
+    x_lum = np.tensordot(lum, x_low, axes=(0, 0)) * np.float32(scale)
+    out_lum = np.tensordot(lum, ab[0] * x_low + ab[1], axes=(0, 0))
+    return portrait.FrameResult(None, None, None, True, None, float((x_lum * fg).sum()),
+                                float((out_lum * fg).sum()))
+
+
+def subject_gain(ab, fg: np.ndarray, gain: float):
+    """(a, b) with the subject (the foreground matte ``fg``) scaled by ``gain``; what stands
+    behind it is left as the background choice made it."""
+    if ab is None or gain == 1.0:
+        return ab
+    w = 1.0 + np.float32(gain - 1.0) * np.clip(fg, 0.0, 1.0)[None]
+    return ab[0] * w, ab[1] * w
+
+
 # ---- the run ------------------------------------------------------------------------------
 
 _DONE = object()
@@ -663,6 +704,9 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
     resume)."""
     out = Log(log)
     out_dir = str(out_dir)
+    if options.exposure_mode not in EXPOSURE_MODES:
+        raise InputError(f"Unknown exposure mode {options.exposure_mode!r}; use one of "
+                         f"{', '.join(EXPOSURE_MODES)}.")
     if options.background not in BACKGROUNDS:
         raise InputError(f"Unknown background {options.background!r}; use one of "
                          f"{', '.join(BACKGROUNDS)}.")
@@ -691,8 +735,7 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
     run = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
     # Held until the run ends, however it ends: another run cannot write here meanwhile.
     with runlock.FolderLock(out_dir, run, note=out.warn, should_cancel=should_cancel) as lock:
-        stored = prepare_output(out_dir, identity, options.overwrite,
-                                same_run=({**identity, "source": _legacy_source(clip)},))
+        stored = prepare_output(out_dir, identity, options.overwrite)
         swept = sweep_partials(out_dir)
         if swept:
             out.info(f"Removed {len(swept)} unfinished file(s) that an interrupted run left.")
@@ -700,42 +743,46 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
                     detail.working_shape(info.height, info.width, working),
                     options.detail_transfer, options.write_matte, options.exr_compression)
         fullres = detail.FullRes(threads=1)
-        if stored is not None:
-            scale = float(stored["exposure_scale"])
-        else:
-            scale = clip_exposure(clip, plan, fullres)
-            _atomic_write_text(os.path.join(out_dir, RUN_FILE), json.dumps(
-                {"identity": identity, "exposure_scale": scale, "model": session.card.name,
-                 "providers": session.providers, "source_path": os.path.realpath(clip.path)},
-                indent=2))
-        lock.end_setup()  # what the folder holds is settled: other chunks of this run may start
+        scale = (float(stored["exposure_scale"]) if stored is not None
+                 else clip_exposure(clip, plan, fullres))
         plan = Plan(space, scale, plan.size, plan.working, plan.detail_transfer, plan.write_matte,
                     plan.compression, relit_times_s(session.card), options.background)
-        out.info(f"Relighting {len(selected)} frames at {plan.working[1]}x{plan.working[0]} with "
-                 f"{session.card.name} on {session.providers[0]}; exposure scale {scale:.6g}.")
-
+        boxes, missing = None, []
         todo = [i for i in selected if not os.path.isfile(relit_path(out_dir, i))]
+        if isinstance(session, engine.IntrinsicSession) and (todo or stored is None):
+            boxes, missing = portrait_boxes(clip, plan, session, out_dir, identity, fullres,
+                                            should_cancel)
+        if stored is not None:
+            gain = float(stored["exposure_gain"])
+        else:
+            gain = exposure_gain(clip, lights, plan, session, fullres, boxes,
+                                 options.exposure_mode)
+            _atomic_write_text(os.path.join(out_dir, RUN_FILE), json.dumps(
+                {"identity": identity, "exposure_scale": scale, "exposure_gain": gain,
+                 "model": session.card.name, "providers": session.providers,
+                 "source_path": os.path.realpath(clip.path)}, indent=2))
+        lock.end_setup()  # what the folder holds is settled: other chunks of this run may start
+        out.info(f"Relighting {len(selected)} frames at {plan.working[1]}x{plan.working[0]} with "
+                 f"{session.card.name} on {session.providers[0]}; exposure scale {scale:.6g}, "
+                 f"{options.exposure_mode} exposure (gain {gain:.6g}).")
+
         resumed = len(selected) - len(todo)
         if resumed:
             out.info(f"Resuming: {resumed} of {len(selected)} frames are already done.")
-        boxes = None
-        if isinstance(session, engine.IntrinsicSession) and todo:
-            boxes, missing = portrait_boxes(clip, plan, session, out_dir, identity, fullres,
-                                            should_cancel)
-            missed = len(set(missing) & set(todo))
-            if missed:
-                out.warn(f"No portrait was found in {missed} frame(s); they are framed like their "
-                         "neighbours (a frame with no subject comes out unchanged). The subject's "
-                         "face must be visible and at least a few pixels across.")
+        missed = len(set(missing) & set(todo))
+        if missed:
+            out.warn(f"No portrait was found in {missed} frame(s); they are framed like their "
+                     "neighbours (a frame with no subject comes out unchanged). The subject's "
+                     "face must be visible and at least a few pixels across.")
         written = _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed,
-                              len(selected), on_progress, should_cancel, out, boxes)
+                              len(selected), on_progress, should_cancel, out, boxes, gain)
     return RunResult(out_dir, [relit_path(out_dir, i) for i in selected],
                      [matte_path(out_dir, i) for i in selected] if options.write_matte else [],
                      written, resumed, scale, out.warnings)
 
 
 def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, total,
-                on_progress, should_cancel, out: Log, boxes=None) -> int:
+                on_progress, should_cancel, out: Log, boxes=None, gain: float = 1.0) -> int:
     """Decode, linearise and shrink (worker thread) -> network and low-resolution coefficients
     (this thread) -> full-resolution finish and write (worker thread), each frame channels-first.
 
@@ -805,7 +852,8 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             i, x_full, x_max, x_low = item
             light = lights[min(i, len(lights) - 1)]
             if boxes is not None:  # intrinsic: framing, buffers, renderer (addon/portrait.py)
-                res = portrait.relight_frame(session, x_full, light, boxes[i], fullres=fullres)
+                res = portrait.relight_frame(session, x_full, light, boxes[i], exposure=gain,
+                                             fullres=fullres)
                 s = np.float32(plan.scale)  # x_full is the footage / s
                 ab, fg = (res.a * s, res.b * s), res.matte
                 source = np.zeros(lightvec.SHAPE, np.float32)
@@ -813,7 +861,7 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 relit_low, source, fg, k = infer_planar(session, x_low, light)
                 ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
                 source = source * np.float32(plan.scale)  # the source light in footage units
-                ab = with_background(ab, fg, light, source, plan)
+                ab = subject_gain(with_background(ab, fg, light, source, plan), fg, gain)
             _put(results, (i, x_full, x_max, ab, fg, source), stop, alive=writer)
             _raise_if_failed(writer)
     finally:

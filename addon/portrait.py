@@ -13,6 +13,7 @@ frame where none was found its neighbours' box and counts it.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,7 +45,7 @@ def crop_planar(x: np.ndarray, box: framing.Box, size: int) -> tuple[np.ndarray,
 
 
 # The coarse pass's size as a share of the working size: at 0.5 the wide clip s18 changed 1.69x
-# as much as its input from frame to frame under key-left, at 1.0 1.56x (training.footage_sheet).
+# as much as its input from frame to frame under key-left, at 1.0 1.56x (training.eval.footage_sheet).
 COARSE = 1.0
 MATTE_EDGE = (0.3, 0.9)  # matte values over which the change fades in (smoothstep)
 FEATHER = 0.12  # share of the crop's side over which the face crop fades into the coarse pass
@@ -59,6 +60,30 @@ class FrameResult:
     matte: np.ndarray   # (gh, gw) float32 in [0, 1]
     found: bool         # a portrait was found (else a = 1, b = 0: the frame is unchanged)
     plan: intrinsic.Plan | None
+    # Before the exposure gain: the subject's luminance summed over the grid in the footage and
+    # relit, and the footage's skin radiance per unit of fitted shading (intrinsic.Shading.unit),
+    # from which a clip's gain is made (clip_gain).
+    lum_in: float = 0.0
+    lum_out: float = 0.0
+    unit: float = 0.0
+
+
+EXPOSURES = ("keep", "physical")
+
+
+def clip_gain(results, exposure: str, scale: float = 1.0) -> float:
+    """One exposure gain for a clip from FrameResults of some of its frames: "keep", the
+    subject keeps the footage's luminance summed over those frames (so an animated light still
+    brightens and dims the clip, and the gain does not flicker from frame to frame);
+    "physical", absolute units: skin of albedo SKIN_ALBEDO under the target light's irradiance
+    (``scale``: the footage is the relit image's x times this). 1.0 when nothing was found."""
+    found = [r for r in results if r.found and r.lum_out > 0 and r.lum_in > 0]
+    if not found:
+        return 1.0
+    if exposure == "physical":
+        unit = float(np.median([r.unit for r in found]))
+        return intrinsic.SKIN_ALBEDO / (math.pi * scale * unit) if unit > 0 else 1.0
+    return sum(r.lum_in for r in found) / sum(r.lum_out for r in found)
 
 
 def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None = None):
@@ -120,13 +145,15 @@ def feather(size: int, share: float = FEATHER) -> np.ndarray:
     return np.minimum(edge[:, None], edge[None, :]).astype(np.float32)
 
 
-def _change(session, x: np.ndarray, light, effects, valid=None):
+def _change(session, x: np.ndarray, light, effects, valid=None, unit=None):
     """(ratio and highlight, each times the weight; the weight; the matte) for a (3, h, w)
     image, the weight being the matte's core (MATTE_EDGE). The ratio
     is carried times the matte, never as ratio - 1: under a faint light ratio - 1 + 1 would
     lose the ratio to rounding."""
     bufs = buffers(session, x, valid)
     sh = intrinsic.shade(x, bufs, light, effects, keep_exposure=False)
+    if unit is not None:
+        unit.append(sh.unit)
     # The change fades in over the matte's confident core: at the outline the normals graze and
     # the ratio is least certain, and a soft matte there would carry it onto the background.
     m = np.clip((bufs.matte - MATTE_EDGE[0]) / (MATTE_EDGE[1] - MATTE_EDGE[0]), 0.0, 1.0)
@@ -136,11 +163,14 @@ def _change(session, x: np.ndarray, light, effects, valid=None):
 
 def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarray,
                   box: framing.Box | None, effects: intrinsic.Plan | None = None,
-                  keep_exposure: bool = True, fullres: detail.FullRes | None = None) -> FrameResult:
+                  exposure: str | float = "keep", fullres: detail.FullRes | None = None,
+                  scale: float = 1.0) -> FrameResult:
     """Relight a (3, H, W) linear frame to ``light``: a coarse pass over the whole frame lights
     the whole person, the crop around ``box`` gives the face its working size, and the crop
     fades into the coarse pass over its outer edge. ``box`` None (no portrait found): the frame
-    is unchanged. ``keep_exposure``: the subject keeps the frame's mean luminance (intrinsic.shade)."""
+    is unchanged. ``exposure``: "keep" (the subject keeps this frame's luminance), "physical"
+    (absolute units, clip_gain; ``scale``: the footage is x_full times this) or the gain itself
+    (a clip's, from clip_gain over some of its frames)."""
     h, w = x_full.shape[1:]
     size = session.card.working_size
     if not float(np.max(lightvec.total_power(light))) > 0:
@@ -169,7 +199,8 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
                                gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
     crop, valid = crop_planar(x_full, box, size)
-    mr_f, hi_f, m_f, raw_f = _change(session, crop, light, plan, valid)
+    units: list[float] = []
+    mr_f, hi_f, m_f, raw_f = _change(session, crop, light, plan, valid, units)
     fw = (1.0 if covers else feather(size)) * valid
     k = gh / h
     gbox = framing.Box(box.cx * k, box.cy * k, box.size * k)
@@ -192,18 +223,18 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     if keep.any():
         mix *= np.clip(detail.box_mean(keep.astype(np.float32), 2) * 2.0, 0.0, 1.0)[..., None]
     mr, b, matte = mix[..., 0:3], mix[..., 3:6], np.clip(mix[..., 6:7], 0.0, 1.0)
-    g = 1.0
-    if keep_exposure:
-        # The subject (matte) keeps its mean luminance; the background is left as it was:
-        # a = g m ratio + (1 - m), b = g b, with g solving sum lum(x a + b) m = sum lum(x) m.
-        xl = grid @ lum
-        before = float((xl * matte[..., 0]).sum() - (xl * (1.0 - matte[..., 0]) * matte[..., 0]).sum())
-        after = float((((grid * mr + b) @ lum) * matte[..., 0]).sum())
-        if after > 0 and before > 0:
-            g = before / after
+    # The subject's luminance in the footage and relit (before any gain): the exposure gain
+    # solves sum lum(x a + b) m = sum lum(x) m with a = g m ratio + (1 - m), b = g b.
+    xl = grid @ lum
+    lum_in = float((xl * matte[..., 0]).sum() - (xl * (1.0 - matte[..., 0]) * matte[..., 0]).sum())
+    lum_out = float((((grid * mr + b) @ lum) * matte[..., 0]).sum())
+    unit = units[0] if units else 0.0
+    stats = FrameResult(None, None, None, True, plan, lum_in, lum_out, unit)
+    g = clip_gain([stats], exposure, scale) if isinstance(exposure, str) else float(exposure)
     a = g * mr + (1.0 - matte)
     b = g * b
     matte = np.clip(mix[..., 7], 0.0, 1.0)  # the portrait's matte, for the matte strip
     return FrameResult(np.ascontiguousarray(a.transpose(2, 0, 1), np.float32),
                        np.ascontiguousarray(b.transpose(2, 0, 1), np.float32),
-                       np.ascontiguousarray(matte, np.float32), True, plan)
+                       np.ascontiguousarray(matte, np.float32), True, plan, lum_in, lum_out,
+                       unit)

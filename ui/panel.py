@@ -85,6 +85,7 @@ def draw_output(box, settings):
     box.label(text="Output", icon='OUTPUT')
     box.prop(settings, "output_dir", text="")
     box.prop(settings, "background")
+    box.prop(settings, "exposure_mode")
     row = box.row()
     row.prop(settings, "write_matte")
     row.prop(settings, "overwrite")

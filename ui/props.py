@@ -75,6 +75,15 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
                                         "brightened and tinted by the change of light as a wall "
                                         "facing the camera")],
         description="What stands behind the relit subject")
+    exposure_mode: EnumProperty(
+        name="Exposure", default='KEEP',
+        items=[('KEEP', "Keep Footage's", "The subject keeps the footage's overall exposure: "
+                                          "the light sets direction, colour and contrast (one "
+                                          "gain for the clip, so an animated light still "
+                                          "brightens and dims it)"),
+               ('PHYSICAL', "Physical", "Absolute units, for scenes lit to scale: a lamp's "
+                                        "watts and distance set the brightness")],
+        description="How bright the relit subject is")
     detail_transfer: BoolProperty(name="Keep Fine Detail", default=True,
                                   description="Bring the footage's full-resolution detail back "
                                               "into the relit frames")

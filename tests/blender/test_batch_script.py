@@ -160,7 +160,7 @@ def test_demo_relights_the_built_in_clip(toy_models, tmp_path):
     assert "relit frames are in" in done.stdout
 
 
-@pytest.mark.parametrize("flags,want", [(["--keep-background"], {"keep_background": True}),
+@pytest.mark.parametrize("flags,want", [(["--keep-background"], {"background": "keep"}),
                                         (["--background", "relit"], {"background": "relit"})])
 def test_background_flags_reach_the_run(toy_models, tmp_path, flags, want):
     if not sorted((ROOT / "demo" / "frames").glob("*.png")):

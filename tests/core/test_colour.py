@@ -192,7 +192,8 @@ def test_pipeline_relights_footage_declared_in_an_opencolorio_space(name, tmp_pa
     clip = pipeline.ClipSpec("movie", movie, (), 0, 3, name, 25.0)
     res = pipeline.relight_clip(clip, 2 * lightvec.uniform(1.0)[None], tmp_path / "out",
                                 pipeline.RelightOptions(toy, working_size=32, threads=1,
-                                                        background="network"))
+                                                        background="network",
+                                                        exposure_mode="physical"))
     for i, f in enumerate(res.relit_files):
         want = np.maximum(2 * colour.to_linear(src[i], colour.lookup(name)), 0.0)
         np.testing.assert_allclose(frames.read_exr(f), want, rtol=4e-3,

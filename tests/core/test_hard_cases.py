@@ -143,6 +143,7 @@ def opts(model, **kw):
     kw.setdefault("working_size", 16)
     kw.setdefault("threads", 1)
     kw.setdefault("background", "network")  # the network's own output unless a test says
+    kw.setdefault("exposure_mode", "physical")  # the light's own level: scaling is what's checked
     return pipeline.RelightOptions(model, **kw)
 
 
@@ -295,13 +296,19 @@ def test_extreme_lights_are_finite_and_scale_with_the_light(net, light, backgrou
         assert_safe(written(res))
         outs[c] = frames.read_exr(res.relit_files[0])
         assert outs[c].min() >= 0, "negative radiance reached a file"
-    if is_intrinsic(model):
-        # Intrinsic presets keep the footage's exposure: the light sets direction, colour and
-        # contrast, so a stronger light of the same shape gives the same frame.
-        for c in (2, 3):
-            np.testing.assert_allclose(outs[c], outs[1], rtol=2 ** -9, atol=2 ** -20)
-        return
     ok = np.abs(outs[3]) < HALF_MAX  # values that clamp cannot scale
+    if is_intrinsic(model):
+        # In absolute units the subject's change is linear in the light while the footage
+        # beyond the portrait stays as it was: the output is affine in the light's power.
+        np.testing.assert_allclose((outs[3] - 2 * outs[2] + outs[1])[ok], 0.0,
+                                   atol=2 ** -8 * float(np.abs(outs[3][ok]).max()) + 2 ** -20)
+        # Keeping the footage's exposure, a stronger light of the same shape gives the same
+        # frame: the light sets direction, colour and contrast.
+        keep = [frames.read_exr(relight(model, files, tmp_path / f"keep{c}", (c * base)[None],
+                                        working_size=16, background=background,
+                                        exposure_mode="keep").relit_files[0]) for c in (1, 3)]
+        np.testing.assert_allclose(keep[1], keep[0], rtol=2 ** -9, atol=2 ** -20)
+        return
     # Half-float subnormals (below 2^-14) have a fixed step of 2^-24, so there doubling can be
     # one step off; everywhere else it is exact.
     np.testing.assert_allclose(outs[2][ok], 2 * outs[1][ok], rtol=0, atol=2 ** -24)

@@ -49,6 +49,7 @@ def opts(model, **kw):
     kw.setdefault("working_size", 32)
     kw.setdefault("threads", 1)
     kw.setdefault("background", "network")  # the network's own output: what these tests check
+    kw.setdefault("exposure_mode", "physical")  # ... at the network's own level
     return pipeline.RelightOptions(model, **kw)
 
 
@@ -102,6 +103,34 @@ def test_per_frame_lights_and_zero_light(toy, tmp_path):
                                  "colorspace": "Linear Rec.709"})
     res = pipeline.relight_clip(named, lights, tmp_path / "out", opts(toy, working_size=8))
     assert any("scene frame 103" in w for w in res.warnings)
+
+
+def test_keep_exposure_is_one_gain_for_the_clip(toy, tmp_path):
+    """The default exposure mode: the subject keeps the footage's luminance summed over the clip,
+    by one gain for every frame, so an animated light still brightens and dims the clip."""
+    px = np.random.default_rng(6).random((12, 20, 3)).astype(np.float32) + 0.05
+    files = write_exr_sequence(tmp_path / "in", [px] * 4)
+    lights = np.stack([lightvec.uniform(v) for v in (1.0, 2.0, 3.0, 6.0)])
+    clip = image_clip(files, space="Linear Rec.709")
+    keep = pipeline.relight_clip(clip, lights, tmp_path / "keep",
+                                 opts(toy, working_size=8, exposure_mode="keep"))
+    out = [frames.read_exr(f) for f in keep.relit_files]
+    np.testing.assert_allclose(sum(o.sum() for o in out), 4 * px.sum(), rtol=5e-3)
+    for o, v in zip(out, (1.0, 2.0, 3.0, 6.0)):
+        np.testing.assert_allclose(o, v * out[0], rtol=5e-3)  # still three times at frame 3
+    physical = pipeline.relight_clip(clip, lights, tmp_path / "physical",
+                                     opts(toy, working_size=8, exposure_mode="physical"))
+    gain = json.loads((tmp_path / "keep" / pipeline.RUN_FILE).read_text())["exposure_gain"]
+    np.testing.assert_allclose(gain, 1 / 3, rtol=5e-3)  # 4 frames of mean light 3
+    for k, f in zip(out, physical.relit_files):
+        np.testing.assert_allclose(k, gain * frames.read_exr(f), rtol=5e-3, atol=1e-6)
+    # the mode is part of the run: the other mode into the same folder is another run
+    with pytest.raises(OutputError, match="exposure_mode|settings"):
+        pipeline.relight_clip(clip, lights, tmp_path / "keep",
+                              opts(toy, working_size=8, exposure_mode="physical"))
+    with pytest.raises(InputError, match="exposure mode"):
+        pipeline.relight_clip(clip, lights, tmp_path / "other",
+                              opts(toy, working_size=8, exposure_mode="auto"))
 
 
 def test_twice_the_light_twice_the_output(toy, movie, tmp_path):
@@ -226,21 +255,6 @@ def test_footage_reached_through_a_symlink_or_another_mount_is_the_same_run(toy,
     os.utime(real[3], ns=(1, 1))  # the footage changed: another run
     with pytest.raises(OutputError, match="differs in: source"):
         pipeline.relight_clip(image_clip(linked), UNIFORM, out, opts(toy))
-
-
-def test_folders_made_before_sources_were_identified_by_their_files_still_resume(toy, movie,
-                                                                                 tmp_path):
-    clip = movie_clip(movie, count=2)
-    pipeline.relight_clip(clip, UNIFORM, tmp_path, opts(toy))
-    record = json.loads((tmp_path / pipeline.RUN_FILE).read_text())
-    st = os.stat(movie)
-    stamps = json.dumps([[os.path.abspath(movie), st.st_size, st.st_mtime_ns]])
-    record["identity"]["source"] = {  # as such runs wrote it: by the path as given
-        "kind": "movie", "path": os.path.abspath(movie),
-        "files_sha256": hashlib.sha256(stamps.encode()).hexdigest()}
-    (tmp_path / pipeline.RUN_FILE).write_text(json.dumps(record))
-    res = pipeline.relight_clip(clip, UNIFORM, tmp_path, opts(toy))
-    assert (res.written, res.resumed) == (0, 2)
 
 
 def test_unknown_frames_in_output_folder_are_refused(toy, movie, tmp_path):

@@ -365,3 +365,30 @@ def test_a_frame_without_a_portrait_warns_and_is_written_unchanged(model, tmp_pa
     assert frames.read_exr(res.matte_files[gone]).max() < 1e-2  # no subject seen there
     for i in sorted(set(range(N)) - {gone}):
         assert np.abs(out[i] - src[i]).max() > 0.05
+
+
+def test_keep_exposure_is_one_gain_for_the_clip_and_physical_follows_the_light(model, tmp_path):
+    """Keep (the default): one gain for the whole clip, so the frame under three times the lamp
+    is about three times as bright on the subject, and the clip's subject keeps the footage's
+    luminance; physical: the gain is the absolute one, and a brighter lamp brightens it."""
+    src = [clip_frames()[0]] * 2
+    files = write_exr_sequence(tmp_path / "src", src)
+    lights = np.stack([RIGHT_LAMP, 3.0 * RIGHT_LAMP])
+    disc = within((H, W), (34.0, 24.0), 8.0)
+
+    def relit(mode, lamps, out):
+        res = pipeline.relight_clip(image_clip(files), lamps, tmp_path / out,
+                                    pipeline.RelightOptions(model, threads=1,
+                                                            exposure_mode=mode))
+        gain = json.loads((tmp_path / out / pipeline.RUN_FILE).read_text())["exposure_gain"]
+        return [frames.read_exr(p) for p in res.relit_files], gain
+
+    keep, gain = relit("keep", lights, "keep")
+    ratio = keep[1][disc].mean() / keep[0][disc].mean()
+    assert 2.5 < ratio < 3.5, ratio
+    both = (keep[0][disc].mean() + keep[1][disc].mean()) / (2 * src[0][disc].mean())
+    assert 0.8 < both < 1.25, both  # the subject keeps the footage's luminance over the clip
+    one, g1 = relit("physical", lights[:1], "physical1")
+    two, g2 = relit("physical", 2 * lights[:1], "physical2")
+    assert g1 == g2 and g1 != gain  # the absolute gain does not depend on the light
+    np.testing.assert_allclose(two[0][disc], 2 * one[0][disc], rtol=1e-2)
