@@ -26,8 +26,8 @@ import torch
 
 from addon.contract import PARSING_CLASSES
 
-from .. import lighting_sampling
-from ..dataset import SPLITS, LightStageDataset, renderer_version
+from ..data import lighting_sampling
+from ..data.dataset import SPLITS, LightStageDataset, renderer_version
 from ..lightstage import backdrops as backdrops_mod
 from ..lightstage import layout, pairs, shading
 from ..lightstage.scene import stage_dirs

@@ -6,7 +6,7 @@
 Writes models/<name>.onnx (opset 17, dynamic N/H/W) and models/<name>.json (contract
 ``relight-intrinsic/1``), after checking onnxruntime against PyTorch on two sizes and measuring
 the per-buffer errors on held-out val identities. Held-out quality on real faces is measured by
-``python -m training.yale_eval`` through ``addon.relight_image``.
+``python -m training.eval.yale`` through ``addon.relight_image``.
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def train_command(recipe: dict) -> str:
 
 def lineage(run: pathlib.Path, checkpoint: str) -> dict:
     """The run's record for the card: its command, code, samples and the exported checkpoint's
-    step, and (nested) the run its --init checkpoint came from, as training.reproduce reads."""
+    step, and (nested) the run its --init checkpoint came from, as training.run.reproduce reads."""
     recipe = json.loads((run / "recipe.json").read_text())
     state = torch.load(run / checkpoint, map_location="cpu")
     out = {"command": train_command(recipe), "args": {"out": recipe["out"]},
@@ -199,9 +199,9 @@ def main(argv=None):
     card_path.write_text(json.dumps(card, indent=1) + "\n")  # the product path reads the card
     # Held-out figures: the relit test set through the product's path (as the end-to-end
     # presets' cards), and each buffer against the light stage on val identities.
-    from .. import evaluate
+    from ..eval import evaluate, predictors
 
-    metrics = evaluate.card_metrics(evaluate.product_predictor(onnx_path, a.threads),
+    metrics = evaluate.card_metrics(predictors.product_predictor(onnx_path, a.threads),
                                     evaluate.heldout_dataset(128), a.eval, 128)
     metrics["val_buffers"] = val_metrics(net)
     card["metrics"] = metrics
