@@ -332,7 +332,7 @@ def main(argv=None):
     builtins.print(f"side-by-side PNGs (ours | Cycles | |diff| x4) in {a.out}")
     command = "python bench/lightstage_cycles.py " + " ".join(sys.argv[1:] if argv is None else argv)
     report.write(a.report, "The light stage against Cycles", command.strip(),
-                 report.machine_line(report.machine()), __doc__.split("\n\n", 1)[1].split(
+                 report.machine_line(report.machine()), "\n\n".join(__doc__.split("\n\n")[2:]).split(
                      "\n\nPrints")[0] + "\n\n" + print.text())
 
 
