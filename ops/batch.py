@@ -302,9 +302,16 @@ def first_footage_file(path: pathlib.Path) -> pathlib.Path:
         return pathlib.Path(frames.list_sequence(path)[0])
     if not path.is_file():
         raise BatchError(f"The footage {path} does not exist.")
-    if path.suffix.lower() in import_footage.MOVIE_SUFFIXES:
-        return path
+    if not is_image(path):
+        return path  # a movie
     return import_footage.sequence_files(path)[0]  # one image stands for its whole sequence
+
+
+def is_image(path: pathlib.Path) -> bool:
+    """Whether Import Footage takes ``path`` for an image of a sequence (else for a movie)."""
+    from ..addon import frames
+
+    return path.suffix.lower() in frames.IMAGE_EXTS
 
 
 def set_up_input(args) -> Footage:
@@ -319,8 +326,8 @@ def set_up_input(args) -> Footage:
     scene = bpy.context.scene
     if args.start_frame is not None:
         start = args.start_frame
-    elif first.suffix.lower() in import_footage.MOVIE_SUFFIXES:
-        start = scene.frame_start
+    elif not is_image(first):
+        start = scene.frame_start  # a movie
     else:
         start = (frames.frame_number(first) or (None, scene.frame_start))[1]
     call(bpy.ops.relight.import_footage, filepath=str(first), frame_start=start)

@@ -85,7 +85,7 @@ def test_a_movie_is_numbered_by_scene_frame_in_its_colour_space(toy_models, tmp_
     movie = write_movie(tmp_path / "take.mov", ramp_frames(3, 48, 64))
     done = run("--input", movie, "--hdri", write_hdri(tmp_path / "sky.exr"), "--models",
                toy_models, "--out", tmp_path / "out", "--input-colorspace", "Linear Rec.709",
-               "--start-frame", "7", "--matte")
+               "--start-frame", "7", "--matte", "--exposure-mode", "physical")
     assert done.returncode == 0, done.stderr
     out = tmp_path / "out" / "take"
     assert sorted(p.name for p in out.glob("*.exr")) == [
@@ -93,6 +93,7 @@ def test_a_movie_is_numbered_by_scene_frame_in_its_colour_space(toy_models, tmp_
         "relit.0007.exr", "relit.0008.exr", "relit.0009.exr"]
     identity = json.loads((out / "relight_run.json").read_text())["identity"]
     assert identity["colorspace"] == "Linear Rec.709"
+    assert identity["settings"]["exposure_mode"] == "physical"  # --exposure-mode reached the run
 
 
 def test_lights_from_a_blend_light_the_footage_and_the_file_is_not_saved(toy_models, tmp_path):
