@@ -32,8 +32,12 @@ import numpy as np
 
 from .errors import DependencyError, InputError, OutputError
 
-MOVIE_EXTS = (".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm")
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr")
+# Image sequences by extension (EXR through OpenEXR, the others through PyAV/FFmpeg); any other
+# single file is opened as a movie, so every container FFmpeg reads (MXF, MOV with ProRes or
+# DNxHR, MTS, ...) is footage.
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".dpx", ".bmp", ".webp")
+VFR_TOLERANCE = 0.02  # frame durations varying more than this share mean a variable frame rate
+VFR_PACKETS = 300     # packets looked at to tell
 HALF_MAX = 65504.0
 COMPRESSIONS = ("none", "rle", "zips", "zip", "piz")
 DAMAGED = ("The file is damaged or not an image: replace it with an intact copy (re-render or "
@@ -116,7 +120,7 @@ def list_sequence(folder) -> tuple[str, ...]:
             if fn:
                 groups.setdefault((fn[0], p.suffix.lower()), []).append((fn[1], str(p)))
     if not groups:
-        raise InputError(f"{folder} holds no numbered PNG, JPEG or EXR frames.")
+        raise InputError(f"{folder} holds no numbered image frames ({', '.join(IMAGE_EXTS)}).")
     best = max(groups.values(), key=len)
     return tuple(f for _, f in sorted(best))
 
@@ -163,9 +167,22 @@ def _deep(fmt) -> bool:
     return max(c.bits for c in fmt.components) > 8
 
 
+def _quarter_turns(frame) -> int:
+    """Counter-clockwise quarter turns that show the frame upright, from its display matrix
+    (a phone's rotate=90 tag): what FFmpeg's own autorotation does."""
+    try:
+        angle = float(frame.rotation or 0)
+    except (AttributeError, TypeError, ValueError):
+        return 0
+    return int(round(angle / 90.0)) % 4
+
+
 def _to_rgb(frame) -> np.ndarray:
-    """Decoded PyAV frame -> (H, W, 3) uint8, or uint16 for sources deeper than 8 bits."""
-    return frame.to_ndarray(format="rgb48le" if _deep(frame.format) else "rgb24")
+    """Decoded PyAV frame -> (H, W, 3) uint8, or uint16 for sources deeper than 8 bits, turned
+    upright by the stream's display rotation."""
+    rgb = frame.to_ndarray(format="rgb48le" if _deep(frame.format) else "rgb24")
+    k = _quarter_turns(frame)
+    return np.ascontiguousarray(np.rot90(rgb, k)) if k else rgb
 
 
 def _to_planes(frame) -> np.ndarray:
@@ -223,7 +240,10 @@ def _open_movie(path):
     try:
         c = av.open(str(path))
     except (av.FFmpegError, OSError) as err:
-        raise InputError(f"Cannot open the movie {path} ({err}); is it a video file?") from err
+        raise InputError(f"Cannot open {path}: it is not footage the relighter reads ({err}); "
+                         "it reads movies "
+                         "FFmpeg can decode and image sequences "
+                         f"({', '.join(IMAGE_EXTS)}).") from err
     if not c.streams.video:
         c.close()
         raise InputError(f"{path} has no video stream (sound only?); pick a movie strip.")
@@ -236,19 +256,55 @@ def _stream_fps(s) -> float:
 
 
 def _probe_movie(path) -> ClipInfo:
+    av = _av()
     with _open_movie(path) as c:
         s = c.streams.video[0]
         fps = _stream_fps(s)
         count = s.frames
-        if not count:  # some containers do not store it: count packets (no decoding)
-            count = sum(1 for p in c.demux(s) if p.size)
         cc = s.codec_context
         fmt = cc.format
         if fmt is None or not cc.width:
             raise InputError(f"Cannot read the video format of {path}.")
-        return ClipInfo("movie", str(path), (), cc.width, cc.height, int(count), fps,
+        _refuse_variable_rate(c, s, path)
+        c.seek(0)
+        if not count:  # some containers do not store it: count packets (no decoding)
+            count = sum(1 for p in c.demux(s) if p.size)
+            c.seek(0)
+        try:
+            turns = _quarter_turns(next(c.decode(s)))
+        except (av.FFmpegError, StopIteration) as err:
+            raise InputError(f"Cannot decode the movie {path} ({err}): the file is damaged or "
+                             "its codec is not supported. Re-encode or re-export it.") from err
+        w, h = (cc.height, cc.width) if turns % 2 else (cc.width, cc.height)
+        return ClipInfo("movie", str(path), (), w, h, int(count), fps,
                         len(fmt.components), _frame_alpha(fmt),
                         max(comp.bits for comp in fmt.components))
+
+
+def _refuse_variable_rate(c, s, path) -> None:
+    """InputError for a movie whose frames do not come at one rate (phone footage often does):
+    Blender and the relighter step through frames at the strip's constant rate, so such a clip's
+    frames would drift against its timing. Looks at the first VFR_PACKETS packets' times."""
+    pts = []
+    for p in c.demux(s):
+        if p.pts is not None and p.size:
+            pts.append(int(p.pts))
+        if len(pts) >= VFR_PACKETS:
+            break
+    if len(pts) < 3:
+        return
+    d = np.diff(np.unique(np.asarray(pts, np.int64)))
+    if d.size < 2:
+        return
+    typical = float(np.median(d))
+    if typical > 0 and float(np.max(np.abs(d - typical))) > VFR_TOLERANCE * typical:
+        tb = float(s.time_base) if s.time_base else 0.0
+        lo, hi = float(d.min()) * tb * 1000, float(d.max()) * tb * 1000
+        raise InputError(
+            f"{pathlib.Path(path).name} has a variable frame rate (frames last {lo:.1f} to "
+            f"{hi:.1f} ms); Blender and the relighter step through frames at one rate, so its "
+            "frames would drift. Convert it to a constant rate first, e.g. `ffmpeg -i IN "
+            "-fps_mode cfr -r 30 -c:v prores_ks OUT.mov`, and import that.")
 
 
 def _pts_to_index(pts, start, time_base, fps) -> int:
@@ -342,16 +398,14 @@ def probe_clip(path_or_files) -> ClipInfo:
             files, folder = list_sequence(p), str(p)
         elif not p.exists():
             raise InputError(f"{p} does not exist.")
-        elif p.suffix.lower() in MOVIE_EXTS:
-            return _probe_movie(p)
         elif p.suffix.lower() in IMAGE_EXTS:
             files, folder = (str(p),), str(p.parent)
         else:
-            raise InputError(f"{p.name} is not footage the relighter reads (movies: "
-                             f"{', '.join(MOVIE_EXTS)}; images: {', '.join(IMAGE_EXTS)}).")
+            return _probe_movie(p)  # any container FFmpeg reads
     bad = [f for f in files if pathlib.Path(f).suffix.lower() not in IMAGE_EXTS]
     if bad:
-        raise InputError(f"{bad[0]} is not a PNG, JPEG or EXR image.")
+        raise InputError(f"{bad[0]} is not an image the relighter reads as part of a sequence "
+                         f"({', '.join(IMAGE_EXTS)}).")
     check_sequence(files)
     w, h, ch, alpha, bits = _probe_image(files[0])
     return ClipInfo("images", folder, files, w, h, len(files), 0.0, ch, alpha, bits)

@@ -21,8 +21,6 @@ def probe_clip(path_or_files):
 
     return probe(path_or_files)
 
-MOVIE_SUFFIXES = {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mxf"}
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff"}
 LINEAR_SUFFIXES = {".exr"}  # EXR holds scene-linear light; the others are display-encoded
 _NUMBERED = re.compile(r"^(.*?)(\d+)(\.[^.]+)$")
 
@@ -49,13 +47,14 @@ def footage_files(filepath: str, directory: str, names: list[str]) -> tuple[str,
     for f in files:
         if not f.is_file():
             raise InputError(f"The file {f} does not exist.")
+    from ..addon.frames import IMAGE_EXTS
+
     suffixes = {f.suffix.lower() for f in files}
-    if suffixes <= MOVIE_SUFFIXES and len(files) == 1:
-        return "movie", files
-    if not suffixes <= IMAGE_SUFFIXES:
-        raise InputError(f"{files[0].name} is not footage this add-on reads; use a movie "
-                         f"({', '.join(sorted(MOVIE_SUFFIXES))}) or images "
-                         f"({', '.join(sorted(IMAGE_SUFFIXES))}).")
+    if len(files) == 1 and not suffixes <= set(IMAGE_EXTS):
+        return "movie", files  # any container FFmpeg reads; the probe says if it cannot
+    if not suffixes <= set(IMAGE_EXTS):
+        raise InputError(f"{files[0].name} is not an image of a sequence; select one movie, or "
+                         f"the frames of one image sequence ({', '.join(IMAGE_EXTS)}).")
     if len(suffixes) > 1:
         raise InputError("The selected images mix file types; select one image sequence.")
     return "images", sequence_files(files[0]) if len(files) == 1 else files
