@@ -1,9 +1,9 @@
 """Blender operators, one per module, the bridge from Blender data to addon/, and the batch run
 (``batch``: the headless script's code and the ``blender -c relight`` command)."""
 
-from . import batch, import_footage, preview_light, relight_strip
+from . import batch, import_footage, preview_frame, preview_light, relight_strip
 
-modules = (import_footage, preview_light, relight_strip, batch)
+modules = (import_footage, preview_light, relight_strip, preview_frame, batch)
 
 
 def register():

@@ -26,7 +26,9 @@ class RELIGHT_PT_sequencer(bpy.types.Panel):
         draw_lighting(layout.box(), settings)
         draw_quality(layout.box(), context, settings)
         draw_output(layout.box(), settings)
-        layout.operator("relight.relight_strip", icon='LIGHT_SUN')
+        row = layout.row(align=True)
+        row.operator("relight.preview_frame", icon='IMAGE_DATA')
+        row.operator("relight.relight_strip", icon='LIGHT_SUN')
         _draw_preview(layout, preview_light.SOURCE_IMAGE,
                       "After a run: the source light the network estimated")
 
