@@ -147,6 +147,9 @@ def build_parser(prog: str = NAME, lists: str = "") -> argparse.ArgumentParser:
                             "(default: the .blend's setting)")
     out = p.add_argument_group("run")
     out.add_argument("--preset", help="quality preset (model) to use, listed below")
+    out.add_argument("--exr-compression", choices=["none", "rle", "zips", "zip", "piz"],
+                     help="compression of the relit EXRs, all lossless (default: the .blend's "
+                          "setting, PIZ in a new file)")
     out.add_argument("--models", metavar="DIR", help="folder of models (default: preferences)")
     out.add_argument("--out", metavar="DIR", help="output folder, one sub-folder per strip "
                                                   "(default: the .blend's setting)")
@@ -383,6 +386,8 @@ def apply_settings(scene, args) -> None:
     apply_exposure_mode(s, args.exposure_mode)
     if args.preset:
         s.preset = args.preset
+    if args.exr_compression:
+        s.exr_compression = args.exr_compression.upper()
     if args.out:
         s.output_dir = str(pathlib.Path(args.out).resolve()) + "/"
     s.use_frame_range = args.frames is not None
@@ -396,12 +401,8 @@ def apply_settings(scene, args) -> None:
 
 def apply_exposure_mode(settings, mode: str | None) -> None:
     """--exposure-mode keep|physical into the Relight settings' exposure mode."""
-    if mode is None:
-        return
-    if not hasattr(settings, "exposure_mode"):
-        raise BatchError("This version of the extension has no exposure mode setting; leave out "
-                         "--exposure-mode or update the extension.")
-    settings.exposure_mode = mode.upper()
+    if mode is not None:
+        settings.exposure_mode = mode.upper()
 
 
 # ---- the run ----------------------------------------------------------------------------------

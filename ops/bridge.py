@@ -320,6 +320,7 @@ def gather_job(context, strip, *, models_override: str = "") -> Job:
         model_path=str(model.onnx_path), detail_transfer=settings.detail_transfer,
         write_matte=settings.write_matte, overwrite=settings.overwrite,
         background=settings.background.lower(), exposure_mode=settings.exposure_mode.lower(),
+        exr_compression=settings.exr_compression.lower(),
         providers=ORT_PROVIDERS.get(prefs.provider) if prefs else None,
         threads=(prefs.threads or None) if prefs else None)
     return Job(strip_name=strip.name, clip=clip, scene_frames=tuple(scene_frames),

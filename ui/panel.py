@@ -88,6 +88,7 @@ def draw_output(box, settings):
     box.prop(settings, "output_dir", text="")
     box.prop(settings, "background")
     box.prop(settings, "exposure_mode")
+    box.prop(settings, "exr_compression")
     row = box.row()
     row.prop(settings, "write_matte")
     row.prop(settings, "overwrite")

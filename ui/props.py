@@ -84,6 +84,15 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
                ('PHYSICAL', "Physical", "Absolute units, for scenes lit to scale: a lamp's "
                                         "watts and distance set the brightness")],
         description="How bright the relit subject is")
+    exr_compression: EnumProperty(
+        name="Compression", default='PIZ',
+        items=[('PIZ', "PIZ", "Lossless wavelet compression: the smallest files for noisy "
+                              "footage"),
+               ('ZIP', "ZIP", "Lossless, in blocks of 16 lines"),
+               ('ZIPS', "ZIP (single line)", "Lossless, line by line"),
+               ('RLE', "RLE", "Lossless run-length: fast, little saving on footage"),
+               ('NONE', "None", "Uncompressed: the fastest to write, the largest files")],
+        description="Compression of the relit EXR frames (all lossless)")
     detail_transfer: BoolProperty(name="Keep Fine Detail", default=True,
                                   description="Bring the footage's full-resolution detail back "
                                               "into the relit frames")

@@ -242,19 +242,17 @@ def test_the_command_runs_the_scripts_main_with_its_exit_statuses(extension, toy
         assert "Traceback" not in said.out + said.err
 
 
-def test_exposure_mode_sets_the_scene_setting_where_the_extension_has_one(extension):
+def test_exposure_mode_and_compression_reach_the_scene_settings(extension):
     batch = extension.ops.batch
-    settings = types.SimpleNamespace(exposure_mode='KEEP')
+    settings = bpy.context.scene.relight
+    assert (settings.exposure_mode, settings.exr_compression) == ('KEEP', 'PIZ')  # defaults
     batch.apply_exposure_mode(settings, "physical")
     assert settings.exposure_mode == 'PHYSICAL'
     batch.apply_exposure_mode(settings, None)  # not given: the .blend's setting stays
     assert settings.exposure_mode == 'PHYSICAL'
-    with pytest.raises(batch.BatchError, match="no exposure mode setting"):
-        batch.apply_exposure_mode(types.SimpleNamespace(), "keep")
-    scene_settings = bpy.context.scene.relight
-    if hasattr(scene_settings, "exposure_mode"):
-        batch.apply_exposure_mode(scene_settings, "physical")
-        assert scene_settings.exposure_mode == 'PHYSICAL'
+    args = batch.parse_args(["--demo", "--exr-compression", "zip"])
+    batch.apply_settings(bpy.context.scene, args)
+    assert settings.exr_compression == 'ZIP'
 
 
 def test_every_farm_task_is_a_command_line_the_batch_run_accepts(extension, tmp_path):

@@ -22,6 +22,10 @@ def test_preview_is_the_runs_own_frame_and_leaves_the_run_alone(extension, toy_m
     assert shown.channel > source.channel and shown.colorspace_settings.name == "Linear Rec.709"
     preview = tmp_path / "out" / (source.name + "_preview") / "relit" / "relit_000002.exr"
     assert preview.is_file() and not (tmp_path / "out" / source.name).exists()
+    import OpenEXR
+
+    with OpenEXR.File(str(preview), header_only=True) as f:  # lossless PIZ unless chosen
+        assert f.header()["compression"] == OpenEXR.PIZ_COMPRESSION
     # The whole run gives that very frame, bit for bit.
     bpy.context.scene.sequence_editor.active_strip = source
     assert bpy.ops.relight.relight_strip(models_dir=str(toy_models)) == {'FINISHED'}
