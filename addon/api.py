@@ -82,7 +82,7 @@ def _network_frame(sess, x: np.ndarray, light: np.ndarray, background: str,
     h, w = x.shape[1:]
     s = normalise.exposure_scale([x.transpose(1, 2, 0)])
     plan = pipeline.Plan(LINEAR, s, (w, h), detail.working_shape(h, w, sess.card.working_size),
-                         True, False, "none", pipeline.relit_times_s(sess.card), background)
+                         True, False, "none", background)
     fullres = portrait.shared_fullres()  # built once: its graphs cost more than a small frame
     xn = np.ascontiguousarray(x / np.float32(s))
     x_low = pipeline.shrink_planar(xn, plan, fullres)

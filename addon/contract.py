@@ -26,6 +26,16 @@ PARSING_CLASSES = ("foreground", "skin", "hair", "brows", "eyes", "lips_mouth", 
                    "clothes")
 FOREGROUND_CLASS = "foreground"
 
-# Model card keys every card must have (models/<name>.json).
+# Model card keys every card must have (models/<name>.json), as training/run/export.py and
+# training/intrinsic/export.py write them.
 REQUIRED_CARD_KEYS = ("contract", "name", "preset", "onnx", "sha256", "inputs", "outputs",
                       "stride", "working_size", "colour", "classes", "training", "metrics", "cost")
+
+# Each contract's input and output names, in the order the cards list them.
+INPUTS = {CONTRACT_VERSION: (INPUT_IMAGE, INPUT_LIGHT), INTRINSIC_CONTRACT: (INPUT_IMAGE,)}
+OUTPUTS = {CONTRACT_VERSION: (OUTPUT_RELIT, OUTPUT_SOURCE_LIGHT, OUTPUT_PARSING),
+           INTRINSIC_CONTRACT: (OUTPUT_NORMAL, OUTPUT_HEIGHT, OUTPUT_ALBEDO, OUTPUT_PARSING)}
+
+# CONTRACT_VERSION cards say how the relit output comes back to scene-linear radiance: by the
+# target light's mean radiance k alone (addon/normalise.py), as "relit_scale": "k".
+RELIT_SCALE = "k"

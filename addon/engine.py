@@ -61,6 +61,59 @@ def card_path_for(model_path) -> pathlib.Path:
     return pathlib.Path(model_path).with_suffix(".json")
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _tensor_names(entries):
+    """The names of a card's "inputs" or "outputs" list ([{"name", "shape", ...}, ...]), or None
+    when it is laid out otherwise."""
+    if not isinstance(entries, list) or not all(
+            isinstance(e, dict) and isinstance(e.get("name"), str)
+            and isinstance(e.get("shape"), list) for e in entries):
+        return None
+    return tuple(e["name"] for e in entries)
+
+
+def layout_problems(data: dict) -> list[str]:
+    """How ``data`` departs from the one card layout the exporters write (training/run/export.py,
+    training/intrinsic/export.py); empty when it does not. The contract is already known."""
+    name = data["contract"]
+    problems = [f"'{k}' is not a string" for k in ("name", "preset", "onnx", "sha256")
+                if not isinstance(data[k], str)]
+    for key, want in (("inputs", contract.INPUTS[name]), ("outputs", contract.OUTPUTS[name])):
+        if _tensor_names(data[key]) != want:
+            problems.append(f"'{key}' is not the list of {', '.join(want)}")
+    problems += [f"'{k}' is not a whole number" for k in ("stride", "working_size")
+                 if not isinstance(data[k], int) or isinstance(data[k], bool)]
+    if not (isinstance(data["classes"], list)
+            and all(isinstance(c, str) for c in data["classes"])):
+        problems.append("'classes' is not a list of names")
+    problems += [f"'{k}' is not an object" for k in ("colour", "training", "metrics", "cost")
+                 if not isinstance(data[k], dict)]
+    if name == contract.CONTRACT_VERSION and data.get("relit_scale") != contract.RELIT_SCALE:
+        problems.append(f"'relit_scale' is {data.get('relit_scale')!r}, not "
+                        f"{contract.RELIT_SCALE!r}")
+    # Where the card has measured figures (the panel shows them), they are where export wrote them.
+    cost = data["cost"] if isinstance(data["cost"], dict) else {}
+    cpu = cost.get("cpu", {})
+    sizes = cpu.get("per_size", {}) if isinstance(cpu, dict) else None
+    if not (isinstance(sizes, dict) and all(
+            k.isdigit() and isinstance(v, dict) and _is_number(v.get("ms"))
+            for k, v in sizes.items())):
+        problems.append("'cost.cpu' is not {\"per_size\": {\"<size>\": {\"ms\": ...}}}")
+    metrics = data["metrics"] if isinstance(data["metrics"], dict) else {}
+    model = metrics.get("model", {})
+    if not (isinstance(model, dict) and all(_is_number(v) for k, v in model.items()
+                                            if k in ("rmse", "rmse_level_fit"))):
+        problems.append("'metrics.model' is not an object of figures")
+    front = data.get("frontier")
+    if front is not None and not (isinstance(front, dict) and all(
+            _is_number(front.get(k)) for k in ("ms_per_frame", "rmse", "working_size"))):
+        problems.append("'frontier' is not bench/frontier.py's entry")
+    return problems
+
+
 def load_card(model_path) -> ModelCard:
     """Read and check the card beside ``model_path`` (same stem, .json). Raises ModelError."""
     onnx_path = pathlib.Path(model_path)
@@ -82,7 +135,6 @@ def load_card(model_path) -> ModelCard:
     if not isinstance(data, dict):
         raise ModelError(f"The model card {card_path} is not a JSON object; reinstall the model.")
     if _nesting(data) > MAX_CARD_NESTING:
-        # Readers of the card (the panel's figures) walk it recursively.
         raise ModelError(f"The model card {card_path} is nested more than {MAX_CARD_NESTING} "
                          "levels deep, which no model card is; reinstall the model.")
     missing = [k for k in contract.REQUIRED_CARD_KEYS if k not in data]
@@ -94,20 +146,21 @@ def load_card(model_path) -> ModelCard:
             f"The model {card_path.stem} uses contract '{data['contract']}', which this version "
             f"of the add-on does not know (it knows {', '.join(contract.KNOWN_CONTRACTS)}). "
             "Update the add-on, or use a model made for this version.")
+    problems = layout_problems(data)
+    if problems:
+        raise ModelError(f"The model card {card_path.name} is not laid out as this add-on's "
+                         f"exporters write cards ({'; '.join(problems)}). Reinstall the model "
+                         "with its own card.")
     classes = tuple(data["classes"])
     if contract.FOREGROUND_CLASS not in classes:
         raise ModelError(f"The model card {card_path.name} has no '{contract.FOREGROUND_CLASS}' "
                          "parsing class; the matte cannot be made. Reinstall the model.")
-    try:
-        stride, working = int(data["stride"]), int(data["working_size"])
-    except (TypeError, ValueError) as err:
-        raise ModelError(f"The model card {card_path.name} has a non-integer stride or "
-                         "working_size; reinstall the model.") from err
+    stride, working = data["stride"], data["working_size"]
     if stride < 1 or working < stride:
         raise ModelError(f"The model card {card_path.name} has stride {stride} and working size "
                          f"{working}, which cannot work; reinstall the model.")
-    return ModelCard(card_path, onnx_path, str(data["name"]), str(data["preset"]),
-                     data["contract"], str(data["sha256"]).lower(), stride, working, classes, data)
+    return ModelCard(card_path, onnx_path, data["name"], data["preset"], data["contract"],
+                     data["sha256"].lower(), stride, working, classes, data)
 
 
 def file_sha256(path) -> str:

@@ -583,9 +583,8 @@ def _write_uncompressed(tmp: str, stored: np.ndarray, names) -> None:
 
 
 HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname() or "host")
-# <final name>.<host>_<pid>_<thread>.partial, and this module's older <final>.<pid>.partial
-_PARTIAL = re.compile(r"^(?P<final>.+?)\.(?:(?P<host>[A-Za-z0-9-]+)_(?P<pid>\d+)_\d+"
-                      r"|(?P<old_pid>\d+)(?:\.\d+)?)\.partial$")
+# <final name>.<host>_<pid>_<thread>.partial
+_PARTIAL = re.compile(r"^(?P<final>.+?)\.(?P<host>[A-Za-z0-9-]+)_(?P<pid>\d+)_\d+\.partial$")
 
 
 def partial_path(path) -> str:
@@ -600,9 +599,9 @@ def stale_partial(name: str) -> str | None:
     m = _PARTIAL.match(name)
     if not m:
         return None
-    if m.group("host") is not None and m.group("host") != HOST:
+    if m.group("host") != HOST:
         return None  # another machine's (shared storage): it may still be writing
-    pid = int(m.group("pid") or m.group("old_pid"))
+    pid = int(m.group("pid"))
     return None if pid == os.getpid() or pid_alive(pid) else m.group("final")
 
 

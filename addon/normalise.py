@@ -10,8 +10,8 @@ radiance with ``relit * k`` (model cards say ``relit_scale: "k"``):
 * ``k`` is the target light's mean radiance, so twice the light gives twice the output exactly,
   and an all-zero light gives a black frame without running the network.
 Training divides its inputs the same way and its relit ground truth by ``k``; the estimated source
-light is in the normalised image's units (light / s). Cards from before this rule say
-``relit_scale: "s*k"`` (output * s * k) and are still honoured by the engine.
+light is in the normalised image's units (light / s). The engine loads no card that says otherwise
+(addon/contract.py RELIT_SCALE).
 """
 
 from __future__ import annotations

@@ -4,8 +4,7 @@ One function, ``relight_clip``, serves the modal operator (on_progress / should_
 batch script and render-farm chunks (``frames``). Per frame:
 
     decode -> linear (colour.py) -> / s -> area-resize to the working size -> network (light / k)
-    -> full-resolution transfer (detail.py) -> * k (* s for old "s*k" cards) -> [0, 65504], half
-    -> EXR
+    -> full-resolution transfer (detail.py) -> * k -> [0, 65504], half -> EXR
 
 Frames stay channels-first (3, H, W) from the decoder to the EXR file (see detail.py); the
 channels-last stage functions below serve callers that hold (H, W, 3) images (benchmarks).
@@ -39,7 +38,7 @@ import numpy as np
 
 from . import (colour, contract, detail, engine, framing, frames, lightvec, normalise,
                portrait, runlock)
-from .errors import Cancelled, InputError, LightingError, ModelError, OutputError
+from .errors import Cancelled, InputError, LightingError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
 
 RUN_FILE = "relight_run.json"
@@ -378,19 +377,7 @@ class Plan:
     detail_transfer: bool
     write_matte: bool
     compression: str
-    relit_times_s: bool = True  # the model's relit output is in image / (s k) units (old cards)
     background: str = "network"
-
-
-def relit_times_s(card) -> bool:
-    """Whether the card's relit output is brought back by s * k ('s*k', cards written before the
-    key existed) or by k alone ('k': image / s is the scene under lights / s, so a decoder fed
-    light / k renders relit / k; see training.model.units.normalise_sample)."""
-    value = card.data.get("relit_scale", "s*k")
-    if value not in ("s*k", "k"):
-        raise ModelError(f"The model card of {card.name} has relit_scale {value!r}; expected "
-                         "'k' or 's*k'. Reinstall the model with its card.")
-    return value == "s*k"
 
 
 def linearise(pixels: np.ndarray, plan: Plan) -> tuple[np.ndarray, int, float]:
@@ -429,10 +416,12 @@ def infer_planar(session: engine.RelightSession, x_low: np.ndarray, light: np.nd
 def coefficients_planar(x_low: np.ndarray, relit_low, k: float, plan: Plan,
                         fullres: detail.FullRes):
     """Working-resolution (a, b), each (3, h, w), with out = up(a) * x_full + up(b) in
-    scene-linear units, finite; None for a black frame."""
+    scene-linear units, finite; None for a black frame. The network's relit output comes back to
+    scene linear by k alone (contract.RELIT_SCALE: image / s is the scene under lights / s, so a
+    decoder fed light / k renders relit / k; training.model.units.normalise_sample)."""
     if relit_low is None:
         return None
-    gain = (plan.scale if plan.relit_times_s else 1.0) * k
+    gain = k
     if plan.detail_transfer and x_low.shape[1:] != (plan.size[1], plan.size[0]):
         return fullres.coefficients_planar(x_low, relit_low, gain)
     b = np.nan_to_num(np.asarray(relit_low, np.float32) * np.float32(gain), nan=0.0,
@@ -746,7 +735,7 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
         scale = (float(stored["exposure_scale"]) if stored is not None
                  else clip_exposure(clip, plan, fullres))
         plan = Plan(space, scale, plan.size, plan.working, plan.detail_transfer, plan.write_matte,
-                    plan.compression, relit_times_s(session.card), options.background)
+                    plan.compression, options.background)
         boxes, missing = None, []
         todo = [i for i in selected if not os.path.isfile(relit_path(out_dir, i))]
         if isinstance(session, engine.IntrinsicSession) and (todo or stored is None):

@@ -200,13 +200,12 @@ def frames_of(samples) -> list[Frame]:
     return out
 
 
-def card_for(onnx_path, stride: int, working: int, name: str, preset: str, classes,
-             data: dict | None = None) -> engine.ModelCard:
-    """A card in memory for a variant made here (untrained export, int8, fp16), never written;
-    ``data``: the original card's, so the variant keeps its units (relit_scale)."""
+def card_for(onnx_path, stride: int, working: int, name: str, preset: str,
+             classes) -> engine.ModelCard:
+    """A card in memory for a variant made here (untrained export, int8, fp16), never written."""
     p = pathlib.Path(onnx_path)
     return engine.ModelCard(p.with_suffix(".json"), p, name, preset, contract.CONTRACT_VERSION,
-                            "", stride, working, tuple(classes), dict(data or {}))
+                            "", stride, working, tuple(classes), {})
 
 
 def open_session(card: engine.ModelCard, threads: int, provider: str):
@@ -222,8 +221,7 @@ def relight_frame(session, f: Frame, working: int, detail_on: bool,
     """The pipeline's per-frame stages (addon/pipeline.py) -> half (H, W, 3) absolute radiance."""
     h, w = f.x_full.shape[:2]
     plan = pipeline.Plan(LINEAR, f.scale, (w, h), detail.working_shape(h, w, working),
-                         detail_on, False, "none",
-                         relit_times_s=pipeline.relit_times_s(session.card))
+                         detail_on, False, "none")
     x_low = pipeline.shrink(f.x_full, plan, fullres)
     relit_low, _, _, k = pipeline.infer(session, x_low, f.light)
     ab = pipeline.coefficients(x_low, relit_low, k, plan, fullres)
@@ -440,7 +438,7 @@ def quantised(session, frames, working: int, fullres, folder: pathlib.Path):
     out = folder / f"{file_stem(card.name)}-int8.onnx"
     export.quantize_int8(card.onnx_path, out, feeds)
     return card_for(out, card.stride, card.working_size, f"{card.name}-int8", card.preset,
-                    card.classes, card.data), ""
+                    card.classes), ""
 
 
 def half_precision(card: engine.ModelCard, folder: pathlib.Path) -> engine.ModelCard:
@@ -453,7 +451,7 @@ def half_precision(card: engine.ModelCard, folder: pathlib.Path) -> engine.Model
     onnx.save(convert_float_to_float16(onnx.load(str(card.onnx_path)), keep_io_types=True),
               str(out))
     return card_for(out, card.stride, card.working_size, f"{card.name}-fp16", card.preset,
-                    card.classes, card.data)
+                    card.classes)
 
 
 def network_group(args, frames, folder: pathlib.Path, log, skipped) -> tuple[list[Row], dict]:
@@ -539,8 +537,7 @@ def untrained(ctx: Context, frames, trained_configs: list[dict]) -> list[Variant
     todo = [(label, net) for label, net in nets if net.cfg.to_dict() not in trained_configs]
     for i, (label, net) in enumerate(todo):
         path = export.export_onnx(net, ctx.folder / f"untrained-{i}.onnx")
-        card = card_for(path, net.cfg.stride, ws, label, label, contract.PARSING_CLASSES,
-                        {"relit_scale": export.RELIT_SCALE})
+        card = card_for(path, net.cfg.stride, ws, label, label, contract.PARSING_CLASSES)
         variants = [("fp32", card)]
         if i == 0:
             q, _ = quantised(open_session(card, 1, CPU), frames, ws, ctx.fullres, ctx.folder)

@@ -128,8 +128,9 @@ def main(argv=None) -> int:
             return colour_options()
         model = write_conv_model(tmp, gflops_at_512=args.gflops, name="bench")
         card = engine.load_card(model)
-        print(f"model: {card.data['cost']['gflops_at_512']} GFLOP at 512x512 "
-              f"(width {card.data['cost']['width']}), working size {args.working_size}, "
+        arch = card.data["architecture"]
+        print(f"model: {arch['gflop_per_frame']['512']} GFLOP at 512x512 "
+              f"(width {arch['width']}), working size {args.working_size}, "
               f"background {args.background}")
         t0 = time.perf_counter()
         path = make_clip(os.path.join(tmp, "clip.mp4"), n)

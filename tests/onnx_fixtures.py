@@ -1,14 +1,18 @@
 """Tiny contract-conforming ONNX models built with onnx.helper (no torch), each with its card.
 
 * ``write_toy_model(dir)``: a physically meaningful toy. The face is a flat Lambertian surface
-  facing the camera, lit by a constant source estimate (uniform radiance 1), so
-  relit = image * E(target) / E(source) with E the irradiance on the normal +Z; parsing is a
+  facing the camera, lit by a constant source estimate (uniform radiance 1 in the normalised
+  image's units, so s in the footage's), so relit = image * E(target) / E(source) with E the
+  irradiance on the normal +Z; parsing is a
   sigmoid of brightness computed at 1/8 resolution (so H and W must be multiples of the stride 8,
   like a real encoder-decoder, and the engine's padding is exercised).
 * ``write_conv_model(dir, gflops_at_512)``: a random-weight encoder-decoder of a requested cost,
   for speed benchmarks.
 
-Other helpers' tests import these two functions; keep their signatures stable.
+* ``graph_model``, ``card_fields`` and ``save_model``: for tests that build models of their own.
+
+Every card is laid out as training/run/export.py writes cards (addon.engine.load_card takes no
+other layout). Other helpers' tests import these functions; keep their signatures stable.
 """
 
 from __future__ import annotations
@@ -36,7 +40,8 @@ def frontal_irradiance_weights() -> np.ndarray:
     return (np.clip(d[..., 2], 0.0, None) * lightvec.solid_angles()).astype(np.float32)
 
 
-def _io(n_classes: int):
+def io_spec(n_classes: int):
+    """The contract's graph inputs and outputs (value infos) for a model of ``n_classes``."""
     f = TensorProto.FLOAT
     inputs = [helper.make_tensor_value_info(contract.INPUT_IMAGE, f, ["N", 3, "H", "W"]),
               helper.make_tensor_value_info(contract.INPUT_LIGHT, f, ["N", 3, 16, 16])]
@@ -51,25 +56,56 @@ def _const(name: str, value) -> onnx.TensorProto:
     return numpy_helper.from_array(np.asarray(value), name)
 
 
-def _save(model: onnx.ModelProto, out_dir, name: str, card_extra: dict) -> pathlib.Path:
+def graph_model(nodes, inits: dict, name: str, n_classes: int = len(TOY_CLASSES)):
+    """A contract model (opset OPSET, IR_VERSION) of ``nodes`` and initialisers ``inits``
+    (name -> array)."""
+    inputs, outputs = io_spec(n_classes)
+    graph = helper.make_graph(nodes, name, inputs, outputs,
+                              [numpy_helper.from_array(np.asarray(v), k) for k, v in inits.items()])
+    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    m.ir_version = IR_VERSION
+    return m
+
+
+def card_fields(stride: int = 1, working: int = 64, classes=TOY_CLASSES,
+                preset: str = "test") -> dict:
+    """The card entries that differ between fixture models (save_model's ``card_extra``)."""
+    return {"preset": preset, "stride": stride, "working_size": working, "classes": list(classes)}
+
+
+def save_model(model: onnx.ModelProto, out_dir, name: str, card_extra: dict) -> pathlib.Path:
+    """Write ``model`` as ``out_dir``/``name``.onnx with its card, laid out as
+    training/run/export.py writes cards (``card_extra``: card_fields, and any entry to add or
+    replace); returns the .onnx path."""
     onnx.checker.check_model(model)
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"{name}.onnx"
     path.write_bytes(model.SerializeToString())
+    classes = card_extra.get("classes", list(TOY_CLASSES))
+    tensors = [(contract.INPUT_IMAGE, ["N", 3, "H", "W"]),
+               (contract.INPUT_LIGHT, ["N", 3, 16, 16]),
+               (contract.OUTPUT_RELIT, ["N", 3, "H", "W"]),
+               (contract.OUTPUT_SOURCE_LIGHT, ["N", 3, 16, 16]),
+               (contract.OUTPUT_PARSING, ["N", len(classes), "H", "W"])]
+    entries = [{"name": n, "shape": shape, "dtype": "float32"} for n, shape in tensors]
     card = {
         "contract": contract.CONTRACT_VERSION,
         "name": name,
-        "preset": card_extra.pop("preset", "test"),
+        "preset": "test",
         "onnx": path.name,
         "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-        "inputs": {contract.INPUT_IMAGE: ["N", 3, "H", "W"], contract.INPUT_LIGHT: ["N", 3, 16, 16]},
-        "outputs": {contract.OUTPUT_RELIT: ["N", 3, "H", "W"],
-                    contract.OUTPUT_SOURCE_LIGHT: ["N", 3, 16, 16],
-                    contract.OUTPUT_PARSING: ["N", "K", "H", "W"]},
-        "colour": "linear Rec.709, exposure-normalised (addon/normalise.py)",
-        "training": "none: a test fixture built by tests/onnx_fixtures.py",
+        "inputs": entries[:2],
+        "outputs": entries[2:],
+        "stride": TOY_STRIDE,
+        "working_size": 64,
+        "colour": {"space": "linear Rec.709, exposure-normalised (addon/normalise.py)"},
+        "relit_scale": contract.RELIT_SCALE,
+        "classes": list(classes),
+        "training": {"data": "none: a test fixture built by tests/onnx_fixtures.py"},
         "metrics": {},
+        "cost": {"cpu": {"provider": "CPUExecutionProvider", "threads": 1, "batch": 1,
+                         "per_size": {}}},
         **card_extra,
     }
     path.with_suffix(".json").write_text(json.dumps(card, indent=2), encoding="utf-8")
@@ -110,7 +146,7 @@ def build_toy_model() -> onnx.ModelProto:
         _const("fg_gain", np.float32(20.0)),
         _const("scales8", np.array([1, 1, TOY_STRIDE, TOY_STRIDE], np.float32)),
     ]
-    inputs, outputs = _io(len(TOY_CLASSES))
+    inputs, outputs = io_spec(len(TOY_CLASSES))
     graph = helper.make_graph(nodes, "relight_toy", inputs, outputs, inits)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
                               producer_name="tests/onnx_fixtures.py")
@@ -128,9 +164,8 @@ def toy_reference(image_chw: np.ndarray, light_hwc: np.ndarray) -> np.ndarray:
 
 def write_toy_model(out_dir, name: str = "toy") -> pathlib.Path:
     """Write the toy model and its card into ``out_dir``; return the .onnx path."""
-    return _save(build_toy_model(), out_dir, name, {
-        "preset": "toy", "stride": TOY_STRIDE, "working_size": 64, "classes": list(TOY_CLASSES),
-        "cost": {"gflops_at_512": 0.0}})
+    return save_model(build_toy_model(), out_dir, name,
+                      card_fields(TOY_STRIDE, 64, TOY_CLASSES, "toy"))
 
 
 # ---- random-weight conv net of a requested cost ----------------------------------------------
@@ -201,7 +236,7 @@ def build_conv_model(gflops_at_512: float = 5.0, n_mid: int = 2, seed: int = 0):
         helper.make_node("Softplus", ["src_logit"], ["src_pos"]),
         helper.make_node("Reshape", ["src_pos", "src_shape"], [contract.OUTPUT_SOURCE_LIGHT]),
     ]
-    inputs, outputs = _io(k)
+    inputs, outputs = io_spec(k)
     graph = helper.make_graph(nodes, "relight_conv_bench", inputs, outputs, inits)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
                               producer_name="tests/onnx_fixtures.py")
@@ -213,7 +248,7 @@ def write_conv_model(out_dir, gflops_at_512: float = 5.0, name: str = "conv_benc
                      n_mid: int = 2, seed: int = 0) -> pathlib.Path:
     """Write a random-weight conv model of about ``gflops_at_512`` GFLOP per 512x512 frame."""
     model, width, gflops = build_conv_model(gflops_at_512, n_mid, seed)
-    return _save(model, out_dir, name, {
-        "preset": "bench", "stride": 8, "working_size": 512,
-        "classes": list(contract.PARSING_CLASSES),
-        "cost": {"gflops_at_512": round(gflops, 3), "width": width, "n_mid": n_mid}})
+    return save_model(model, out_dir, name, {
+        **card_fields(8, 512, contract.PARSING_CLASSES, "bench"),
+        "architecture": {"width": width, "n_mid": n_mid,
+                         "gflop_per_frame": {"512": round(gflops, 3)}}})

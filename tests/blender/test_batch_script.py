@@ -181,16 +181,15 @@ def failing_models(folder):
 
     sys.path.insert(0, str(ROOT))  # the core tests' model builders
     try:
-        from tests.core.test_hard_cases import _card, _model
-        from tests.onnx_fixtures import _save
+        from tests.onnx_fixtures import card_fields, graph_model, save_model
     finally:
         sys.path.remove(str(ROOT))
     nodes = [helper.make_node("Reshape", ["image", "bad"], ["r"]),
              helper.make_node("Identity", ["image"], ["relit"]),
              helper.make_node("Identity", ["target_light"], ["source_light"]),
              helper.make_node("Concat", ["r", "r"], ["parsing"], axis=1)]
-    model = _model(nodes, {"bad": np.array([1, 7, -1, 5], np.int64)}, "fails")
-    _save(model, folder, "fails", _card(stride=1, working=64))
+    model = graph_model(nodes, {"bad": np.array([1, 7, -1, 5], np.int64)}, "fails")
+    save_model(model, folder, "fails", card_fields(stride=1, working=64))
     return folder
 
 

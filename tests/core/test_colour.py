@@ -181,7 +181,8 @@ def test_planar_conversion_equals_channels_last(name, dtype):
 @pytest.mark.parametrize("name", ["Filmic Log", "ACEScg"])
 def test_pipeline_relights_footage_declared_in_an_opencolorio_space(name, tmp_path):
     """8-bit footage declared in a space only OpenColorIO converts: the toy model (relit =
-    image x the light's irradiance ratio) under uniform light 2 doubles the converted input."""
+    image x the light's irradiance ratio, its source radiance the clip's exposure s) under
+    uniform light 2 doubles the converted input over s."""
     from addon import frames, lightvec, pipeline
     from tests.clip_fixtures import ramp_frames, write_movie
     from tests.onnx_fixtures import write_toy_model
@@ -196,5 +197,6 @@ def test_pipeline_relights_footage_declared_in_an_opencolorio_space(name, tmp_pa
                                                         exposure_mode="physical"))
     for i, f in enumerate(res.relit_files):
         want = np.maximum(2 * colour.to_linear(src[i], colour.lookup(name)), 0.0)
+        want /= res.exposure_scale
         np.testing.assert_allclose(frames.read_exr(f), want, rtol=4e-3,
                                    atol=2e-3 * float(want.max()))

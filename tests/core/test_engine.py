@@ -124,6 +124,29 @@ def test_unknown_contract_and_bad_cards_are_refused(tmp_path):
         engine.new_session(model)
 
 
+@pytest.mark.parametrize("changes, says", [
+    ({"relit_scale": "s*k"}, "relit_scale"),
+    ({"relit_scale": None}, "relit_scale"),
+    ({"inputs": {"image": ["N", 3, "H", "W"], "target_light": ["N", 3, 16, 16]}}, "inputs"),
+    ({"outputs": [{"name": "relit", "shape": ["N", 3, "H", "W"]}]}, "outputs"),
+    ({"stride": "8"}, "stride"),
+    ({"classes": "foreground"}, "classes"),
+    ({"training": "a note"}, "training"),
+    ({"cost": {"cpu": {"per_size": {"512": 38.0}}}}, "cost.cpu"),
+    ({"metrics": {"model": {"rmse": "0.04"}}}, "metrics.model"),
+    ({"frontier": {"ms": 9.0}}, "frontier"),
+])
+def test_a_card_not_laid_out_as_the_exporters_write_it_is_refused(tmp_path, changes, says):
+    """One card layout: training/run/export.py's (relit brought back by k, inputs and outputs
+    as lists, figures where export and bench/frontier.py put them); anything else is a
+    ModelError naming what differs, never a card read by guesswork."""
+    model = write_toy_model(tmp_path)
+    _rewrite_card(model, **changes)
+    with pytest.raises(ModelError, match="not laid out as this add-on's exporters") as err:
+        engine.load_card(model)
+    assert says in str(err.value)
+
+
 def test_model_that_breaks_the_contract_is_refused(tmp_path):
     model = write_toy_model(tmp_path)
     m = onnx.load(str(model))
@@ -173,7 +196,7 @@ def test_missing_onnxruntime_is_a_dependency_error(monkeypatch, toy):
 def test_conv_model_has_the_requested_cost_and_contract(tmp_path):
     model = write_conv_model(tmp_path, gflops_at_512=0.2, name="small")
     card = json.loads(model.with_suffix(".json").read_text())
-    assert 0.2 <= card["cost"]["gflops_at_512"] < 0.35
+    assert 0.2 <= card["architecture"]["gflop_per_frame"]["512"] < 0.35
     s = engine.new_session(model, threads=1)
     res = s.run(np.random.default_rng(0).random((20, 36, 3)).astype(np.float32),
                 lightvec.uniform(1.0))

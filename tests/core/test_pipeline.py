@@ -61,12 +61,14 @@ def digest(paths):
 
 
 def test_movie_end_to_end_is_the_toys_physics(toy, movie, src, tmp_path):
-    # Toy: relit = image * E(target)/E(uniform 1); uniform radiance 2 doubles the linear input.
+    # Toy: relit = image * E(target)/E(source), its source uniform radiance s (1 in the network's
+    # normalised units): uniform radiance 2 doubles the linear input over s.
     res = pipeline.relight_clip(movie_clip(movie), 2 * UNIFORM, tmp_path, opts(toy))
     assert res.written == N and res.resumed == 0 and len(res.relit_files) == N
+    s = res.exposure_scale
     for i, f in enumerate(res.relit_files):
         out = frames.read_exr(f)
-        want = 2 * colour.to_linear(src[i], colour.lookup("sRGB"))
+        want = 2 * colour.to_linear(src[i], colour.lookup("sRGB")) / s
         assert out.shape == (48, 64, 3)
         np.testing.assert_allclose(out, want, rtol=4e-3, atol=1e-4)
         assert np.load(pipeline.source_path(tmp_path, i)).shape == lightvec.SHAPE
@@ -80,7 +82,7 @@ def test_trim_relights_the_visible_frames_only(toy, movie, src, tmp_path):
     assert [os.path.basename(f) for f in res.relit_files] == [
         "relit_000000.exr", "relit_000001.exr", "relit_000002.exr"]
     for k, f in enumerate(res.relit_files):
-        want = colour.to_linear(src[2 + k], colour.lookup("sRGB"))
+        want = colour.to_linear(src[2 + k], colour.lookup("sRGB")) / res.exposure_scale
         np.testing.assert_allclose(frames.read_exr(f), want, rtol=4e-3, atol=1e-4)
 
 
@@ -91,7 +93,7 @@ def test_per_frame_lights_and_zero_light(toy, tmp_path):
     res = pipeline.relight_clip(image_clip(files, space="Linear Rec.709"), lights,
                                 tmp_path / "out", opts(toy, working_size=8))
     a, b, c = (frames.read_exr(f) for f in res.relit_files)
-    np.testing.assert_allclose(a, px, rtol=2e-3)
+    np.testing.assert_allclose(a, px / res.exposure_scale, rtol=2e-3)
     np.testing.assert_allclose(b, 3 * a, rtol=2e-3)
     assert not c.any()  # all-zero light: a black frame, the network not run
     assert np.all(np.load(pipeline.source_path(tmp_path / "out", 2)) == 0)
@@ -121,7 +123,8 @@ def test_keep_exposure_is_one_gain_for_the_clip(toy, tmp_path):
     physical = pipeline.relight_clip(clip, lights, tmp_path / "physical",
                                      opts(toy, working_size=8, exposure_mode="physical"))
     gain = json.loads((tmp_path / "keep" / pipeline.RUN_FILE).read_text())["exposure_gain"]
-    np.testing.assert_allclose(gain, 1 / 3, rtol=5e-3)  # 4 frames of mean light 3
+    # 4 frames of mean light 3, the toy's source radiance s
+    np.testing.assert_allclose(gain, keep.exposure_scale / 3, rtol=5e-3)
     for k, f in zip(out, physical.relit_files):
         np.testing.assert_allclose(k, gain * frames.read_exr(f), rtol=5e-3, atol=1e-6)
     # the mode is part of the run: the other mode into the same folder is another run
@@ -197,7 +200,8 @@ CHUNK_SCRIPT = """
 import sys, numpy as np
 from addon import lightvec, pipeline
 clip = pipeline.ClipSpec('movie', sys.argv[1], (), 0, {n}, 'sRGB', 25.0)
-opts = pipeline.RelightOptions(sys.argv[2], working_size=32, threads=1, background='network')
+opts = pipeline.RelightOptions(sys.argv[2], working_size=32, threads=1, background='network',
+                               exposure_mode='physical')
 pipeline.relight_clip(clip, lightvec.uniform(1.0)[None], sys.argv[3], opts,
                       frames=range(int(sys.argv[4]), int(sys.argv[5])))
 """
@@ -291,14 +295,14 @@ def test_tiny_and_odd_sizes(toy, tmp_path, h, w):
                                 tmp_path / "out", opts(toy, working_size=8))
     out = frames.read_exr(res.relit_files[1])
     assert out.shape == (h, w, 3) and np.all(np.isfinite(out))
-    np.testing.assert_allclose(out, 2 * px, rtol=5e-3)
+    np.testing.assert_allclose(out, 2 * px / res.exposure_scale, rtol=5e-3)
 
 
 def test_half_overflow_is_clamped_and_reported(toy, tmp_path):
     px = np.full((8, 8, 3), 100.0, np.float32)
     px[:4] = 0.5  # keep the clip's exposure on the dim half
     files = write_exr_sequence(tmp_path / "in", [px])
-    res = pipeline.relight_clip(image_clip(files, space="Linear Rec.709"), 1e5 * UNIFORM,
+    res = pipeline.relight_clip(image_clip(files, space="Linear Rec.709"), 1e7 * UNIFORM,
                                 tmp_path / "out", opts(toy, working_size=8))
     out = frames.read_exr(res.relit_files[0])
     assert out.max() == 65504.0 and np.all(np.isfinite(out))

@@ -78,10 +78,12 @@ def test_stale_partials_are_swept_on_resume_and_nothing_else(toy, movie, referen
     pipeline.relight_clip(clip_of(movie), UNIFORM, out, opts(toy), frames=range(0, 2))
     dead, live = dead_pid(), os.getppid()
     ours = frames.partial_path(pipeline.relit_path(out, 3))
-    stale = [ours.replace(f"_{os.getpid()}_", f"_{dead}_"),               # killed writer
-             pipeline.matte_path(out, 3) + f".{dead}.partial",            # older naming
-             pipeline.source_path(out, 3) + f".{dead}.partial",
-             str(out / f"{pipeline.RUN_FILE}.{dead}.1234.partial")]
+
+    def killed(path):  # what a killed writer of this machine left
+        return frames.partial_path(path).replace(f"_{os.getpid()}_", f"_{dead}_")
+
+    stale = [killed(pipeline.relit_path(out, 3)), killed(pipeline.matte_path(out, 3)),
+             killed(pipeline.source_path(out, 3)), killed(str(out / pipeline.RUN_FILE))]
     kept = [ours.replace(f"_{os.getpid()}_", f"_{live}_"),                # a live writer's
             pipeline.relit_path(out, 4) + f".otherhost_{dead}_1.partial",  # another machine's
             str(out / "relit" / f"notes.txt.{dead}.partial"),             # not a name we write

@@ -98,8 +98,8 @@ def write_standin(folder, name="standin", normal_name=contract.OUTPUT_NORMAL) ->
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.onnx"
     path.write_bytes(build_standin(normal_name).SerializeToString())
-    shapes = {normal_name: 3, contract.OUTPUT_HEIGHT: 1, contract.OUTPUT_ALBEDO: 3,
-              contract.OUTPUT_PARSING: len(contract.INTRINSIC_CLASSES)}
+    shapes = {contract.OUTPUT_NORMAL: 3, contract.OUTPUT_HEIGHT: 1, contract.OUTPUT_ALBEDO: 3,
+              contract.OUTPUT_PARSING: len(contract.INTRINSIC_CLASSES)}  # what the card promises
     card = {
         "contract": contract.INTRINSIC_CONTRACT, "name": name, "preset": "standin",
         "onnx": path.name, "sha256": engine.file_sha256(path),
@@ -109,7 +109,7 @@ def write_standin(folder, name="standin", normal_name=contract.OUTPUT_NORMAL) ->
         "colour": {"space": "linear Rec.709 scene-referred, channels first"},
         "classes": list(contract.INTRINSIC_CLASSES),
         "training": {"data": "none: a stand-in built by tests/core/test_portrait.py"},
-        "metrics": {}, "cost": {},
+        "metrics": {}, "cost": {"cpu": {"provider": "CPUExecutionProvider", "per_size": {}}},
     }
     path.with_suffix(".json").write_text(json.dumps(card, indent=1), encoding="utf-8")
     return str(path)

@@ -147,8 +147,6 @@ def test_a_perfect_model_scores_zero_and_the_input_does_not(stage, env):
 
 def test_end_to_end_with_a_toy_model_card_and_bare(tmp_path, shared_data, stage):
     toy = write_toy_model(tmp_path / "card")
-    card = toy.with_suffix(".json")  # the current contract's output scale, as a bare ONNX gets
-    card.write_text(json.dumps({**json.loads(card.read_text()), "relit_scale": "k"}))
     bare_dir = tmp_path / "bare"
     bare_dir.mkdir()
     bare = shutil.copy(toy, bare_dir / "toy_bare.onnx")  # no card beside it

@@ -11,7 +11,6 @@ import torch
 
 import standin
 from addon import colour, engine, normalise, pipeline
-from addon.errors import ModelError
 from training.model import network, units
 from training.run import batches, export, options
 from training.run.trainer import Trainer
@@ -59,19 +58,6 @@ def test_relit_to_absolute_inverts_the_target():
     np.testing.assert_allclose(back, s["gt_t_k"], rtol=1e-5, atol=1e-7)
 
 
-def _card(data: dict) -> engine.ModelCard:
-    return engine.ModelCard(None, None, "m", "draft", "relight-onnx/1", "", 32, 128,
-                            ("foreground",), data)
-
-
-def test_engine_reads_how_a_card_scales_relit():
-    assert pipeline.relit_times_s(_card({})) is True  # cards written before the key existed
-    assert pipeline.relit_times_s(_card({"relit_scale": "s*k"})) is True
-    assert pipeline.relit_times_s(_card({"relit_scale": "k"})) is False
-    with pytest.raises(ModelError, match="relit_scale"):
-        pipeline.relit_times_s(_card({"relit_scale": "k*k"}))
-
-
 def test_engine_output_matches_training_units_for_an_exported_model(tmp_path):
     """A sample through export + addon.engine + the pipeline's output scaling equals the torch
     model's output brought back by training's relit_to_absolute."""
@@ -91,7 +77,7 @@ def test_engine_output_matches_training_units_for_an_exported_model(tmp_path):
 
     relit_low, source_hwc, _, k = pipeline.infer_planar(session, n["img_t"], s["light_k"])
     plan = pipeline.Plan(colour.lookup("Linear Rec.709"), float(n["scale"]), (64, 64), (64, 64),
-                         False, False, "none", pipeline.relit_times_s(session.card))
+                         False, False, "none")
     a, b = pipeline.coefficients_planar(n["img_t"], relit_low, k, plan, None)
     assert not a.any() and k == pytest.approx(normalise.light_scale(s["light_k"]))
     np.testing.assert_allclose(b, want, rtol=1e-3, atol=1e-4 * float(np.abs(want).max()))

@@ -181,13 +181,18 @@ def toy(tmp_path_factory):
 def test_pipeline_relighter_follows_the_units_of_the_card(toy, b01):
     from tests.onnx_fixtures import frontal_irradiance_weights
 
-    relight = ye.PipelineRelighter(toy, background="network")  # the network's own units
+    from addon import normalise
+
+    # the network's own output at its own level
+    relight = ye.PipelineRelighter(toy, background="network", exposure="physical")
     img = b01.images[index_of(b01, 0, 0)]
     light = ye.light_vector(b01.dirs[[3]], np.array([1.5]))
     out = relight(img, light)
-    # The toy relights by E_front(target) / E_front(uniform 1) with the card's 's*k' units.
+    # The toy relights by E_front(target) / E_front(its source), its source uniform radiance s,
+    # the image's exposure scale (1 in the network's normalised units; relit comes back by k).
     w = frontal_irradiance_weights()
-    gain = float((w * light[..., 0]).sum() / w.sum())
+    s = normalise.exposure_scale([np.repeat(img[..., None], 3, axis=2).astype(np.float32)])
+    gain = float((w * light[..., 0]).sum() / w.sum()) / s
     # Half-float output and the guided full-resolution transfer blur a few edge pixels slightly.
     assert out.mean() == pytest.approx(img.mean() * gain, rel=1e-3)
     rel = np.abs(out - img * gain) / np.maximum(img * gain, 1e-3)

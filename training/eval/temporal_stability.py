@@ -22,7 +22,7 @@ Protocol (every choice is an option; the defaults are recorded in the JSON):
   for every frame, so the ground truth is one image and a perfect model scores 0.
 * Each clip goes through the shipped pipeline's normalisation (addon/normalise.py): one exposure
   s per clip from the clip's sampled frames, the network sees frame / s and light / k, its output
-  is brought back by k (or s k for cards that say relit_scale "s*k"). onnxruntime on the CPU,
+  is brought back by k (contract.RELIT_SCALE). onnxruntime on the CPU,
   ``--threads`` (1) intra-op threads, ``--batch`` frames per call.
 * Metric: mean over adjacent pairs (i, i+1) of the RMSE between the two output frames, in the
   held-out evaluation's units (training/eval/evaluate.py): every frame is divided by the ground
@@ -183,7 +183,6 @@ class Model:
     path: pathlib.Path
     session: object          # onnxruntime.InferenceSession
     stride: int
-    relit_times_s: bool      # card relit_scale "s*k" (old cards); "k" otherwise
     card: bool
     sha256: str
     seconds: float = 0.0     # time spent in the network
@@ -207,8 +206,6 @@ def load_model(path, label: str | None = None, threads: int = 1, stride: int = 3
     """A contract ONNX with its card (checked as the add-on checks it), or a bare one and a label."""
     import onnxruntime as ort
 
-    from addon.pipeline import relit_times_s
-
     path = pathlib.Path(path)
     if not path.is_file():
         raise ModelError(f"The model file {path} does not exist; give the path of an .onnx file.")
@@ -216,12 +213,10 @@ def load_model(path, label: str | None = None, threads: int = 1, stride: int = 3
     if has_card:
         card = engine.load_card(path)
         engine.verify_checksum(card)
-        label, stride, times_s = label or card.name, card.stride, relit_times_s(card)
+        label, stride = label or card.name, card.stride
     elif not label:
         raise ModelError(f"{path.name} has no model card beside it ({path.stem}.json); give a "
                          "--label for each --onnx to benchmark a bare ONNX file.")
-    else:
-        times_s = False  # the current contract: relit * k
     try:
         sess = ort.InferenceSession(str(path), engine.session_options(ort, threads),
                                     providers=["CPUExecutionProvider"])
@@ -233,7 +228,7 @@ def load_model(path, label: str | None = None, threads: int = 1, stride: int = 3
         raise ModelError(f"{path.name} does not follow the ONNX contract (it needs "
                          f"{sorted(need)}, it has {sorted(names)}); export it with "
                          "training.run.export.")
-    return Model(label, path, sess, int(stride), times_s, has_card, engine.file_sha256(path))
+    return Model(label, path, sess, int(stride), has_card, engine.file_sha256(path))
 
 
 def model_predictor(model: Model, target_light: np.ndarray):
@@ -244,8 +239,7 @@ def model_predictor(model: Model, target_light: np.ndarray):
     light_cf = np.ascontiguousarray(unit.transpose(2, 0, 1))
 
     def predict(frames, s):
-        gain = k * (s if model.relit_times_s else 1.0)
-        return model.relit(frames / np.float32(s), light_cf) * np.float32(gain)
+        return model.relit(frames / np.float32(s), light_cf) * np.float32(k)
     return predict
 
 

@@ -398,10 +398,12 @@ class PipelineRelighter:
     """A shipped model run exactly as the product runs it (``addon.relight_image``) on a gray
     image replicated to three channels; the output goes back to gray by Rec.709 luminance."""
 
-    def __init__(self, onnx_path, threads: int = 1, background: str | None = None):
+    def __init__(self, onnx_path, threads: int = 1, background: str | None = None,
+                 exposure: str | None = None):
         self.onnx_path = onnx_path
         self.threads = threads
         self.background = background or api.pipeline.DEFAULT_BACKGROUND
+        self.exposure = exposure or api.pipeline.DEFAULT_EXPOSURE_MODE
         self.card = api.session(onnx_path, threads).card
         self.name = self.card.name
 
@@ -409,7 +411,7 @@ class PipelineRelighter:
         """(H, W) linear gray under some light -> (H, W) linear gray under ``light``."""
         rgb = np.repeat(np.asarray(gray, np.float32)[..., None], 3, axis=2)
         y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads,
-                              background=self.background)
+                              background=self.background, exposure=self.exposure)
         return normalise.luminance(y.astype(np.float32))
 
 

@@ -174,10 +174,6 @@ COLOUR = {
 }
 
 
-# How the engine brings relit back to scene-linear (addon.pipeline.relit_times_s): by k alone.
-RELIT_SCALE = "k"
-
-
 def io_spec(classes: int) -> tuple[list, list]:
     inputs = [{"name": contract.INPUT_IMAGE, "shape": ["N", 3, "H", "W"], "dtype": "float32"},
               {"name": contract.INPUT_LIGHT, "shape": ["N", 3, 16, 16], "dtype": "float32"}]
@@ -196,7 +192,8 @@ def make_card(name: str, preset: str, onnx_path, net: network.RelightNet, traini
         "contract": contract.CONTRACT_VERSION, "name": name, "preset": preset,
         "onnx": pathlib.Path(onnx_path).name, "sha256": engine.file_sha256(onnx_path),
         "inputs": inputs, "outputs": outputs, "stride": net.cfg.stride,
-        "working_size": int(working_size), "colour": COLOUR, "relit_scale": RELIT_SCALE,
+        "working_size": int(working_size), "colour": COLOUR,
+        "relit_scale": contract.RELIT_SCALE,
         "classes": list(contract.PARSING_CLASSES[:net.cfg.classes]),
         "training": training, "metrics": metrics, "cost": cost,
         "architecture": {"config": net.cfg.to_dict(), "parameters": network.parameter_count(net),
