@@ -25,7 +25,8 @@ PROVIDER_PREFERENCE = ("CUDAExecutionProvider", "CoreMLExecutionProvider",
 
 @dataclass(frozen=True)
 class ModelCard:
-    """The parts of a model card (models/<name>.json) the engine relies on; ``data`` holds it all."""
+    """A checked model card (models/<name>.json, see load_card): what the engine relies on, and
+    the measured figures the panel and the batch script show; ``data`` holds it all."""
     card_path: pathlib.Path
     onnx_path: pathlib.Path
     name: str
@@ -40,6 +41,50 @@ class ModelCard:
     @property
     def foreground_channel(self) -> int:
         return self.classes.index(contract.FOREGROUND_CLASS)
+
+    @property
+    def timing(self) -> tuple[float | None, str]:
+        """(ms per frame, what the time refers to, e.g. "512 px, CPU"): bench/frontier.py's
+        figure (the whole per-frame path) where the card has one, else export's CPU time of the
+        network at the size nearest the working size; (None, "") when the card has neither."""
+        front = self.data.get("frontier")
+        if front:
+            provider = str(front.get("provider", "CPU")).replace("ExecutionProvider", "").upper()
+            return float(front["ms_per_frame"]), f"{front['working_size']} px, {provider}"
+        sizes = self.data.get("cost", {}).get("cpu", {}).get("per_size")
+        if not sizes:
+            return None, ""
+        size = min(sizes, key=lambda k: abs(int(k) - self.working_size))
+        return float(sizes[size]["ms"]), f"{size} px, CPU"
+
+    @property
+    def ms_per_frame(self) -> float | None:
+        return self.timing[0]
+
+    @property
+    def held_out_error(self) -> tuple[float | None, str]:
+        """(held-out error, its name): bench/frontier.py's RMSE where the card has one; else the
+        card's own RMSE on held-out identities, for an intrinsic model once its level is set (it
+        keeps the footage's exposure, so that is its comparable figure); (None, "") if neither."""
+        front = self.data.get("frontier")
+        if front:
+            return float(front["rmse"]), "RMSE"
+        model = self.data.get("metrics", {}).get("model", {})
+        if self.contract == contract.INTRINSIC_CONTRACT and "rmse_level_fit" in model:
+            return float(model["rmse_level_fit"]), "RMSE at the right level"
+        if "rmse" in model:
+            return float(model["rmse"]), "RMSE"
+        return None, ""
+
+    @property
+    def summary(self) -> str:
+        """Time per frame and held-out error, as the panel and the batch script's --help show."""
+        ms, timed_at = self.timing
+        error, error_name = self.held_out_error
+        t = f"{ms:.0f} ms/frame ({timed_at})" if ms is not None else "time not measured"
+        e = (f"held-out {error_name} {error:.3g}" if error is not None
+             else "error not measured")
+        return f"{t}, {e}"
 
 
 MAX_CARD_NESTING = 32  # real cards nest 4-5 levels

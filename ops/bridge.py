@@ -9,7 +9,7 @@ import pathlib
 
 import bpy
 
-from ..addon.contract import INTRINSIC_CONTRACT
+from ..addon import engine
 from ..addon.errors import InputError, ModelError, OutputError
 
 # The extension's top-level package: "bl_ext.<repo>.portrait_relight" when installed.
@@ -20,27 +20,6 @@ LINEAR = "Linear Rec.709"  # the colour space of the relit EXR frames (scene lin
 
 
 @dataclasses.dataclass(frozen=True)
-class ModelCard:
-    """What the panel and the operator need from a model card (models/<name>.json)."""
-    name: str
-    preset: str
-    onnx_path: pathlib.Path
-    ms_per_frame: float | None     # network time per frame, as measured for the card
-    timed_at: str                  # what the time refers to, e.g. "512 px, CPU"
-    error: float | None            # held-out error
-    error_name: str
-    contract: str = ""             # the ONNX contract (addon/contract.py)
-
-    @property
-    def summary(self) -> str:
-        t = (f"{self.ms_per_frame:.0f} ms/frame ({self.timed_at})"
-             if self.ms_per_frame is not None else "time not measured")
-        e = (f"held-out {self.error_name} {self.error:.3g}" if self.error is not None
-             else "error not measured")
-        return f"{t}, {e}"
-
-
-@dataclasses.dataclass(frozen=True)
 class Job:
     """One relight run, gathered from the scene: everything the pipeline call needs."""
     strip_name: str
@@ -48,7 +27,7 @@ class Job:
     scene_frames: tuple          # scene frames to relight now (whole strip, or one farm chunk)
     clip_frames: tuple           # the same frames as 0-based indices into the clip
     out_dir: pathlib.Path
-    model: ModelCard
+    model: engine.ModelCard
     options: object              # addon.pipeline.RelightOptions
     light_args: dict             # keyword arguments for ops.scene_light.light_schedule
     channel: int                 # the source strip's channel; results go above it
@@ -68,107 +47,24 @@ def models_dir(context, override: str = "") -> pathlib.Path:
     return pathlib.Path(bpy.path.abspath(chosen)) if chosen else BUNDLED_MODELS
 
 
-def _first_number(tree, words):
-    """The first numeric leaf under a key containing one of ``words`` (cards vary in nesting)."""
-    if isinstance(tree, dict):
-        for key, value in tree.items():
-            if any(w in str(key).lower() for w in words):
-                found = _leaf_number(value)
-                if found is not None:
-                    return str(key), found
-        for value in tree.values():
-            hit = _first_number(value, words)
-            if hit is not None:
-                return hit
-    return None
-
-
-def _leaf_number(value):
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    if isinstance(value, dict):
-        for v in value.values():
-            n = _leaf_number(v)
-            if n is not None:
-                return n
-    return None
-
-
-def _frontier(data: dict) -> dict:
-    """The card's figures from bench/frontier.py (whole per-frame path, held-out test set)."""
-    front = data.get("frontier")
-    return front if isinstance(front, dict) else {}
-
-
-def card_time(data: dict, working_size: int) -> tuple[float | None, str]:
-    """(ms per frame, what it refers to): bench/frontier.py's figure where the card has one,
-    else the card's CPU time at its working size (or the nearest size measured); any other
-    time-like number when the card is laid out otherwise."""
-    front = _frontier(data)
-    if _leaf_number(front.get("ms_per_frame")) is not None:
-        provider = str(front.get("provider", "CPU")).replace("ExecutionProvider", "").upper()
-        return float(front["ms_per_frame"]), f"{front.get('working_size')} px, {provider}"
-    for provider, cost in (data.get("cost") or {}).items():
-        sizes = cost.get("per_size") if isinstance(cost, dict) else None
-        if sizes:
-            size = min(sizes, key=lambda k: abs(int(k) - working_size) if k.isdigit() else 1e9)
-            ms = _leaf_number(sizes[size].get("ms")) if isinstance(sizes[size], dict) else None
-            if ms is not None:
-                return ms, f"{size} px, {provider.upper()}"
-    hit = _first_number(data.get("cost") or {}, ("ms", "time", "latency"))
-    return (hit[1], hit[0]) if hit else (None, "")
-
-
-def card_error(data: dict) -> tuple[float | None, str]:
-    """(held-out error, its name): bench/frontier.py's RMSE where the card has one, else the
-    model's RMSE where the card has the usual layout."""
-    if _leaf_number(_frontier(data).get("rmse")) is not None:
-        return float(data["frontier"]["rmse"]), "RMSE"
-    metrics = data.get("metrics") or {}
-    level = _leaf_number((metrics.get("model") or {}).get("rmse_level_fit")
-                         if isinstance(metrics.get("model"), dict) else None)
-    if data.get("contract") == INTRINSIC_CONTRACT and level is not None:
-        # It keeps the footage's exposure: the error once the level is set is its comparable one.
-        return level, "RMSE at the right level"
-    model = metrics.get("model") if isinstance(metrics.get("model"), dict) else metrics
-    for key in ("rmse", "mae", "l1", "lpips"):
-        value = _leaf_number(model.get(key))
-        if value is not None:
-            return value, key.upper()
-    hit = _first_number(metrics, ("error", "rmse", "mae", "lpips", "l1"))
-    return (hit[1], hit[0]) if hit else (None, "error")
-
-
-def read_card(onnx_path: pathlib.Path) -> ModelCard:
-    """The panel's view of the card beside ``onnx_path``; ModelError if the card is unusable."""
-    from ..addon import engine  # light: onnxruntime itself is imported only to run a model
-
-    card = engine.load_card(onnx_path)
-    ms, timed_at = card_time(card.data, card.working_size)
-    error, error_name = card_error(card.data)
-    return ModelCard(name=card.name, preset=card.preset, onnx_path=card.onnx_path,
-                     ms_per_frame=ms, timed_at=timed_at, error=error, error_name=error_name,
-                     contract=card.contract)
-
-
-def scan_models(folder: pathlib.Path) -> tuple[list[ModelCard], list[str]]:
+def scan_models(folder: pathlib.Path) -> tuple[list[engine.ModelCard], list[str]]:
     """(usable models sorted by expected time, a message for each unusable one) in ``folder``."""
     folder = pathlib.Path(folder)
     cards, problems = [], []
     for path in sorted(folder.glob("*.onnx")) if folder.is_dir() else ():
         try:
-            cards.append(read_card(path))
+            cards.append(engine.load_card(path))
         except ModelError as err:
             problems.append(str(err))
     cards.sort(key=lambda c: (c.ms_per_frame is None, c.ms_per_frame or 0.0, c.preset))
     return cards, problems
 
 
-def model_cards(folder: pathlib.Path) -> list[ModelCard]:
+def model_cards(folder: pathlib.Path) -> list[engine.ModelCard]:
     return scan_models(folder)[0]
 
 
-def choose_model(context, preset: str, override_dir: str = "") -> ModelCard:
+def choose_model(context, preset: str, override_dir: str = "") -> engine.ModelCard:
     folder = models_dir(context, override_dir)
     cards, problems = scan_models(folder)
     if not cards:

@@ -37,8 +37,9 @@ def test_panel_shows_the_frontier_figures_of_the_card(run):
     load_extension()
     from portrait_relight.ops import bridge
 
-    card = bridge.read_card(tmp / "models" / "toy.onnx")
+    (card,) = bridge.model_cards(tmp / "models")
     front = json.loads((tmp / "models" / "toy.json").read_text())["frontier"]
-    assert card.ms_per_frame == front["ms_per_frame"] and card.error == front["rmse"]
+    assert card.ms_per_frame == front["ms_per_frame"]
+    assert card.held_out_error == (front["rmse"], "RMSE")
     assert card.summary.startswith(f"{front['ms_per_frame']:.0f} ms/frame (64 px, CPU), "
                                    "held-out RMSE")

@@ -287,3 +287,34 @@ def test_a_deeply_nested_card_is_a_model_error_not_a_crash(tmp_path):
     engine.card_path_for(model).write_text(json.dumps(card))
     with pytest.raises(ModelError, match="levels deep"):
         engine.load_card(model)
+
+
+def test_a_cards_figures_are_read_where_export_and_the_frontier_put_them(tmp_path):
+    """Time per frame: bench/frontier.py's whole-path figure, else export's CPU time at the size
+    nearest the working size; error: the frontier's RMSE, else the card's held-out RMSE (an
+    intrinsic model's once its level is set)."""
+    model = write_toy_model(tmp_path)
+    card = engine.load_card(model)
+    assert card.timing == (None, "") and card.held_out_error == (None, "")
+    assert card.summary == "time not measured, error not measured"
+    _rewrite_card(model, working_size=384,
+                  cost={"cpu": {"per_size": {"256": {"ms": 9.5}, "512": {"ms": 38.25}}}},
+                  metrics={"model": {"rmse": 0.0412, "rmse_level_fit": 0.03}})
+    card = engine.load_card(model)
+    assert card.timing == (9.5, "256 px, CPU") and card.ms_per_frame == 9.5
+    assert card.held_out_error == (0.0412, "RMSE")
+    assert card.summary == "10 ms/frame (256 px, CPU), held-out RMSE 0.0412"
+    _rewrite_card(model, frontier={"ms_per_frame": 12.25, "rmse": 0.05, "working_size": 128,
+                                   "provider": "CPUExecutionProvider"})
+    card = engine.load_card(model)
+    assert card.timing == (12.25, "128 px, CPU") and card.held_out_error == (0.05, "RMSE")
+
+
+def test_an_intrinsic_cards_error_is_the_one_at_the_right_level():
+    import pathlib
+
+    card = engine.load_card(pathlib.Path(engine.__file__).parents[1] / "models" /
+                            "relight-portrait.onnx")
+    error, name = card.held_out_error
+    assert name == "RMSE at the right level"
+    assert error == card.data["metrics"]["model"]["rmse_level_fit"]
