@@ -9,8 +9,10 @@ input:  out = A_up * input_full + B_up.
 * Edges stay sharp: the model follows the guide, so no halo where the light changes at an edge.
 * Dark pixels cannot blow up: where the input is flat or dark its variance is small, so A shrinks
   toward 0 (the ridge eps) and B carries the relit light; A is also clamped to [0, MAX_GAIN].
-tests/core/test_detail.py measures the error against a synthetic ground truth and against the
-alternatives (plain upsampling, a bounded shading ratio).
+The stages run as small onnxruntime graphs (FullRes), channels first. tests/reference.py holds
+the same method in numpy; tests/core/test_detail.py measures it against a synthetic ground truth
+and against the alternatives (plain upsampling, a bounded shading ratio), and
+tests/core/test_onnx_graph.py checks the graphs against it.
 """
 
 from __future__ import annotations
@@ -98,51 +100,7 @@ def box_mean(x: np.ndarray, r: int) -> np.ndarray:
     return out
 
 
-def guided_coefficients(guide: np.ndarray, target: np.ndarray, radius: int = RADIUS,
-                        eps: float = EPS, floor: float = FLOOR) -> tuple[np.ndarray, np.ndarray]:
-    """Per-channel local linear fit target ~ A * guide + B on (h, w, 3) arrays; returns (A, B)
-    already box-averaged (the guided filter's second pass), as float32.
-
-    The ridge pulls A toward the local shading ratio A0 = (mean target + floor) /
-    (mean guide + floor) rather than toward 0, so texture too fine to survive at the working
-    resolution (flat there, so nothing to fit) is still carried, scaled by the light's change."""
-    g = np.nan_to_num(np.asarray(guide, dtype=np.float32))
-    t = np.nan_to_num(np.asarray(target, dtype=np.float32))
-    mg, mt = box_mean(g, radius), box_mean(t, radius)
-    var = np.maximum(box_mean(g * g, radius) - mg * mg, 0.0)
-    cov = box_mean(g * t, radius) - mg * mt
-    a0 = np.clip((np.maximum(mt, 0.0) + floor) / (np.maximum(mg, 0.0) + floor), 0.0, MAX_GAIN)
-    a = np.clip((cov + np.float32(eps) * a0) / (var + np.float32(eps)), 0.0, MAX_GAIN)
-    b = mt - a * mg
-    return box_mean(a, radius), box_mean(b, radius)
-
-
-def transfer(input_full: np.ndarray, input_low: np.ndarray, relit_low: np.ndarray,
-             radius: int = RADIUS, eps: float = EPS, floor: float = FLOOR) -> np.ndarray:
-    """Full-resolution relit image from the working-resolution result (see module doc)."""
-    h, w = input_full.shape[:2]
-    if input_low.shape[:2] == (h, w):
-        return np.asarray(relit_low, dtype=np.float32)
-    a, b = guided_coefficients(input_low, relit_low, radius, eps, floor)
-    a_up, b_up = np.split(resize(np.concatenate([a, b], axis=2), h, w), 2, axis=2)
-    return a_up * np.asarray(input_full, dtype=np.float32) + b_up
-
-
-def upsample_only(relit_low: np.ndarray, height: int, width: int) -> np.ndarray:
-    """The no-detail option: the working-resolution result, bilinearly enlarged."""
-    return resize(relit_low, height, width)
-
-
-def ratio_transfer(input_full: np.ndarray, input_low: np.ndarray, relit_low: np.ndarray,
-                   floor: float = 0.02, max_ratio: float = MAX_GAIN) -> np.ndarray:
-    """The simpler alternative measured in the tests: a bounded shading ratio
-    (relit + floor) / (input + floor), upsampled and multiplied into the input."""
-    h, w = input_full.shape[:2]
-    r = np.clip((relit_low + floor) / (np.maximum(input_low, 0.0) + floor), 0.0, max_ratio)
-    return resize(r, h, w) * input_full
-
-
-# ---- the same stages as onnxruntime graphs (the pipeline's fast path) ------------------------
+# ---- the stages as onnxruntime graphs --------------------------------------------------------
 #
 # All graphs work channels-first (1, C, H, W): the layout the network takes, the one onnxruntime's
 # resize kernels are fastest in (NHWC with C = 3 measured 1.5-2x slower), and the one the EXR
@@ -327,7 +285,12 @@ def _upsample_blocks_graph() -> bytes:
 
 
 def _guided_graph(radius: int = RADIUS, eps: float = EPS, floor: float = FLOOR) -> bytes:
-    """guided_coefficients as one graph on (1, 3, h, w), times ``gain``."""
+    """The guided fit on (1, 3, h, w): per channel, target ~ A * guide + B over box windows of
+    ``radius``, the ridge ``eps`` pulling A toward the local shading ratio
+    A0 = (mean target + floor) / (mean guide + floor) rather than toward 0 (texture too fine to
+    survive at the working resolution, flat there, is still carried, scaled by the light's
+    change), A clamped to [0, MAX_GAIN], A and B box-averaged again (the guided filter's second
+    pass), both times ``gain``."""
     from . import onnx_graph as g
     k = 2 * radius + 1
     nodes = [g.node("Mul", ["G", "G"], ["GG"]), g.node("Mul", ["G", "T"], ["GT"])]
@@ -382,21 +345,11 @@ def _finite(x: np.ndarray, big: float) -> np.ndarray:
     return np.nan_to_num(x, nan=0.0, posinf=np.float32(big), neginf=-np.float32(big))
 
 
-def _chw(x: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(np.moveaxis(np.asarray(x, np.float32), -1, 0))
-
-
-def _hwc(x: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(np.moveaxis(x, 0, -1))
-
-
 class FullRes:
     """The full-resolution stages as small onnxruntime graphs, built once per run.
 
-    The ``*_planar`` methods take and return channels-first (C, H, W) arrays (the pipeline's
-    path); the others are the same computation on channels-last arrays, for callers that hold
-    (H, W, C) images. Holds only its sessions (no per-call state), so the decode and write
-    threads can share it.
+    Every method takes and returns channels-first (C, H, W) arrays. Holds only its sessions (no
+    per-call state), so the decode and write threads can share it.
     """
 
     def __init__(self, threads: int | None = 1):
@@ -414,8 +367,6 @@ class FullRes:
         self._upsample = ort.InferenceSession(_upsample_graph(), so, providers=cpu)
         self._upsample_blocks = ort.InferenceSession(_upsample_blocks_graph(), so,
                                                      providers=cpu)
-
-    # -- channels-first (the pipeline) --
 
     def shrink_planar(self, x: np.ndarray, height: int, width: int) -> np.ndarray:
         """(C, H, W) float32 -> (C, height, width): exact area averaging where both axes shrink
@@ -437,7 +388,8 @@ class FullRes:
         return self._area.run(None, feeds)[0][0]
 
     def coefficients_planar(self, guide: np.ndarray, target: np.ndarray, gain: float):
-        """guided_coefficients of (3, h, w) arrays times ``gain``, as (3, h, w) (a, b); finite
+        """The guided fit (_guided_graph) of (3, h, w) arrays times ``gain``: (a, b), each
+        (3, h, w); finite
         (non-finite inputs are 0, overflow becomes a huge finite value that the half clamp then
         catches). Low resolution, so the clean-up passes here cost little."""
         top = np.finfo(np.float32).max  # as np.nan_to_num: Inf becomes the largest float
@@ -447,13 +399,7 @@ class FullRes:
         return _finite(a[0], 1e30), _finite(b[0], 1e30)
 
     def finish_planar(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
-                      x_max: float) -> tuple[np.ndarray, bool]:
-        """(half (3, H, W) of up(a) * x_full + up(b) within [0, 65504], whether it may have
-        been clamped); see finish_planar_lowest."""
-        return self.finish_planar_lowest(x_full, a, b, x_max)[:2]
-
-    def finish_planar_lowest(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
-                             x_max: float) -> tuple[np.ndarray, bool, float]:
+                      x_max: float) -> tuple[np.ndarray, bool, float]:
         """(half (3, H, W) of up(a) * x_full + up(b) within [0, 65504], whether it may have
         been clamped, the smallest value before clamping (0.0 when nothing could be negative)).
         ``a``, ``b`` finite; ``x_max`` bounds x_full from above (x_full >= 0): with bilinear
@@ -485,24 +431,3 @@ class FullRes:
             feeds["sizes"] = np.array([1, low.shape[0], height, width], np.int64)
             return self._upsample.run(None, feeds)[0][0]
         return self._upsample_blocks.run(None, {**feeds, **blocks})[0][0]
-
-    # -- channels-last: the same graphs, transposed at the boundary --
-
-    def shrink(self, x: np.ndarray, height: int, width: int) -> np.ndarray:
-        """(H, W, C) float32 -> (height, width, C), antialiased."""
-        if np.shape(x)[:2] == (height, width):
-            return np.ascontiguousarray(x, dtype=np.float32)
-        return _hwc(self.shrink_planar(_chw(x), height, width))
-
-    def coefficients(self, guide: np.ndarray, target: np.ndarray, gain: float):
-        a, b = self.coefficients_planar(_chw(guide), _chw(target), gain)
-        return _hwc(a), _hwc(b)
-
-    def finish(self, x_full: np.ndarray, a: np.ndarray, b: np.ndarray,
-               x_max: float) -> tuple[np.ndarray, bool]:
-        y, clamp = self.finish_planar(_chw(x_full), _chw(a), _chw(b), x_max)
-        return _hwc(y), clamp
-
-    def upsample_half(self, low: np.ndarray, height: int, width: int, lo: float,
-                      hi: float) -> np.ndarray:
-        return _hwc(self.upsample_half_planar(_chw(low), height, width, lo, hi))

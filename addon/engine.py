@@ -311,7 +311,7 @@ def pad_to_stride(image: np.ndarray, stride: int) -> tuple[np.ndarray, int, int]
 
 @dataclass(frozen=True)
 class EngineResult:
-    relit: np.ndarray         # (H, W, 3) float32 (run_planar: (3, H, W)), image's units
+    relit: np.ndarray         # (3, H, W) float32, the image's units
     source_light: np.ndarray  # (16, 16, 3) float32
     parsing: np.ndarray       # (K, H, W) float32 in [0, 1], channel order = card.classes
 
@@ -324,7 +324,8 @@ class Prepared:
 
 
 class RelightSession:
-    """A loaded model: ``run(image, light)`` or the three stages separately."""
+    """A loaded model: ``run_planar(image, light)``, or its three stages separately
+    (preprocess_planar, process, postprocess_planar); images are channels first (3, H, W)."""
 
     def __init__(self, session, card: ModelCard, providers: list[str]):
         self.session = session
@@ -343,17 +344,10 @@ class RelightSession:
                 f"{self.card.contract}: it needs inputs {sorted(need_in)} and outputs "
                 f"{sorted(need_out)}, it has {sorted(ins)} and {sorted(outs)}. Reinstall it.")
 
-    def preprocess(self, image: np.ndarray, light: np.ndarray) -> Prepared:
-        """(H, W, 3) normalised linear image and a (16, 16, 3) normalised light -> feeds, with
-        the image reflect-padded at the bottom and right to a multiple of the model's stride."""
-        img = np.asarray(image, dtype=np.float32)
-        if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
-            raise ValueError(f"image must be (H, W, 3), got {img.shape}")
-        return self.preprocess_planar(img.transpose(2, 0, 1), light)
-
     def preprocess_planar(self, image: np.ndarray, light: np.ndarray) -> Prepared:
-        """As ``preprocess`` for a channels-first (3, H, W) image (no copy when no padding is
-        needed and the image is contiguous float32)."""
+        """(3, H, W) normalised linear image and a (16, 16, 3) normalised light -> feeds, with
+        the image reflect-padded at the bottom and right to a multiple of the model's stride (no
+        copy when no padding is needed and the image is contiguous float32)."""
         img, h, w = pad_to_stride(image, self.card.stride)
         chw = np.ascontiguousarray(img[None])
         lt = np.ascontiguousarray(lightvec.validate(light).transpose(2, 0, 1)[None])
@@ -383,18 +377,7 @@ class RelightSession:
             source_light=np.ascontiguousarray(src[0].transpose(1, 2, 0), dtype=np.float32),
             parsing=np.ascontiguousarray(par[0, :, :h, :w], dtype=np.float32))
 
-    def postprocess(self, outputs: dict, prepared: Prepared) -> EngineResult:
-        """Crop the padding away and go back to channels-last; check every shape."""
-        res = self.postprocess_planar(outputs, prepared)
-        return EngineResult(np.ascontiguousarray(res.relit.transpose(1, 2, 0)),
-                            res.source_light, res.parsing)
-
-    def run(self, image: np.ndarray, light: np.ndarray) -> EngineResult:
-        prepared = self.preprocess(image, light)
-        return self.postprocess(self.process(prepared), prepared)
-
     def run_planar(self, image: np.ndarray, light: np.ndarray) -> EngineResult:
-        """``run`` for a channels-first (3, H, W) image; ``relit`` comes back (3, H, W)."""
         prepared = self.preprocess_planar(image, light)
         return self.postprocess_planar(self.process(prepared), prepared)
 

@@ -6,8 +6,8 @@ batch script and render-farm chunks (``frames``). Per frame:
     decode -> linear (colour.py) -> / s -> area-resize to the working size -> network (light / k)
     -> full-resolution transfer (detail.py) -> * k -> [0, 65504], half -> EXR
 
-Frames stay channels-first (3, H, W) from the decoder to the EXR file (see detail.py); the
-channels-last stage functions below serve callers that hold (H, W, 3) images (benchmarks).
+Frames stay channels-first (3, H, W) from the decoder to the EXR file (see detail.py), and so do
+the per-frame stage functions below (what relight_image and the benchmarks run too).
 
 ``s`` is one exposure scale per clip from fixed sample frames over the whole clip, so chunks and
 resumed runs agree bit for bit; ``k`` is the target light's mean radiance (k == 0: black frame,
@@ -430,20 +430,14 @@ def coefficients_planar(x_low: np.ndarray, relit_low, k: float, plan: Plan,
 
 
 def finish_planar(x_full: np.ndarray, ab, x_max: float,
-                  fullres: detail.FullRes) -> tuple[np.ndarray, int]:
-    """The full-resolution half-float frame (3, H, W), within [0, 65504], and how many values
-    were clamped to the half maximum."""
-    return finish_frame(x_full, ab, x_max, fullres)[:2]
-
-
-def finish_frame(x_full: np.ndarray, ab, x_max: float,
-                 fullres: detail.FullRes) -> tuple[np.ndarray, int, float]:
-    """finish_planar and the most negative value that was raised to 0 (0.0 if none was):
+                  fullres: detail.FullRes) -> tuple[np.ndarray, int, float]:
+    """(the full-resolution half-float frame (3, H, W), within [0, 65504]; how many values were
+    clamped to the half maximum; the most negative value that was raised to 0, 0.0 if none was):
     radiance is never negative, though the network's output and the detail transfer's
     extrapolation can be (a little in normal use, hugely when the light overflows it)."""
     if ab is None:
         return np.zeros(x_full.shape, np.float16), 0, 0.0
-    y, may_clamp, lowest = fullres.finish_planar_lowest(x_full, *ab, x_max)
+    y, may_clamp, lowest = fullres.finish_planar(x_full, *ab, x_max)
     return y, _count_clamped(y) if may_clamp else 0, lowest
 
 
@@ -499,41 +493,6 @@ def matte_full(fg, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
     if fg is None:
         return np.zeros((h, w), np.float16)
     return fullres.upsample_half_planar(np.asarray(fg, np.float32)[None], h, w, 0.0, 1.0)[0]
-
-
-# The same stages on channels-last (H, W, 3) images, for callers that hold those (the accuracy
-# benchmark): the same graphs, so the same numbers as the pipeline.
-
-def shrink(x_full: np.ndarray, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
-    return fullres.shrink(x_full, *plan.working)
-
-
-def infer(session: engine.RelightSession, x_low: np.ndarray, light: np.ndarray):
-    """(relit_low (h, w, 3), source_light, foreground, k); k == 0: nothing run."""
-    relit, source, fg, k = infer_planar(session, np.moveaxis(x_low, -1, 0), light)
-    return (None if relit is None else np.ascontiguousarray(relit.transpose(1, 2, 0)),
-            source, fg, k)
-
-
-def coefficients(x_low: np.ndarray, relit_low, k: float, plan: Plan,
-                 fullres: detail.FullRes):
-    """(a, b), each (h, w, 3); None for a black frame."""
-    if relit_low is None:
-        return None
-    a, b = coefficients_planar(np.moveaxis(x_low, -1, 0), np.moveaxis(relit_low, -1, 0), k,
-                               plan, fullres)
-    return np.ascontiguousarray(a.transpose(1, 2, 0)), np.ascontiguousarray(b.transpose(1, 2, 0))
-
-
-def finish(x_full: np.ndarray, ab, x_max: float,
-           fullres: detail.FullRes) -> tuple[np.ndarray, int]:
-    """The half-float frame (H, W, 3), within [0, 65504], and how many values were clamped to
-    the half maximum."""
-    h, w = x_full.shape[:2]
-    if ab is None:
-        return np.zeros((h, w, 3), np.float16), 0
-    y, may_clamp = fullres.finish(x_full, *ab, x_max)
-    return y, _count_clamped(y) if may_clamp else 0
 
 
 def _save_npy(path: str, arr: np.ndarray) -> None:
@@ -611,7 +570,8 @@ def exposure_gain(clip: ClipSpec, lights: np.ndarray, plan: Plan, session, fullr
                   boxes, mode: str) -> float:
     """The clip's exposure gain under ``mode`` (EXPOSURE_MODES), from GAIN_SAMPLES frames evenly
     spaced over the whole clip (never the chunk, so farm chunks agree): "keep", the subject's
-    luminance summed over those frames is the footage's; "physical", absolute units (the
+    luminance summed over those frames is the footage's (the subject's for intrinsic presets,
+    the frame's for the end-to-end ones); "physical", absolute units (the
     end-to-end networks' own level; for intrinsic presets skin of albedo
     intrinsic.SKIN_ALBEDO under the target's irradiance, portrait.clip_gain)."""
     if mode == "physical" and boxes is None:
@@ -634,28 +594,27 @@ def exposure_gain(clip: ClipSpec, lights: np.ndarray, plan: Plan, session, fullr
         if ab is None:
             continue
         ab = with_background(ab, fg, light, source * np.float32(plan.scale), plan)
-        stats.append(subject_luminance(x_low, ab, fg, plan.scale))
+        stats.append(frame_luminance(x_low, ab, plan.scale))
     return portrait.clip_gain(stats, mode, plan.scale)
 
 
-def subject_luminance(x_low: np.ndarray, ab, fg: np.ndarray, scale: float):
-    """The subject's luminance (weighted by the matte ``fg``) summed in the footage and in the
-    relit frame out = a x_low + b, both in the footage's units (x_low is the footage / scale),
-    as a portrait.FrameResult for clip_gain."""
+def frame_luminance(x_low: np.ndarray, ab, scale: float):
+    """The frame's luminance summed in the footage and in the relit frame out = a x_low + b,
+    both in the footage's units (x_low is the footage / scale), as a portrait.FrameResult for
+    clip_gain. The whole frame, not the network's matte: the end-to-end networks relight the
+    whole picture, and a gain that stopped at an uncertain matte would draw its outline."""
     lum = np.asarray(colour.REC709_LUMA, np.float32)
     x_lum = np.tensordot(lum, x_low, axes=(0, 0)) * np.float32(scale)
     out_lum = np.tensordot(lum, ab[0] * x_low + ab[1], axes=(0, 0))
-    return portrait.FrameResult(None, None, None, True, None, float((x_lum * fg).sum()),
-                                float((out_lum * fg).sum()))
+    return portrait.FrameResult(None, None, None, True, None, float(x_lum.sum()),
+                                float(out_lum.sum()))
 
 
-def subject_gain(ab, fg: np.ndarray, gain: float):
-    """(a, b) with the subject (the foreground matte ``fg``) scaled by ``gain``; what stands
-    behind it is left as the background choice made it."""
+def scaled(ab, gain: float):
+    """(a, b) times the clip's exposure gain."""
     if ab is None or gain == 1.0:
         return ab
-    w = 1.0 + np.float32(gain - 1.0) * np.clip(fg, 0.0, 1.0)[None]
-    return ab[0] * w, ab[1] * w
+    return ab[0] * np.float32(gain), ab[1] * np.float32(gain)
 
 
 # ---- the run ------------------------------------------------------------------------------
@@ -805,7 +764,7 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 if item is _DONE:
                     return
                 i, x_full, x_max, ab, fg, source = item
-                relit, clamped, lowest = finish_frame(x_full, ab, x_max, fullres)
+                relit, clamped, lowest = finish_planar(x_full, ab, x_max, fullres)
                 matte = matte_full(fg, plan, fullres) if plan.write_matte else None
                 write_frame(out_dir, i, relit, matte, source, plan)
                 counts["clamped"] += clamped
@@ -850,7 +809,7 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 relit_low, source, fg, k = infer_planar(session, x_low, light)
                 ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
                 source = source * np.float32(plan.scale)  # the source light in footage units
-                ab = subject_gain(with_background(ab, fg, light, source, plan), fg, gain)
+                ab = scaled(with_background(ab, fg, light, source, plan), gain)
             _put(results, (i, x_full, x_max, ab, fg, source), stop, alive=writer)
             _raise_if_failed(writer)
     finally:

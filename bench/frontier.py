@@ -181,7 +181,7 @@ def _rendered(resolution: int, n: int, seed: int, cache: pathlib.Path | None) ->
 
 @dataclass
 class Frame:
-    x_full: np.ndarray    # (H, W, 3) exposure-normalised linear input
+    x_full: np.ndarray    # (3, H, W) exposure-normalised linear input
     x_max: float
     scale: float          # s
     light: np.ndarray     # the target light L^k (absolute)
@@ -194,7 +194,7 @@ def frames_of(samples) -> list[Frame]:
     for s in samples:
         hwc = [np.moveaxis(s[k], 0, -1) for k in ("img_t_i", "img_t1_j")]
         scale = normalise.exposure_scale(hwc)  # one scale for the two frames, as in training
-        x = np.ascontiguousarray(hwc[0] / np.float32(scale), dtype=np.float32)
+        x = np.ascontiguousarray(s["img_t_i"] / np.float32(scale), dtype=np.float32)
         out.append(Frame(x, float(x.max()), scale, s["light_k"], s["gt_t_k"],
                          s["mask_t"][0] > 0.5))
     return out
@@ -218,14 +218,14 @@ def open_session(card: engine.ModelCard, threads: int, provider: str):
 
 def relight_frame(session, f: Frame, working: int, detail_on: bool,
                   fullres: detail.FullRes) -> np.ndarray:
-    """The pipeline's per-frame stages (addon/pipeline.py) -> half (H, W, 3) absolute radiance."""
-    h, w = f.x_full.shape[:2]
+    """The pipeline's per-frame stages (addon/pipeline.py) -> half (3, H, W) absolute radiance."""
+    h, w = f.x_full.shape[1:]
     plan = pipeline.Plan(LINEAR, f.scale, (w, h), detail.working_shape(h, w, working),
                          detail_on, False, "none")
-    x_low = pipeline.shrink(f.x_full, plan, fullres)
-    relit_low, _, _, k = pipeline.infer(session, x_low, f.light)
-    ab = pipeline.coefficients(x_low, relit_low, k, plan, fullres)
-    return pipeline.finish(f.x_full, ab, f.x_max, fullres)[0]
+    x_low = pipeline.shrink_planar(f.x_full, plan, fullres)
+    relit_low, _, _, k = pipeline.infer_planar(session, x_low, f.light)
+    ab = pipeline.coefficients_planar(x_low, relit_low, k, plan, fullres)
+    return pipeline.finish_planar(f.x_full, ab, f.x_max, fullres)[0]
 
 
 @dataclass
@@ -249,8 +249,8 @@ def accuracy_of(v: Variant, frames, fullres) -> dict:
     """Mean held-out RMSE / PSNR / SSIM on the portrait region (training/eval/evaluate.py)."""
     from training.eval import metrics
 
-    m = [metrics.image_metrics(np.moveaxis(v.run(f, fullres).astype(np.float32), -1, 0),
-                                f.gt, f.mask) for f in frames]
+    m = [metrics.image_metrics(v.run(f, fullres).astype(np.float32), f.gt, f.mask)
+         for f in frames]
     return {k: float(np.mean([x[k] for x in m])) for k in m[0]}
 
 
@@ -432,9 +432,9 @@ def quantised(session, frames, working: int, fullres, folder: pathlib.Path):
         return None, "no convolution to quantise in this model"
     feeds = []
     for f in frames[:8]:
-        h, w = f.x_full.shape[:2]
-        x_low = fullres.shrink(f.x_full, *detail.working_shape(h, w, working))
-        feeds.append(session.preprocess(x_low, normalise.normalise_light(f.light)[0]).feeds)
+        h, w = f.x_full.shape[1:]
+        x_low = fullres.shrink_planar(f.x_full, *detail.working_shape(h, w, working))
+        feeds.append(session.preprocess_planar(x_low, normalise.normalise_light(f.light)[0]).feeds)
     out = folder / f"{file_stem(card.name)}-int8.onnx"
     export.quantize_int8(card.onnx_path, out, feeds)
     return card_for(out, card.stride, card.working_size, f"{card.name}-int8", card.preset,
@@ -458,7 +458,7 @@ def network_group(args, frames, folder: pathlib.Path, log, skipped) -> tuple[lis
     """Every shipped model at every working size (detail on); for the first fp32 model: detail
     off, int8, fp16 and other providers; the trained width/depth points of --research; the
     untrained width/depth points that have no trained one. All timed together, interleaved."""
-    res = frames[0].x_full.shape[0]
+    res = frames[0].x_full.shape[1]
     fullres = detail.FullRes(threads=args.threads)
     cards = shipped_models(args.models, log=log)
     if not cards:

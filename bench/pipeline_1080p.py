@@ -83,7 +83,7 @@ def time_stages(clip: pipeline.ClipSpec, session, fullres, plan: pipeline.Plan, 
         f = time.perf_counter()
         ab = pipeline.coefficients_planar(x_low, relit_low, k, plan, fullres)
         ab = pipeline.with_background(ab, fg, light, source, plan)
-        relit, _ = pipeline.finish_planar(x_full, ab, x_max, fullres)
+        relit = pipeline.finish_planar(x_full, ab, x_max, fullres)[0]
         matte = pipeline.matte_full(fg, plan, fullres) if plan.write_matte else None
         g = time.perf_counter()
         pipeline.write_frame(out_dir, i, relit, matte, source, plan)

@@ -1,4 +1,5 @@
-"""Full-resolution transfer, measured against a synthetic ground truth.
+"""Full-resolution transfer (tests/reference.py: addon/detail.py's method in numpy; the shipped
+graphs equal it, tests/core/test_onnx_graph.py), measured against a synthetic ground truth.
 
 The scene: a textured albedo (pixel-level texture the working resolution cannot see) with a
 sharp-edged disc, lit by a smooth gradient; the target lighting is another gradient that also
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from addon import detail
+from tests import reference
 
 
 def scene(h=192, w=256, seed=0):
@@ -36,9 +38,9 @@ def test_transfer_beats_the_alternatives(factor, bound):
     inp, truth = scene()
     il, rl = low(inp, truth, factor)
     h, w = inp.shape[:2]
-    guided = rel_rmse(detail.transfer(inp, il, rl), truth)
-    plain = rel_rmse(detail.upsample_only(rl, h, w), truth)
-    ratio = rel_rmse(detail.ratio_transfer(inp, il, rl), truth)
+    guided = rel_rmse(reference.transfer(inp, il, rl), truth)
+    plain = rel_rmse(reference.upsample_only(rl, h, w), truth)
+    ratio = rel_rmse(reference.ratio_transfer(inp, il, rl), truth)
     assert guided < bound
     # measured: x2 1.8% (ratio 5.9%, plain 12.5%); x4 3.4% (ratio 6.8%, plain 15.2%)
     assert guided < 0.6 * ratio and guided < 0.25 * plain
@@ -53,7 +55,7 @@ def test_no_halo_at_a_lighting_edge():
     light_out = np.where(np.arange(w) < 61, 3.0, 0.5).astype(np.float32)
     truth = inp * light_out[None, :, None]
     il, rl = low(inp, truth, 4)
-    out = detail.transfer(inp, il, rl)
+    out = reference.transfer(inp, il, rl)
     assert out.min() >= truth.min() - 0.02 and out.max() <= truth.max() + 0.02
     far = np.r_[0:52, 70:w]  # away from the edge's own low-res pixel, the result is exact
     np.testing.assert_allclose(out[:, far], truth[:, far], rtol=0.02)
@@ -65,7 +67,7 @@ def test_dark_noisy_pixels_do_not_blow_up():
     inp = np.abs(rng.normal(0.0, 1e-4, (h, w, 3))).astype(np.float32)  # near-black, noisy
     truth = np.full((h, w, 3), 0.5, np.float32)  # a new light fills the shadow
     il, rl = low(inp, truth, 4)
-    out = detail.transfer(inp, il, rl)
+    out = reference.transfer(inp, il, rl)
     assert np.all(np.isfinite(out))
     assert abs(out.mean() - 0.5) < 0.01 and out.max() < 0.6 and out.min() > 0.4
 
@@ -74,17 +76,17 @@ def test_non_finite_low_res_values_do_not_spread():
     inp, truth = scene(64, 64)
     il, rl = low(inp, truth, 2)
     rl[3, 3] = np.nan
-    out = detail.transfer(inp, il, rl)
+    out = reference.transfer(inp, il, rl)
     assert np.all(np.isfinite(out))
 
 
 def test_same_resolution_is_identity_and_odd_sizes_work():
     inp, truth = scene(17, 9)
-    np.testing.assert_array_equal(detail.transfer(inp, inp, truth), truth)
+    np.testing.assert_array_equal(reference.transfer(inp, inp, truth), truth)
     il, rl = detail.resize(inp, 5, 3), detail.resize(truth, 5, 3)
-    assert detail.transfer(inp, il, rl).shape == (17, 9, 3)
+    assert reference.transfer(inp, il, rl).shape == (17, 9, 3)
     one = np.ones((1, 1, 3), np.float32)
-    assert detail.transfer(np.ones((3, 2, 3), np.float32), one, 2 * one).shape == (3, 2, 3)
+    assert reference.transfer(np.ones((3, 2, 3), np.float32), one, 2 * one).shape == (3, 2, 3)
 
 
 def test_area_resize_keeps_means_exact():

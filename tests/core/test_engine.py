@@ -30,14 +30,13 @@ def _rewrite_card(model, **changes):
 @pytest.mark.parametrize("h,w", [(1, 1), (7, 13), (30, 45), (64, 64), (3, 200)])
 def test_toy_runs_at_any_size_through_padding(session, h, w):
     rng = np.random.default_rng(h * 1000 + w)
-    img = rng.random((h, w, 3)).astype(np.float32)
+    img = rng.random((3, h, w)).astype(np.float32)
     light = rng.random(lightvec.SHAPE).astype(np.float32)
-    res = session.run(img, light)
-    assert res.relit.shape == (h, w, 3)
+    res = session.run_planar(img, light)
+    assert res.relit.shape == (3, h, w)
     assert res.parsing.shape == (len(TOY_CLASSES), h, w)
     assert res.source_light.shape == lightvec.SHAPE
-    ref = toy_reference(img.transpose(2, 0, 1), light).transpose(1, 2, 0)
-    np.testing.assert_allclose(res.relit, ref, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(res.relit, toy_reference(img, light), rtol=1e-5, atol=1e-7)
     assert np.all((res.parsing >= 0) & (res.parsing <= 1))
 
 
@@ -51,25 +50,25 @@ def test_the_toy_really_needs_its_stride(toy):
 
 
 def test_padding_is_reflective_and_cropped_back(session):
-    img = np.arange(5 * 6 * 3, dtype=np.float32).reshape(5, 6, 3)
-    prep = session.preprocess(img, lightvec.uniform(1.0))
+    img = np.arange(3 * 5 * 6, dtype=np.float32).reshape(3, 5, 6)
+    prep = session.preprocess_planar(img, lightvec.uniform(1.0))
     x = prep.feeds[contract.INPUT_IMAGE]
     assert x.shape == (1, 3, 8, 8) and (prep.height, prep.width) == (5, 6)
-    np.testing.assert_array_equal(x[0, :, 5, :6], img[3].T)  # row 5 mirrors row 3
-    np.testing.assert_array_equal(x[0, :, :5, 6], img[:, 4].T)
+    np.testing.assert_array_equal(x[0, :, 5, :6], img[:, 3])  # row 5 mirrors row 3
+    np.testing.assert_array_equal(x[0, :, :5, 6], img[:, :, 4])
 
 
 def test_twice_the_light_twice_the_output(session):
-    img = np.random.default_rng(1).random((16, 24, 3)).astype(np.float32)
+    img = np.random.default_rng(1).random((3, 16, 24)).astype(np.float32)
     light = lightvec.splat_direction([0.3, 0.2, 1.0], [1.0, 0.5, 0.2])
-    a = session.run(img, light).relit
-    b = session.run(img, 2 * light).relit
+    a = session.run_planar(img, light).relit
+    b = session.run_planar(img, 2 * light).relit
     np.testing.assert_allclose(b, 2 * a, rtol=1e-6)
 
 
 def test_session_keeps_no_per_call_state(session):
     before = dict(vars(session))
-    session.run(np.ones((9, 9, 3), np.float32), lightvec.uniform(1.0))
+    session.run_planar(np.ones((3, 9, 9), np.float32), lightvec.uniform(1.0))
     assert vars(session) == before
 
 
@@ -78,7 +77,7 @@ def test_bad_light_is_refused(session):
     bad = lightvec.uniform(1.0)
     bad[0, 0, 0] = np.nan
     with pytest.raises(LightingError):
-        session.run(np.ones((8, 8, 3), np.float32), bad)
+        session.run_planar(np.ones((3, 8, 8), np.float32), bad)
 
 
 def test_missing_model_and_missing_card(tmp_path, toy):
@@ -163,7 +162,7 @@ def test_card_with_wrong_class_count_is_caught_at_run(tmp_path):
     _rewrite_card(model, classes=["foreground", "skin", "hair"])
     s = engine.new_session(model)
     with pytest.raises(ModelError, match="returned shapes"):
-        s.run(np.ones((8, 8, 3), np.float32), lightvec.uniform(1.0))
+        s.run_planar(np.ones((3, 8, 8), np.float32), lightvec.uniform(1.0))
 
 
 def test_provider_choice():
@@ -198,26 +197,16 @@ def test_conv_model_has_the_requested_cost_and_contract(tmp_path):
     card = json.loads(model.with_suffix(".json").read_text())
     assert 0.2 <= card["architecture"]["gflop_per_frame"]["512"] < 0.35
     s = engine.new_session(model, threads=1)
-    res = s.run(np.random.default_rng(0).random((20, 36, 3)).astype(np.float32),
-                lightvec.uniform(1.0))
-    assert res.relit.shape == (20, 36, 3) and np.all(np.isfinite(res.relit))
+    res = s.run_planar(np.random.default_rng(0).random((3, 20, 36)).astype(np.float32),
+                       lightvec.uniform(1.0))
+    assert res.relit.shape == (3, 20, 36) and np.all(np.isfinite(res.relit))
     assert res.parsing.shape == (len(contract.PARSING_CLASSES), 20, 36)
     assert np.all(res.source_light >= 0)
 
 
-@pytest.mark.parametrize("h,w", [(7, 13), (32, 48)])
-def test_planar_run_equals_channels_last_run(session, h, w):
-    rng = np.random.default_rng(5)
-    img = rng.random((h, w, 3)).astype(np.float32)
-    light = lightvec.uniform(1.5)
-    a = session.run(img, light)
-    b = session.run_planar(np.ascontiguousarray(img.transpose(2, 0, 1)), light)
-    assert b.relit.shape == (3, h, w)
-    np.testing.assert_array_equal(b.relit, a.relit.transpose(2, 0, 1))
-    np.testing.assert_array_equal(b.parsing, a.parsing)
-    np.testing.assert_array_equal(b.source_light, a.source_light)
+def test_a_channels_last_image_is_refused(session):
     with pytest.raises(ValueError, match=r"\(3, H, W\)"):
-        session.run_planar(img, light)
+        session.run_planar(np.ones((7, 13, 3), np.float32), lightvec.uniform(1.5))
 
 
 def _save_with_external_weights(folder, threshold=100):

@@ -71,7 +71,7 @@ def test_network_frames_come_back_in_the_pipelines_units(tmp_path):
 
     card = engine.load_card(write_toy_model(tmp_path))
     made = frontier.card_for(card.onnx_path, card.stride, 64, "toy", "toy", card.classes)
-    x = np.random.default_rng(0).random((24, 40, 3)).astype(np.float32)
+    x = np.random.default_rng(0).random((3, 24, 40)).astype(np.float32)
     f = frontier.Frame(x, float(x.max()), 4.0, lightvec.uniform(2.0), None, None)
     fullres = detail.FullRes(threads=1)
     for c in (card, made):

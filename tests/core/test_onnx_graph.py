@@ -5,6 +5,7 @@ import onnx
 import pytest
 
 from addon import detail, onnx_graph as g
+from tests import reference
 
 
 @pytest.mark.parametrize("build", [detail._shrink_graph, detail._area_graph,
@@ -47,22 +48,30 @@ def fullres():
     return detail.FullRes(threads=1)
 
 
+def chw(x: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.moveaxis(x, -1, 0))
+
+
+def hwc(x: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.moveaxis(x, 0, -1))
+
+
 def test_finish_equals_the_numpy_reference(fullres):
     rng = np.random.default_rng(0)
     x = rng.random((45, 70, 3)).astype(np.float32)
     a = rng.random((9, 14, 3)).astype(np.float32) * 2
     b = rng.random((9, 14, 3)).astype(np.float32)
-    y, may_clamp = fullres.finish(x, a, b, x_max=1.0)
+    y, may_clamp, _ = fullres.finish_planar(chw(x), chw(a), chw(b), x_max=1.0)
     up = detail.resize(np.concatenate([a, b], axis=2), 45, 70)
     ref = up[..., :3] * x + up[..., 3:]
-    assert y.dtype == np.float16 and y.shape == (45, 70, 3) and not may_clamp
-    np.testing.assert_allclose(y.astype(np.float32), ref, rtol=1e-3, atol=1e-4)
+    assert y.dtype == np.float16 and y.shape == (3, 45, 70) and not may_clamp
+    np.testing.assert_allclose(hwc(y).astype(np.float32), ref, rtol=1e-3, atol=1e-4)
 
 
 def test_finish_clamps_to_half_when_the_bound_says_so(fullres):
-    x = np.full((4, 4, 3), 10.0, np.float32)
-    y, may_clamp = fullres.finish(x, np.full((2, 2, 3), 1e5, np.float32),
-                                  np.zeros((2, 2, 3), np.float32), x_max=10.0)
+    x = np.full((3, 4, 4), 10.0, np.float32)
+    y, may_clamp, _ = fullres.finish_planar(x, np.full((3, 2, 2), 1e5, np.float32),
+                                            np.zeros((3, 2, 2), np.float32), x_max=10.0)
     assert may_clamp and np.all(y == np.float16(65504))
 
 
@@ -70,32 +79,32 @@ def test_guided_graph_equals_the_numpy_reference(fullres):
     rng = np.random.default_rng(2)
     guide = rng.random((23, 31, 3)).astype(np.float32)
     target = guide * rng.random((1, 31, 3)).astype(np.float32) + 0.1 * rng.random((23, 31, 3))
-    a, b = fullres.coefficients(guide, target.astype(np.float32), 3.0)
-    ra, rb = detail.guided_coefficients(guide, target)
-    np.testing.assert_allclose(a, 3 * ra, rtol=2e-3, atol=1e-4)
-    np.testing.assert_allclose(b, 3 * rb, rtol=2e-3, atol=1e-4)
+    a, b = fullres.coefficients_planar(chw(guide), chw(target.astype(np.float32)), 3.0)
+    ra, rb = reference.guided_coefficients(guide, target)
+    np.testing.assert_allclose(hwc(a), 3 * ra, rtol=2e-3, atol=1e-4)
+    np.testing.assert_allclose(hwc(b), 3 * rb, rtol=2e-3, atol=1e-4)
     bad = target.copy()
     bad[0, 0] = np.nan
-    a, b = fullres.coefficients(guide, bad, 1e38)
+    a, b = fullres.coefficients_planar(chw(guide), chw(bad), 1e38)
     assert np.all(np.isfinite(a)) and np.all(np.isfinite(b))
 
 
 def test_shrink_is_a_mean_preserving_low_pass(fullres):
     rng = np.random.default_rng(1)
-    x = rng.random((108, 192, 3)).astype(np.float32)
-    y = fullres.shrink(x, 29, 51)
-    assert y.shape == (29, 51, 3)
-    np.testing.assert_allclose(y.mean(axis=(0, 1)), x.mean(axis=(0, 1)), rtol=1e-2)
+    x = rng.random((3, 108, 192)).astype(np.float32)
+    y = fullres.shrink_planar(x, 29, 51)
+    assert y.shape == (3, 29, 51)
+    np.testing.assert_allclose(y.mean(axis=(1, 2)), x.mean(axis=(1, 2)), rtol=1e-2)
     assert y.std() < 0.5 * x.std()  # averaged, not point-sampled
-    smooth = np.tile(np.linspace(0, 1, 192, dtype=np.float32)[None, :, None], (108, 1, 3))
-    np.testing.assert_allclose(fullres.shrink(smooth, 54, 96), detail.resize(smooth, 54, 96),
-                               atol=2e-3)
+    smooth = np.tile(np.linspace(0, 1, 192, dtype=np.float32)[None, None, :], (3, 108, 1))
+    np.testing.assert_allclose(fullres.shrink_planar(smooth, 54, 96),
+                               chw(detail.resize(hwc(smooth), 54, 96)), atol=2e-3)
 
 
 def test_upsample_half_clamps(fullres):
-    low = np.array([[[-1.0], [0.5]], [[np.nan], [2.0]]], np.float32)
-    y = fullres.upsample_half(low, 4, 4, 0.0, 1.0)
-    assert y.dtype == np.float16 and y.shape == (4, 4, 1)
+    low = np.array([[[-1.0, 0.5], [np.nan, 2.0]]], np.float32)
+    y = fullres.upsample_half_planar(low, 4, 4, 0.0, 1.0)
+    assert y.dtype == np.float16 and y.shape == (1, 4, 4)
     assert y.min() >= 0 and y.max() <= 1
 
 
@@ -131,7 +140,7 @@ def test_planar_finish_by_blocks_or_resize_equals_the_numpy_reference(fullres, b
     x = rng.random((3, *big)).astype(np.float32)
     a = (rng.random((3, *small)) * 2).astype(np.float32)
     b = rng.random((3, *small)).astype(np.float32)
-    y, may_clamp = fullres.finish_planar(x, a, b, x_max=1.0)
+    y, may_clamp, _ = fullres.finish_planar(x, a, b, x_max=1.0)
     up = detail.resize(np.concatenate([a, b]).transpose(1, 2, 0), *big).transpose(2, 0, 1)
     assert y.dtype == np.float16 and y.shape == (3, *big) and not may_clamp
     np.testing.assert_allclose(y.astype(np.float32), up[:3] * x + up[3:], rtol=1e-3, atol=1e-4)
@@ -148,8 +157,8 @@ def test_upsample_blocks_rows_are_bilinear_weights():
 
 def test_planar_finish_by_blocks_clamps_to_half(fullres):
     x = np.full((3, 8, 8), 10.0, np.float32)
-    y, may_clamp = fullres.finish_planar(x, np.full((3, 4, 4), 1e5, np.float32),
-                                         np.zeros((3, 4, 4), np.float32), x_max=10.0)
+    y, may_clamp, _ = fullres.finish_planar(x, np.full((3, 4, 4), 1e5, np.float32),
+                                            np.zeros((3, 4, 4), np.float32), x_max=10.0)
     assert may_clamp and np.all(y == np.float16(65504))
 
 
@@ -161,14 +170,14 @@ def test_finish_raises_negative_radiance_to_zero_and_reports_the_lowest(fullres,
     a = np.zeros((3, *small), np.float32)
     b = np.full((3, *small), 0.5, np.float32)
     b[0] = -0.25
-    y, may_clamp, lowest = fullres.finish_planar_lowest(x, a, b, x_max=1.0)
+    y, may_clamp, lowest = fullres.finish_planar(x, a, b, x_max=1.0)
     assert may_clamp and lowest == pytest.approx(-0.25)
     assert np.all(y[0] == 0) and np.all(y[1:] == np.float16(0.5))
     a[1], a[2] = -1e30, 1e30  # times x = 1e10: -Inf and +Inf in float32
-    y, may_clamp, lowest = fullres.finish_planar_lowest(np.full((3, *big), 1e10, np.float32),
-                                                        a, b, x_max=1e10)
+    y, may_clamp, lowest = fullres.finish_planar(np.full((3, *big), 1e10, np.float32),
+                                                 a, b, x_max=1e10)
     assert lowest == -np.inf and np.all(y[1] == 0) and np.all(y[2] == np.float16(65504))
-    assert fullres.finish_planar_lowest(x, np.ones_like(a), b * 0, 1.0)[1:] == (False, 0.0)
+    assert fullres.finish_planar(x, np.ones_like(a), b * 0, 1.0)[1:] == (False, 0.0)
 
 
 @pytest.mark.parametrize("small,big", [((9, 14), (45, 70)), ((13, 11), (100, 80))])

@@ -157,7 +157,7 @@ def chw(hwc):
 def apply(x, res):
     """(3, H, W) float32 of a FrameResult applied to ``x`` at full resolution, as the pipeline
     and relight_image do (half-float output)."""
-    y, _ = detail.FullRes(threads=1).finish_planar(x, res.a, res.b, float(x.max(initial=0.0)))
+    y = detail.FullRes(threads=1).finish_planar(x, res.a, res.b, float(x.max(initial=0.0)))[0]
     return y.astype(np.float32)
 
 
