@@ -90,7 +90,7 @@ def _network_frame(sess, x: np.ndarray, light: np.ndarray, background: str,
     ab = pipeline.coefficients_planar(x_low, relit_low, k, plan, fullres)
     ab = pipeline.with_background(ab, fg, light, source * np.float32(s), plan)
     if exposure == "keep" and ab is not None:
-        gain = portrait.clip_gain([pipeline.subject_luminance(x_low, ab, fg, s)], "keep")
-        ab = pipeline.subject_gain(ab, fg, gain)
+        gain = portrait.clip_gain([pipeline.frame_luminance(x_low, ab, s)], "keep")
+        ab = pipeline.scaled(ab, gain)
     y = pipeline.finish_planar(xn, ab, float(xn.max()) if xn.size else 0.0, fullres)[0]
     return np.ascontiguousarray(y.astype(np.float32).transpose(1, 2, 0))
