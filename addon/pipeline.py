@@ -6,8 +6,8 @@ batch script and render-farm chunks (``frames``). Per frame:
     decode -> linear (colour.py) -> / s -> area-resize to the working size -> network (light / k)
     -> full-resolution transfer (detail.py) -> * k -> [0, 65504], half -> EXR
 
-Frames stay channels-first (3, H, W) from the decoder to the EXR file (see detail.py); the
-channels-last stage functions below serve callers that hold (H, W, 3) images (benchmarks).
+Frames stay channels-first (3, H, W) from the decoder to the EXR file (see detail.py), and so do
+the per-frame stage functions below (what relight_image and the benchmarks run too).
 
 ``s`` is one exposure scale per clip from fixed sample frames over the whole clip, so chunks and
 resumed runs agree bit for bit; ``k`` is the target light's mean radiance (k == 0: black frame,
@@ -430,20 +430,14 @@ def coefficients_planar(x_low: np.ndarray, relit_low, k: float, plan: Plan,
 
 
 def finish_planar(x_full: np.ndarray, ab, x_max: float,
-                  fullres: detail.FullRes) -> tuple[np.ndarray, int]:
-    """The full-resolution half-float frame (3, H, W), within [0, 65504], and how many values
-    were clamped to the half maximum."""
-    return finish_frame(x_full, ab, x_max, fullres)[:2]
-
-
-def finish_frame(x_full: np.ndarray, ab, x_max: float,
-                 fullres: detail.FullRes) -> tuple[np.ndarray, int, float]:
-    """finish_planar and the most negative value that was raised to 0 (0.0 if none was):
+                  fullres: detail.FullRes) -> tuple[np.ndarray, int, float]:
+    """(the full-resolution half-float frame (3, H, W), within [0, 65504]; how many values were
+    clamped to the half maximum; the most negative value that was raised to 0, 0.0 if none was):
     radiance is never negative, though the network's output and the detail transfer's
     extrapolation can be (a little in normal use, hugely when the light overflows it)."""
     if ab is None:
         return np.zeros(x_full.shape, np.float16), 0, 0.0
-    y, may_clamp, lowest = fullres.finish_planar_lowest(x_full, *ab, x_max)
+    y, may_clamp, lowest = fullres.finish_planar(x_full, *ab, x_max)
     return y, _count_clamped(y) if may_clamp else 0, lowest
 
 
@@ -499,41 +493,6 @@ def matte_full(fg, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
     if fg is None:
         return np.zeros((h, w), np.float16)
     return fullres.upsample_half_planar(np.asarray(fg, np.float32)[None], h, w, 0.0, 1.0)[0]
-
-
-# The same stages on channels-last (H, W, 3) images, for callers that hold those (the accuracy
-# benchmark): the same graphs, so the same numbers as the pipeline.
-
-def shrink(x_full: np.ndarray, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
-    return fullres.shrink(x_full, *plan.working)
-
-
-def infer(session: engine.RelightSession, x_low: np.ndarray, light: np.ndarray):
-    """(relit_low (h, w, 3), source_light, foreground, k); k == 0: nothing run."""
-    relit, source, fg, k = infer_planar(session, np.moveaxis(x_low, -1, 0), light)
-    return (None if relit is None else np.ascontiguousarray(relit.transpose(1, 2, 0)),
-            source, fg, k)
-
-
-def coefficients(x_low: np.ndarray, relit_low, k: float, plan: Plan,
-                 fullres: detail.FullRes):
-    """(a, b), each (h, w, 3); None for a black frame."""
-    if relit_low is None:
-        return None
-    a, b = coefficients_planar(np.moveaxis(x_low, -1, 0), np.moveaxis(relit_low, -1, 0), k,
-                               plan, fullres)
-    return np.ascontiguousarray(a.transpose(1, 2, 0)), np.ascontiguousarray(b.transpose(1, 2, 0))
-
-
-def finish(x_full: np.ndarray, ab, x_max: float,
-           fullres: detail.FullRes) -> tuple[np.ndarray, int]:
-    """The half-float frame (H, W, 3), within [0, 65504], and how many values were clamped to
-    the half maximum."""
-    h, w = x_full.shape[:2]
-    if ab is None:
-        return np.zeros((h, w, 3), np.float16), 0
-    y, may_clamp = fullres.finish(x_full, *ab, x_max)
-    return y, _count_clamped(y) if may_clamp else 0
 
 
 def _save_npy(path: str, arr: np.ndarray) -> None:
@@ -805,7 +764,7 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 if item is _DONE:
                     return
                 i, x_full, x_max, ab, fg, source = item
-                relit, clamped, lowest = finish_frame(x_full, ab, x_max, fullres)
+                relit, clamped, lowest = finish_planar(x_full, ab, x_max, fullres)
                 matte = matte_full(fg, plan, fullres) if plan.write_matte else None
                 write_frame(out_dir, i, relit, matte, source, plan)
                 counts["clamped"] += clamped
