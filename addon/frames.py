@@ -500,7 +500,7 @@ def write_exr(path, pixels: np.ndarray, compression: str = "none") -> int:
     header = {"compression": _compression(OpenEXR, compression), "type": OpenEXR.scanlineimage}
     if "RGB" in channels:
         header["chromaticities"] = REC709_CHROMATICITIES
-    _write_atomic(path, lambda tmp: _openexr_write(OpenEXR, tmp, header, channels))
+    write_atomic(path, lambda tmp: _openexr_write(OpenEXR, tmp, header, channels))
     return n
 
 
@@ -520,14 +520,14 @@ def write_exr_planes(path, planes: np.ndarray, compression: str = "none") -> Non
     else:
         raise ValueError(f"planes must be (3, H, W) or (H, W), got {px.shape}")
     if compression == "none":
-        _write_atomic(path, lambda tmp: _write_uncompressed(tmp, stored, names))
+        write_atomic(path, lambda tmp: _write_uncompressed(tmp, stored, names))
         return
     OpenEXR = _exr()
     header = {"compression": _compression(OpenEXR, compression), "type": OpenEXR.scanlineimage}
     if len(names) == 3:
         header["chromaticities"] = REC709_CHROMATICITIES
     channels = {n: np.ascontiguousarray(p) for n, p in zip(names, stored)}  # strides ignored
-    _write_atomic(path, lambda tmp: _openexr_write(OpenEXR, tmp, header, channels))
+    write_atomic(path, lambda tmp: _openexr_write(OpenEXR, tmp, header, channels))
 
 
 def _openexr_write(OpenEXR, tmp: str, header: dict, channels: dict) -> None:
@@ -626,8 +626,11 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
-def _write_atomic(path, write) -> None:
-    """``write(tmp)`` then rename to ``path``; a failure leaves neither file behind."""
+def write_atomic(path, write) -> None:
+    """``write(tmp)``, then rename ``tmp`` to ``path``: a reader never sees half a file, and a
+    failure leaves neither file behind (OutputError for an I/O failure). ``tmp`` is
+    partial_path(path), so a later run can sweep what a killed writer left. Every file the
+    add-on, the benchmarks and training write atomically goes through here."""
     path = str(path)
     tmp = partial_path(path)
     try:

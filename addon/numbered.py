@@ -46,20 +46,13 @@ def publish(src, dest) -> None:
             return
     except FileNotFoundError:
         pass
-    tmp = frames.partial_path(dest)
-    try:
+
+    def link_or_copy(tmp):
         try:
             os.link(src, tmp)
         except OSError:  # no hard links here (some network shares, FAT): copy
             shutil.copyfile(src, tmp)
-        os.replace(tmp, dest)
-    except OSError as err:
-        try:
-            os.remove(tmp)
-        except FileNotFoundError:
-            pass
-        raise OutputError(f"Cannot write {dest} ({err}); check the output folder is writable "
-                          "and the disk has space.") from err
+    frames.write_atomic(dest, link_or_copy)
 
 
 def sweep_partials(out_dir) -> None:

@@ -278,11 +278,8 @@ def _read_run(out_dir: str) -> dict | None:
         return {}  # unreadable: treated as another run
 
 
-def _atomic_write_text(path: str, text: str) -> None:
-    tmp = frames.partial_path(path)
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(text)
-    os.replace(tmp, path)
+def _write_text(path: str, text: str) -> None:
+    frames.write_atomic(path, lambda tmp: pathlib.Path(tmp).write_text(text, encoding="utf-8"))
 
 
 _OUTPUT_NAME = re.compile(r"^(relit_\d{6}\.exr|matte_\d{6}\.exr|source_\d{6}\.npy)$")
@@ -496,15 +493,10 @@ def matte_full(fg, plan: Plan, fullres: detail.FullRes) -> np.ndarray:
 
 
 def _save_npy(path: str, arr: np.ndarray) -> None:
-    tmp = frames.partial_path(path)
-    try:
-        with open(tmp, "wb") as f:
+    def save(tmp):
+        with open(tmp, "wb") as f:  # a file, so np.save adds no .npy to the name
             np.save(f, arr)
-        os.replace(tmp, path)
-    except OSError as err:
-        frames._remove_quietly(tmp)
-        raise OutputError(f"Cannot write {path} ({err}); check the output folder is writable "
-                          "and the disk has space.") from err
+    frames.write_atomic(path, save)
 
 
 def write_frame(out_dir: str, i: int, relit: np.ndarray, matte, source: np.ndarray,
@@ -560,7 +552,7 @@ def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: 
                                                       fullres)
     boxes = framing.smooth_boxes(raw)
     missing = [i for i in probe if raw[i] is None]
-    _atomic_write_text(path, json.dumps(
+    _write_text(path, json.dumps(
         {"identity": identity, "framed": probe, "found": len(probe) - len(missing),
          "missing": missing, "boxes": [None if b is None else list(b.to_tuple()) for b in boxes]}))
     return boxes, missing
@@ -705,7 +697,7 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
         else:
             gain = exposure_gain(clip, lights, plan, session, fullres, boxes,
                                  options.exposure_mode)
-            _atomic_write_text(os.path.join(out_dir, RUN_FILE), json.dumps(
+            _write_text(os.path.join(out_dir, RUN_FILE), json.dumps(
                 {"identity": identity, "exposure_scale": scale, "exposure_gain": gain,
                  "model": session.card.name, "providers": session.providers,
                  "source_path": os.path.realpath(clip.path)}, indent=2))

@@ -52,6 +52,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(ROOT))
 
 from addon import colour, contract, detail, engine, normalise, pipeline  # noqa: E402
+from addon.frames import write_atomic  # noqa: E402
 from training.eval import report  # noqa: E402
 from training.eval.report import machine, machine_line  # noqa: E402
 
@@ -171,9 +172,10 @@ def _rendered(resolution: int, n: int, seed: int, cache: pathlib.Path | None) ->
         s = ds[idx]
         out.append({k: np.asarray(s[k], np.float32) for k in KEYS})
         if path is not None:
-            tmp = path.with_suffix(".tmp.npz")
-            np.savez(tmp, **out[-1])
-            tmp.replace(path)
+            def write(tmp, arrays=out[-1]):
+                with open(tmp, "wb") as f:  # a file, so np.savez adds no .npz to the name
+                    np.savez(f, **arrays)
+            write_atomic(path, write)
     return out
 
 

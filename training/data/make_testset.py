@@ -32,6 +32,8 @@ import pathlib
 import numpy as np
 import torch
 
+from addon.frames import write_atomic
+
 from .dataset import LightStageDataset, renderer_version
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -83,9 +85,11 @@ def build_testset(resolution: int, n: int = DEFAULT_N, folder=None, data_root=No
             raise ValueError(f"{k} is not binary; the test set stores it as bytes")
     stored = {k: (v.astype(np.uint8) if k in _BYTES else v) for k, v in arrays.items()}
     digest = content_sha256(arrays)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **stored)
-    tmp.rename(path)
+
+    def write(tmp):
+        with open(tmp, "wb") as f:  # a file, so np.savez adds no .npz to the name
+            np.savez(f, **stored)
+    write_atomic(path, write)
     path.with_suffix(".json").write_text(json.dumps(
         {"sha256": digest, "split": "test", "seed": TEST_SEED, "resolution": int(resolution),
          "n": int(n), "renderer": renderer_version()}, indent=2))

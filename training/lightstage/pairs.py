@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from addon.frames import write_atomic
+
 from . import layout, shading
 from .scene import Scene, next_time, stage_dirs
 
@@ -131,13 +133,14 @@ def write_arrays(path: pathlib.Path, arrs: dict) -> None:
         offset += -(-v.nbytes // 8) * 8  # 8-byte aligned, so every view is aligned
     head = json.dumps({"magic": MAGIC, "arrays": entries}).encode()
     head += b" " * (-(len(head) + 8) % 64)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(len(head).to_bytes(8, "little") + head)
-        for e, v in zip(entries, arrs.values()):
-            b = np.ascontiguousarray(v).tobytes()
-            fh.write(b + b"\0" * (-len(b) % 8))
-    tmp.rename(path)  # a reader never sees half a file
+
+    def write(tmp):
+        with open(tmp, "wb") as fh:
+            fh.write(len(head).to_bytes(8, "little") + head)
+            for e, v in zip(entries, arrs.values()):
+                b = np.ascontiguousarray(v).tobytes()
+                fh.write(b + b"\0" * (-len(b) % 8))
+    write_atomic(path, write)  # a reader never sees half a file
 
 
 def read_arrays(path: pathlib.Path) -> dict:
@@ -174,9 +177,8 @@ def load(path: pathlib.Path) -> PairRecord:
 
 
 def write_manifest(folder: pathlib.Path, info: dict) -> None:
-    tmp = folder / "manifest.json.tmp"
-    tmp.write_text(json.dumps({"format": FORMAT, **info}, indent=2))
-    tmp.rename(folder / "manifest.json")
+    text = json.dumps({"format": FORMAT, **info}, indent=2)
+    write_atomic(folder / "manifest.json", lambda tmp: pathlib.Path(tmp).write_text(text))
 
 
 def pair_path(folder: pathlib.Path, p: int) -> pathlib.Path:

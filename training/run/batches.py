@@ -10,6 +10,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from addon.frames import write_atomic
+
 from ..data.dataset import make_dataset, renderer_version
 from ..model import warp
 from ..model.units import IMAGE_KEYS, MASK_KEYS, TRANSPORT_KEYS, normalise_sample
@@ -61,9 +63,11 @@ def render_cache(folder, split: str, resolution: int, seed: int, start: int, cou
         s = ds[idx]
         # half floats hold the radiance range here (< 65504) and halve the disk and reads
         s = {k: v.astype(np.float16) if k in _HALF else v for k, v in s.items()}
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, **s)
-        tmp.rename(path)  # readers never see a half-written file
+
+        def write(tmp, s=s):
+            with open(tmp, "wb") as f:  # a file, so np.savez adds no .npz to the name
+                np.savez(f, **s)
+        write_atomic(path, write)  # readers never see a half-written file
 
 
 class CachedSamples:
@@ -74,7 +78,7 @@ class CachedSamples:
         self.refresh()
 
     def refresh(self):
-        self.files = sorted(p for p in self.folder.glob("*.npz") if not p.name.endswith(".tmp.npz"))
+        self.files = sorted(self.folder.glob("[0-9]*.npz"))  # render_cache's finished samples
         if not self.files:
             raise FileNotFoundError(f"no rendered samples in {self.folder} yet")
 
