@@ -17,7 +17,6 @@ tests/blender/test_cycles_referee.py uses the same scene builder with asserted b
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import pathlib
 import sys
@@ -31,8 +30,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(ROOT))
 
+from bench import extension  # noqa: E402
 from training.eval import report  # noqa: E402
-EXT_ID = "portrait_relight"
+
 RADIUS = 1.0  # the sphere (subject) radius in metres; everything scales with it
 ORTHO_SCALE = 2.2 * RADIUS
 # A lamp direction off every axis and between cell centres, as the light frame sees it.
@@ -40,27 +40,13 @@ LAMP_DIR = np.array([0.45, 0.35, 0.82]) / np.linalg.norm([0.45, 0.35, 0.82])
 DISTANCES = (1.2, 2.0, 4.0, 10.0)
 
 
-def extension():
-    """The repository root imported as the extension package (as Blender loads it)."""
-    if EXT_ID in sys.modules:
-        return sys.modules[EXT_ID]
-    spec = importlib.util.spec_from_file_location(
-        EXT_ID, ROOT / "__init__.py", submodule_search_locations=[str(ROOT)])
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[EXT_ID] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 def addon_module(name: str):
     """``addon.<name>`` from the extension package (works when run as a script, too)."""
-    extension()
-    return importlib.import_module(f"{EXT_ID}.addon.{name}")
+    return extension.submodule(f"addon.{name}")
 
 
 def scene_light_module():
-    extension()
-    return importlib.import_module(f"{EXT_ID}.ops.scene_light")
+    return extension.submodule("ops.scene_light")
 
 
 def direct_light_scene(width: int, height: int, samples: int, world_name: str = "black"):

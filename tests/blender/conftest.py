@@ -2,34 +2,22 @@
 
 The repository root is the extension package (manifest and __init__.py at the top), whose modules
 import each other relatively (``from ..addon import ...``). Tests load that root as a package
-named by its extension id, ``portrait_relight``, exactly as Blender would load it, with
-``importlib`` (no sys.path edits): ``portrait_relight.ops``, ``portrait_relight.addon`` ...
-Note that ``portrait_relight.addon`` and the top-level ``addon`` that tests/core uses are two
-copies of the same code: catch errors from the one the code under test raises.
+named by its extension id, ``portrait_relight``, exactly as Blender would load it
+(bench/extension.py, which the Cycles benchmarks use too): ``portrait_relight.ops``,
+``portrait_relight.addon`` ... Note that ``portrait_relight.addon`` and the top-level ``addon``
+that tests/core uses are two copies of the same code: catch errors from the one the code under
+test raises.
 """
 
-import importlib.util
 import pathlib
-import sys
 
 import bpy
 import numpy as np
 import pytest
 
+from bench.extension import load_extension  # noqa: F401  (tests import it from here)
+
 ROOT = pathlib.Path(__file__).resolve().parents[2]
-EXT_ID = "portrait_relight"
-
-
-def load_extension():
-    """The repository root imported as the package ``portrait_relight`` (once per process)."""
-    if EXT_ID in sys.modules:
-        return sys.modules[EXT_ID]
-    spec = importlib.util.spec_from_file_location(
-        EXT_ID, ROOT / "__init__.py", submodule_search_locations=[str(ROOT)])
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[EXT_ID] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="session")
