@@ -95,7 +95,7 @@ def use_config(path: str | os.PathLike | None) -> None:
     """Convert with this OpenColorIO configuration (the extension passes Blender's own)."""
     _CONFIG[0] = None if path is None else str(path)
     _ocio_config.cache_clear()
-    _ocio_space.cache_clear()
+    ocio_space.cache_clear()
 
 
 def config_path() -> str | None:
@@ -130,7 +130,10 @@ def ocio_names() -> list[str]:
 
 
 @functools.lru_cache(maxsize=64)
-def _ocio_space(name: str, path: str) -> ColourSpace:
+def ocio_space(name: str, path: str) -> ColourSpace:
+    """The ColourSpace converting ``name`` to scene linear through OpenColorIO's own processor,
+    with the configuration at ``path``; KeyError when the configuration lacks the name. lookup
+    uses it where no fast path exists."""
     config = _ocio_config(path)
     cs = config.getColorSpace(name)
     if cs is None:
@@ -160,7 +163,7 @@ def lookup(name: str) -> ColourSpace:
                          f"configuration, which was not found ({path or 'no $OCIO, no Blender'}); "
                          "set $OCIO to the config.ocio Blender uses.")
     try:
-        return _ocio_space(key, path)
+        return ocio_space(key, path)
     except KeyError:
         known = ", ".join(ocio_names())
         raise InputError(f"The strip's colour space '{name}' is not in Blender's colour "

@@ -109,7 +109,7 @@ def box_mean(x: np.ndarray, r: int) -> np.ndarray:
 HALF_MAX = 65504.0
 
 
-def _shrink_graph() -> bytes:
+def shrink_graph() -> bytes:
     """(1, C, H, W) -> (1, C, h, w): antialiased linear resize (a triangle filter as wide as the
     scale), one vectorised pass instead of numpy's several."""
     from . import onnx_graph as g
@@ -120,7 +120,7 @@ def _shrink_graph() -> bytes:
         [g.value_info("y", g.FLOAT, [1, "C", "h", "w"])], name="shrink")
 
 
-def _area_graph() -> bytes:
+def area_graph() -> bytes:
     """(1, C, H, W) -> (1, C, h, w): exact area averaging when each axis shrinks by a ratio of
     small integers p/q (1080p to 512x288 is 15/4 on both): every block of p rows (columns)
     becomes q by one small matrix, so each axis is a reshape and a matrix product (vectorised,
@@ -181,7 +181,7 @@ def _clamp_consts() -> list[bytes]:
     return [g.tensor("lo", np.float32(0.0)), g.tensor("hi", np.float32(HALF_MAX))]
 
 
-def _finish_graph(clamp: bool) -> bytes:
+def finish_graph(clamp: bool) -> bytes:
     """out = up(a) * x + up(b), cast to half (see _clamp_tail for ``clamp``)."""
     from . import onnx_graph as g
     tail = _clamp_tail(clamp)
@@ -256,8 +256,8 @@ def _enlarge_feeds(c: int, h: int, w: int, big_h: int, big_w: int) -> dict | Non
 _EDGE_PADS = np.array([0, 0, 1, 1, 0, 0, 1, 1], np.int64)
 
 
-def _finish_blocks_graph(clamp: bool) -> bytes:
-    """_finish_graph with the two enlargements done by upsample_blocks (vectorised; 20-25%
+def finish_blocks_graph(clamp: bool) -> bytes:
+    """finish_graph with the two enlargements done by upsample_blocks (vectorised; 20-25%
     faster at 1080p than the resize op, same values to 1 half ulp)."""
     from . import onnx_graph as g
     nodes = _enlarge_nodes("a", "a_up") + _enlarge_nodes("b", "b_up")
@@ -272,8 +272,8 @@ def _finish_blocks_graph(clamp: bool) -> bytes:
         _finish_outputs(clamp), consts, name="finish_blocks")
 
 
-def _upsample_blocks_graph() -> bytes:
-    """_upsample_graph with the enlargement done by upsample_blocks (the matte)."""
+def upsample_blocks_graph() -> bytes:
+    """upsample_graph with the enlargement done by upsample_blocks (the matte)."""
     from . import onnx_graph as g
     return g.model(
         _enlarge_nodes("x", "u") + [g.node("Clip", ["u", "lo", "hi"], ["c"]),
@@ -284,7 +284,7 @@ def _upsample_blocks_graph() -> bytes:
         name="upsample_blocks")
 
 
-def _guided_graph(radius: int = RADIUS, eps: float = EPS, floor: float = FLOOR) -> bytes:
+def guided_graph(radius: int = RADIUS, eps: float = EPS, floor: float = FLOOR) -> bytes:
     """The guided fit on (1, 3, h, w): per channel, target ~ A * guide + B over box windows of
     ``radius``, the ridge ``eps`` pulling A toward the local shading ratio
     A0 = (mean target + floor) / (mean guide + floor) rather than toward 0 (texture too fine to
@@ -323,7 +323,7 @@ def _guided_graph(radius: int = RADIUS, eps: float = EPS, floor: float = FLOOR) 
                     g.value_info("b", g.FLOAT, [1, 3, "h", "w"])], consts, name="guided")
 
 
-def _upsample_graph() -> bytes:
+def upsample_graph() -> bytes:
     """(1, C, h, w) -> (1, C, H, W) half, bilinear, clamped to [lo, hi]."""
     from . import onnx_graph as g
     return g.model(
@@ -354,18 +354,18 @@ class FullRes:
 
     def __init__(self, threads: int | None = 1):
         from . import engine
-        ort = engine._import_onnxruntime()
+        ort = engine.import_onnxruntime()
         so = engine.session_options(ort, threads, spin=False)
         cpu = ["CPUExecutionProvider"]
-        self._shrink = ort.InferenceSession(_shrink_graph(), so, providers=cpu)
-        self._area = ort.InferenceSession(_area_graph(), so, providers=cpu)
-        self._finish = {c: ort.InferenceSession(_finish_graph(c), so, providers=cpu)
+        self._shrink = ort.InferenceSession(shrink_graph(), so, providers=cpu)
+        self._area = ort.InferenceSession(area_graph(), so, providers=cpu)
+        self._finish = {c: ort.InferenceSession(finish_graph(c), so, providers=cpu)
                         for c in (False, True)}
-        self._finish_blocks = {c: ort.InferenceSession(_finish_blocks_graph(c), so,
+        self._finish_blocks = {c: ort.InferenceSession(finish_blocks_graph(c), so,
                                                        providers=cpu) for c in (False, True)}
-        self._guided = ort.InferenceSession(_guided_graph(), so, providers=cpu)
-        self._upsample = ort.InferenceSession(_upsample_graph(), so, providers=cpu)
-        self._upsample_blocks = ort.InferenceSession(_upsample_blocks_graph(), so,
+        self._guided = ort.InferenceSession(guided_graph(), so, providers=cpu)
+        self._upsample = ort.InferenceSession(upsample_graph(), so, providers=cpu)
+        self._upsample_blocks = ort.InferenceSession(upsample_blocks_graph(), so,
                                                      providers=cpu)
 
     def shrink_planar(self, x: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -388,7 +388,7 @@ class FullRes:
         return self._area.run(None, feeds)[0][0]
 
     def coefficients_planar(self, guide: np.ndarray, target: np.ndarray, gain: float):
-        """The guided fit (_guided_graph) of (3, h, w) arrays times ``gain``: (a, b), each
+        """The guided fit (guided_graph) of (3, h, w) arrays times ``gain``: (a, b), each
         (3, h, w); finite
         (non-finite inputs are 0, overflow becomes a huge finite value that the half clamp then
         catches). Low resolution, so the clean-up passes here cost little."""

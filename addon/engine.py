@@ -271,7 +271,8 @@ def choose_providers(available, requested=None) -> list[str]:
     return chosen
 
 
-def _import_onnxruntime():
+def import_onnxruntime():
+    """The onnxruntime module, or a DependencyError saying to reinstall the extension."""
     try:
         import onnxruntime
     except ImportError as err:  # the extension still loads and can say what is missing
@@ -433,7 +434,7 @@ def new_session(model_path, providers=None, threads: int | None = None, spin: bo
     if verify:
         verify_checksum(card, data)
     refuse_external_data(card, data)
-    ort = _import_onnxruntime()
+    ort = import_onnxruntime()
     chosen = choose_providers(ort.get_available_providers(), providers)
     try:
         sess = ort.InferenceSession(data, sess_options=session_options(

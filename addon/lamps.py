@@ -137,7 +137,7 @@ def project_point_light(position, color, subject_radius: float = 1.0) -> np.ndar
     return _finite_light(lightvec.splat_direction(p / dist, irr), "point light")
 
 
-def _fibonacci_sphere(n: int) -> np.ndarray:
+def fibonacci_sphere(n: int) -> np.ndarray:
     """(n, 3) evenly spread unit vectors, each standing for the same area of the sphere."""
     i = np.arange(n, dtype=np.float64) + 0.5
     y = 1.0 - 2.0 * i / n
@@ -146,7 +146,7 @@ def _fibonacci_sphere(n: int) -> np.ndarray:
     return np.stack([r * np.cos(a), y, r * np.sin(a)], axis=1)
 
 
-_FIT_NORMALS = _fibonacci_sphere(2048)  # for the numeric fits (spot cones): 1% accurate, ~0.1 ms
+_FIT_NORMALS = fibonacci_sphere(2048)  # for the numeric fits (spot cones): 1% accurate, ~0.1 ms
 
 
 def spot_mask(cos_angle, spot_size: float, spot_blend: float):

@@ -337,7 +337,7 @@ def _describe(props: dict) -> str:
 def _point_floor(k: float) -> float:
     """Relative RMSE over the lit hemisphere of the best distant fit of a point lamp (no cells)."""
     lamps = addon_module("lamps")
-    n = lamps._fibonacci_sphere(20000)
+    n = lamps.fibonacci_sphere(20000)
     n = n[n[:, 2] > 0]
     to_lamp = np.array([0.0, 0.0, k]) - n
     d = np.linalg.norm(to_lamp, axis=1)

@@ -80,7 +80,7 @@ def cached(res: int, n: int, cache_dir) -> dict:
         ds[0]
         rows = {"read pair": [], "lighting triplet": [], "relight + assemble": []}
         for i in range(n):
-            p, rng = ds._draw(i)
+            p, rng = ds.draw(i)
             ms, rec = _ms(lambda: pairs.load(pairs.pair_path(ds.cache, p)))
             rows["read pair"].append(ms)
             ms, lights = _ms(lambda: lighting_sampling.sample_triplet(rng, ds.bank, True,

@@ -227,7 +227,7 @@ def colour_options(repeats: int = 15) -> int:
     times = {}
     for label, px in cases.items():
         name = label.split(",")[0]
-        fast, ocio = colour_mod.lookup(name), colour_mod._ocio_space(name, path)
+        fast, ocio = colour_mod.lookup(name), colour_mod.ocio_space(name, path)
         for kind, space in (("fast path", fast), ("OpenColorIO", ocio)):
             times[(label, kind)] = []
         for _ in range(repeats):
@@ -244,17 +244,22 @@ def colour_options(repeats: int = 15) -> int:
 def graph_options(repeats: int = 30) -> int:
     """The 1080p shrink and finish graphs (exact area / window-gather matrix products) against
     the resize-op graphs they replace for sizes with small-integer ratios; interleaved runs."""
-    fr = pipeline.detail.FullRes(threads=1)
+    detail = pipeline.detail
+    fr = detail.FullRes(threads=1)
+    ort = engine.import_onnxruntime()
+    so, cpu = engine.session_options(ort, 1, spin=False), ["CPUExecutionProvider"]
+    resize_shrink = ort.InferenceSession(detail.shrink_graph(), so, providers=cpu)
+    resize_finish = ort.InferenceSession(detail.finish_graph(False), so, providers=cpu)
     rng = np.random.default_rng(0)
     x = rng.random((1, 3, 1080, 1920), dtype=np.float32)
     a, b = (rng.random((3, 288, 512), dtype=np.float32) for _ in range(2))
     full = np.array([1, 3, 1080, 1920], np.int64)
     cases = {
         "shrink: area matrix products": lambda: fr.shrink_planar(x[0], 288, 512),
-        "shrink: resize op (antialiased)": lambda: fr._shrink.run(
+        "shrink: resize op (antialiased)": lambda: resize_shrink.run(
             None, {"x": x, "sizes": np.array([1, 3, 288, 512], np.int64)}),
         "finish: window gather + matrix products": lambda: fr.finish_planar(x[0], a, b, 1.0),
-        "finish: resize op": lambda: fr._finish[False].run(
+        "finish: resize op": lambda: resize_finish.run(
             None, {"a": a[None], "b": b[None], "x": x, "sizes": full}),
     }
     times = {k: [] for k in cases}

@@ -85,7 +85,7 @@ def test_fast_paths_agree_with_opencolorio():
     px = (rng.random((64, 64, 3)) * 1.2).astype(np.float32)
     for name in colour.SPACES:
         ours = colour.to_linear(px, colour.lookup(name))
-        ref = colour._ocio_space(name, colour.config_path())
+        ref = colour.ocio_space(name, colour.config_path())
         theirs = colour.to_linear(px, ref)
         np.testing.assert_allclose(ours, theirs, rtol=2e-4, atol=5e-5, err_msg=name)
 

@@ -117,3 +117,37 @@ def test_the_cycle_check_finds_a_cycle(tmp_path):
     graph = import_graph(pkg)
     assert graph["pkg.a"] == {"pkg.sub.b"} and graph["pkg.sub.b"] == {"pkg.c"}
     assert import_cycles(graph) == [["pkg.a", "pkg.c", "pkg.sub.b"]]
+
+
+PROJECT = ("addon", "ops", "ui", "bench", "training")
+
+
+def _private_uses(path: pathlib.Path) -> list[str]:
+    """Where ``path`` reaches into another project module's private names: ``from m import _x``,
+    or ``m._x`` with m a project module it imported."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    modules, out = set(), []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            modules |= {a.asname or a.name.split(".")[0] for a in node.names
+                        if a.name.split(".")[0] in PROJECT}
+        elif isinstance(node, ast.ImportFrom) and (node.level or (
+                node.module or "").split(".")[0] in PROJECT):
+            for a in node.names:
+                if a.name.startswith("_") and not a.name.startswith("__"):
+                    out.append(f"{path.relative_to(ROOT)}:{node.lineno} imports {a.name}")
+                else:
+                    modules.add(a.asname or a.name)  # a module or not: checked by use below
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                and node.value.id in modules and node.attr.startswith("_")
+                and not node.attr.startswith("__")):
+            out.append(f"{path.relative_to(ROOT)}:{node.lineno} uses {node.value.id}.{node.attr}")
+    return out
+
+
+def test_no_module_reaches_into_another_modules_private_names():
+    """Shared code is public: what one module uses of another has a public name."""
+    offences = [o for folder in PROJECT for p in sorted((ROOT / folder).rglob("*.py"))
+                for o in _private_uses(p)]
+    assert offences == []

@@ -8,13 +8,13 @@ from addon import detail, onnx_graph as g
 from tests import reference
 
 
-@pytest.mark.parametrize("build", [detail._shrink_graph, detail._area_graph,
-                                   lambda: detail._finish_blocks_graph(True),
-                                   lambda: detail._finish_blocks_graph(False),
-                                   detail._upsample_blocks_graph,
-                                   lambda: detail._finish_graph(True),
-                                   lambda: detail._finish_graph(False), detail._guided_graph,
-                                   detail._upsample_graph])
+@pytest.mark.parametrize("build", [detail.shrink_graph, detail.area_graph,
+                                   lambda: detail.finish_blocks_graph(True),
+                                   lambda: detail.finish_blocks_graph(False),
+                                   detail.upsample_blocks_graph,
+                                   lambda: detail.finish_graph(True),
+                                   lambda: detail.finish_graph(False), detail.guided_graph,
+                                   detail.upsample_graph])
 def test_graphs_pass_the_onnx_checker(build):
     m = onnx.load_from_string(build())
     onnx.checker.check_model(m, full_check=True)

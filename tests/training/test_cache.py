@@ -28,7 +28,7 @@ def test_cached_samples_equal_on_the_fly_samples_of_the_same_pool(cache, shared_
     used = set()
     for idx in range(6):
         a, b = cached[idx], live[idx]
-        used.add(cached._draw(idx)[0])
+        used.add(cached.draw(idx)[0])
         assert set(a) == set(b)
         for k in a:
             assert a[k].dtype == np.float32 and a[k].shape == b[k].shape, k

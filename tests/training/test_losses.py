@@ -10,7 +10,7 @@ import standin
 from training.model import checkpoint, losses, network, units, warp
 from training.run import batches, lineage, options, schedule
 from training.run.ema import WeightAverage
-from training.run.trainer import Trainer, _raw
+from training.run.trainer import Trainer, raw_weights
 
 torch.set_num_threads(1)
 TINY = network.NetConfig(widths=(8, 8, 16, 16), blocks=(1, 1, 1, 1), expand=2, code=8,
@@ -233,12 +233,12 @@ def test_checkpoint_of_an_averaged_run_loads_the_average_or_the_raw_weights(tmp_
         for p in net.parameters():
             p.add_(1.0)
     ema.update(net)
-    checkpoint.save_checkpoint(tmp_path / "c.pt", ema.net, {"command": "x"}, 7, _raw(ema, net))
+    checkpoint.save_checkpoint(tmp_path / "c.pt", ema.net, {"command": "x"}, 7, raw_weights(ema, net))
     avg, _ = checkpoint.load_checkpoint(tmp_path / "c.pt")
     raw, _ = checkpoint.load_checkpoint(tmp_path / "c.pt", raw=True)
     for a, r, e, p in zip(avg.parameters(), raw.parameters(), ema.net.parameters(),
                           net.parameters()):
         assert torch.equal(a, e) and torch.equal(r, p) and not torch.equal(a, r)
-    checkpoint.save_checkpoint(tmp_path / "plain.pt", net, {"command": "x"}, 7, _raw(None, net))
+    checkpoint.save_checkpoint(tmp_path / "plain.pt", net, {"command": "x"}, 7, raw_weights(None, net))
     with pytest.raises(SystemExit, match="leave out --raw"):
         checkpoint.load_checkpoint(tmp_path / "plain.pt", raw=True)

@@ -116,7 +116,7 @@ def test_presets_use_the_ratio_head_and_old_checkpoints_keep_theirs():
 
 def test_sh_projection_gives_a_lights_spherical_harmonics():
     # a uniform light of radiance 1 has only the constant band: 4 pi * Y00
-    basis = network._sh_projection()
+    basis = network.sh_projection()
     coeff = torch.ones(1, 3, 256) @ basis
     assert float(coeff[0, 0, 0]) == pytest.approx(4 * np.pi * 0.282095, rel=1e-3)
     assert float(coeff[0, 0, 1:].abs().max()) < 1e-3 * 4 * np.pi

@@ -29,7 +29,7 @@ def _irradiance(s, light):
     """(exact from the transfer, through the SH transport) for a (16,16,3) light vector."""
     exact = s.diffuse.double() @ torch.from_numpy(layout.weights(light))
     coeff = (torch.from_numpy(network.to_channels_first(light)).double().flatten(1)
-             @ network._sh_projection().double())
+             @ network.sh_projection().double())
     t = pairs.transport(s).view(9, -1)[:, s.idx].double().T
     return exact, t @ coeff.T
 

@@ -178,7 +178,7 @@ class LightStageDataset:
         """(scene, t) of pool pair ``p``: independent of the seed, so one cache serves all seeds."""
         return self._draw_scene(np.random.default_rng([POOL_SALT, SPLITS[self.split], int(p)]))
 
-    def _draw(self, idx: int):
+    def draw(self, idx: int):
         """(pair index or None, rng positioned after the scene draws)."""
         if not 0 <= int(idx) < self.length:
             raise IndexError(idx)
@@ -189,14 +189,14 @@ class LightStageDataset:
 
     def scene_for(self, idx: int):
         """(scene, t, lights) of sample ``idx``: everything random about it, drawn in one order."""
-        p, rng = self._draw(idx)
+        p, rng = self.draw(idx)
         scene, t = self._draw_scene(rng) if p is None else self.pair_scene(p)
         lights = lighting_sampling.sample_triplet(rng, self.bank, self.sampling, self.hdri_pool)
         return scene, t, lights
 
     def __getitem__(self, idx: int) -> dict:
         torch_threads = torch.get_num_threads()
-        p, rng = self._draw(idx)
+        p, rng = self.draw(idx)
         if self.cache is not None:
             rec = pairs.load(pairs.pair_path(self.cache, p))
         else:

@@ -205,7 +205,7 @@ class Decoder(nn.Module):
             self.transport = nn.Conv2d(w[0], 9, 1)
             nn.init.zeros_(self.transport.weight)  # E = floor for every light: ratio 1 at start
             nn.init.zeros_(self.transport.bias)
-            self.register_buffer("sh_basis", _sh_projection(), persistent=False)
+            self.register_buffer("sh_basis", sh_projection(), persistent=False)
         for m in (self.gain, self.residual):
             nn.init.zeros_(m.weight)
             nn.init.zeros_(m.bias)
@@ -299,7 +299,7 @@ def _solid_angles() -> torch.Tensor:
     return torch.from_numpy(lightvec.solid_angles().astype(np.float32))
 
 
-def _sh_projection() -> torch.Tensor:
+def sh_projection() -> torch.Tensor:
     """(256, 9): a light vector's order-2 SH coefficients are ``light.flatten(2) @ this``
     (each cell's basis value at its centre direction times its solid angle)."""
     from ..lightstage.shading import cell_sh

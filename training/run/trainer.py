@@ -164,15 +164,15 @@ def train(args) -> pathlib.Path:
                 log.flush()
                 print(json.dumps(parts), flush=True)
             if step % args.save_every == 0:
-                save_checkpoint(out / "checkpoint.pt", scored, recipe, step, _raw(ema, net))
+                save_checkpoint(out / "checkpoint.pt", scored, recipe, step, raw_weights(ema, net))
     recipe["steps"] = step
     recipe["trained_minutes"] = round((time.monotonic() - start) / 60, 2)
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
-    save_checkpoint(out / "checkpoint.pt", scored, recipe, step, _raw(ema, net))
+    save_checkpoint(out / "checkpoint.pt", scored, recipe, step, raw_weights(ema, net))
     return out
 
 
-def _raw(ema, net) -> dict:
+def raw_weights(ema, net) -> dict:
     """With --ema, checkpoint.pt holds the average (what export and --init read) and, beside it,
     the raw training weights."""
     return {"raw_state_dict": net.state_dict()} if ema else {}
