@@ -43,6 +43,17 @@ class ModelCard:
         return self.classes.index(contract.FOREGROUND_CLASS)
 
     @property
+    def recommended(self) -> bool:
+        """Whether the card is marked as the preset to use when none is chosen."""
+        return self.data.get("recommended") is True
+
+    @property
+    def title(self) -> str:
+        """The preset as the panel names it: "portrait" is Portrait, "final-int8" Final (int8)."""
+        name, _, variant = self.preset.partition("-")
+        return name.replace("_", " ").title() + (f" ({variant})" if variant else "")
+
+    @property
     def timing(self) -> tuple[float | None, str]:
         """(ms per frame, what the time refers to, e.g. "512 px, CPU"): bench/frontier.py's
         figure (the whole per-frame path) where the card has one, else export's CPU time of the
@@ -156,6 +167,8 @@ def layout_problems(data: dict) -> list[str]:
     if front is not None and not (isinstance(front, dict) and all(
             _is_number(front.get(k)) for k in ("ms_per_frame", "rmse", "working_size"))):
         problems.append("'frontier' is not bench/frontier.py's entry")
+    if not isinstance(data.get("recommended", False), bool):
+        problems.append("'recommended' is not true or false")
     return problems
 
 

@@ -64,6 +64,23 @@ def model_cards(folder: pathlib.Path) -> list[engine.ModelCard]:
     return scan_models(folder)[0]
 
 
+def default_card(cards: list[engine.ModelCard]) -> engine.ModelCard | None:
+    """The model an empty preset means: the one whose card is marked recommended (Portrait: its
+    light reads as light on real faces), else the fastest of ``cards`` (scan_models' order)."""
+    return next((c for c in cards if c.recommended), cards[0] if cards else None)
+
+
+def preset_label(card: engine.ModelCard) -> str:
+    """A preset as the panel shows it: its name, whether it is the recommended one, its time per
+    frame and its held-out error, e.g. "Portrait (recommended): 22 ms per frame, held-out
+    error 0.0634"."""
+    ms, _ = card.timing
+    error, _ = card.held_out_error
+    time = f"{ms:.0f} ms per frame" if ms is not None else "time not measured"
+    err = f"held-out error {error:.3g}" if error is not None else "error not measured"
+    return f"{card.title}{' (recommended)' if card.recommended else ''}: {time}, {err}"
+
+
 def choose_model(context, preset: str, override_dir: str = "") -> engine.ModelCard:
     folder = models_dir(context, override_dir)
     cards, problems = scan_models(folder)
@@ -77,7 +94,7 @@ def choose_model(context, preset: str, override_dir: str = "") -> engine.ModelCa
         if card.preset == preset:
             return card
     if not preset:
-        return cards[0]
+        return default_card(cards)
     raise ModelError(f"No model for the quality preset '{preset}' in {folder}; available: "
                      f"{', '.join(c.preset for c in cards)}.")
 

@@ -74,9 +74,9 @@ def draw_quality(box, context, settings):
     else:
         box.prop(settings, "preset", text="")
         col = box.column(align=True)
-        chosen = settings.preset or cards[0].preset
+        chosen = settings.preset or bridge.default_card(cards).preset
         for card in cards:
-            col.label(text=f"{card.preset}: {card.summary}",
+            col.label(text=bridge.preset_label(card),
                       icon="CHECKMARK" if card.preset == chosen else "BLANK1")
     for problem in problems[:3]:
         box.label(text=problem[:90], icon='ERROR')

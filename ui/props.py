@@ -32,7 +32,8 @@ def _builtin_items(self, context):
 
 def _preset_search(self, context, edit_text):
     cards = bridge.model_cards(bridge.models_dir(context))
-    return [(c.preset, c.summary) for c in cards if edit_text.lower() in c.preset.lower()]
+    return [(c.preset, bridge.preset_label(c)) for c in cards
+            if edit_text.lower() in c.preset.lower()]
 
 
 def _is_camera(self, obj):
@@ -58,8 +59,8 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
     # A name, not an enum: the models folder may change between sessions and machines (a farm),
     # and a saved enum index would then silently point at another model.
     preset: StringProperty(name="Quality", default="", search=_preset_search,
-                           description="Model preset, each trading accuracy for time; "
-                                       "empty uses the fastest installed model")
+                           description="Model preset, each trading accuracy for time; empty "
+                                       "uses the recommended model (Portrait where installed)")
     output_dir: StringProperty(name="Output", subtype='DIR_PATH', default="//relit/",
                                options=BLEND_RELATIVE,
                                description="Folder for the relit EXR frames (one sub-folder per strip)")

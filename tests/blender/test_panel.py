@@ -84,7 +84,58 @@ def test_panel_shows_each_presets_time_and_error(prefs, toy_models, tmp_path):
     prefs.models_dir = str(models)
     footage_scene(tmp_path, count=2)
     texts = draw_panel().texts()
-    assert "toy: 38 ms/frame (512 px, CPU), held-out RMSE 0.0412" in texts
+    assert "Toy: 38 ms per frame, held-out error 0.0412" in texts
+
+
+def two_presets(folder, recommended=None):
+    """A models folder with the toy as "draft" (fast) and as "portrait" (slow); the card of
+    ``recommended`` marked so."""
+    from onnx_fixtures import write_toy_model
+
+    for preset, ms in (("draft", 9.5), ("portrait", 120.0)):
+        card_path = write_toy_model(folder, preset).with_suffix(".json")
+        card = json.loads(card_path.read_text())
+        card.update(preset=preset, cost={"cpu": {"per_size": {"64": {"ms": ms}}}})
+        if preset == recommended:
+            card["recommended"] = True
+        card_path.write_text(json.dumps(card))
+    return folder
+
+
+def test_an_empty_preset_is_the_recommended_one_and_the_panel_says_so(prefs, tmp_path):
+    from portrait_relight.ops import bridge
+
+    prefs.models_dir = str(two_presets(tmp_path / "models", recommended="portrait"))
+    footage_scene(tmp_path, count=2)
+    assert bpy.context.scene.relight.preset == ""
+    log = draw_panel().log
+    assert ("label", "Portrait (recommended): 120 ms per frame, error not measured",
+            'CHECKMARK') in log
+    assert ("label", "Draft: 10 ms per frame, error not measured", 'BLANK1') in log
+    job = bridge.gather_job(bpy.context, bpy.context.scene.sequence_editor.active_strip)
+    assert job.model.preset == "portrait"
+    bpy.context.scene.relight.preset = "draft"  # a preset chosen is the one used
+    assert bridge.gather_job(bpy.context, bpy.context.scene.sequence_editor.active_strip
+                             ).model.preset == "draft"
+
+
+def test_with_no_card_marked_an_empty_preset_is_the_fastest(prefs, tmp_path):
+    from portrait_relight.ops import bridge
+
+    prefs.models_dir = str(two_presets(tmp_path / "models"))
+    footage_scene(tmp_path, count=2)
+    assert ("label", "Draft: 10 ms per frame, error not measured", 'CHECKMARK') in \
+        draw_panel().log
+    job = bridge.gather_job(bpy.context, bpy.context.scene.sequence_editor.active_strip)
+    assert job.model.preset == "draft"
+
+
+def test_the_shipped_models_recommend_portrait(extension):
+    from portrait_relight.ops import bridge
+
+    cards = bridge.model_cards(bridge.BUNDLED_MODELS)
+    assert [c.preset for c in cards if c.recommended] == ["portrait"]
+    assert bridge.default_card(cards).preset == "portrait"
 
 
 def test_panel_lists_an_unusable_model_with_its_reason(prefs, toy_models, tmp_path):

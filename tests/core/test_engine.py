@@ -134,6 +134,7 @@ def test_unknown_contract_and_bad_cards_are_refused(tmp_path):
     ({"cost": {"cpu": {"per_size": {"512": 38.0}}}}, "cost.cpu"),
     ({"metrics": {"model": {"rmse": "0.04"}}}, "metrics.model"),
     ({"frontier": {"ms": 9.0}}, "frontier"),
+    ({"recommended": "yes"}, "recommended"),
 ])
 def test_a_card_not_laid_out_as_the_exporters_write_it_is_refused(tmp_path, changes, says):
     """One card layout: training/run/export.py's (relit brought back by k, inputs and outputs
@@ -297,6 +298,15 @@ def test_a_cards_figures_are_read_where_export_and_the_frontier_put_them(tmp_pat
                                    "provider": "CPUExecutionProvider"})
     card = engine.load_card(model)
     assert card.timing == (12.25, "128 px, CPU") and card.held_out_error == (0.05, "RMSE")
+
+
+def test_a_card_names_its_preset_for_people_and_may_be_the_recommended_one(tmp_path):
+    model = write_toy_model(tmp_path)
+    card = engine.load_card(model)
+    assert (card.title, card.recommended) == ("Toy", False)
+    _rewrite_card(model, preset="final-int8", recommended=True)
+    card = engine.load_card(model)
+    assert (card.title, card.recommended) == ("Final (int8)", True)
 
 
 def test_an_intrinsic_cards_error_is_the_one_at_the_right_level():
