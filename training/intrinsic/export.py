@@ -148,6 +148,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--working-size", type=int, default=128)
     ap.add_argument("--eval", type=int, default=64, help="held-out test samples for the card")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--recommended", action="store_true",
+                    help="mark the card as the recommended preset (the panel's default)")
     return ap
 
 
@@ -168,7 +170,7 @@ def main(argv=None):
     onnx_sha = engine.file_sha256(onnx_path)
     card = {
         "contract": contract.INTRINSIC_CONTRACT, "name": a.name, "preset": a.preset,
-        "onnx": onnx_path.name, "sha256": engine.file_sha256(onnx_path),
+        "recommended": a.recommended, "onnx": onnx_path.name, "sha256": engine.file_sha256(onnx_path),
         "inputs": [{"name": contract.INPUT_IMAGE, "shape": ["N", 3, "H", "W"], "dtype": "float32"}],
         "outputs": [{"name": contract.OUTPUT_NORMAL, "shape": ["N", 3, "H", "W"]},
                     {"name": contract.OUTPUT_HEIGHT, "shape": ["N", 1, "H", "W"]},
