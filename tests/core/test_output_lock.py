@@ -39,6 +39,7 @@ def clip(movie):
 
 
 def opts(model, **kw):
+    kw.setdefault("exposure_mode", "physical")  # other lights must give other frames here
     return pipeline.RelightOptions(model, working_size=32, threads=1, background="network", **kw)
 
 
@@ -199,7 +200,7 @@ from addon import lightvec, pipeline
 from addon.errors import RelightError
 clip = pipeline.ClipSpec('movie', sys.argv[1], (), 0, {n}, 'sRGB', 25.0)
 opts = pipeline.RelightOptions(sys.argv[2], working_size=32, threads=1, background='network',
-                               overwrite=sys.argv[5] == '1')
+                               overwrite=sys.argv[5] == '1', exposure_mode='physical')
 while not pathlib.Path(sys.argv[6]).exists():  # start together
     time.sleep(0.005)
 try:
