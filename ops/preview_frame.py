@@ -76,11 +76,4 @@ class RELIGHT_OT_preview_frame(bpy.types.Operator):
 classes = (RELIGHT_OT_preview_frame,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(classes)

@@ -78,11 +78,4 @@ class RELIGHT_OT_preview_light(bpy.types.Operator):
 classes = (RELIGHT_OT_preview_light,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(classes)

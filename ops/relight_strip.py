@@ -271,11 +271,4 @@ def _print_log(message: str) -> None:
 classes = (RELIGHT_OT_relight_strip,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(classes)

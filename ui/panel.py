@@ -102,11 +102,4 @@ def draw_output(box, settings):
 classes = (RELIGHT_PT_sequencer,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(classes)

@@ -36,11 +36,4 @@ class RELIGHT_AP_preferences(bpy.types.AddonPreferences):
 classes = (RELIGHT_AP_preferences,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(classes)
