@@ -290,6 +290,10 @@ def shipped_models(models_dir: pathlib.Path, names=None, log=None) -> list[engin
         try:
             card = engine.load_card(p)
             engine.verify_checksum(card)
+            if card.contract == contract.INTRINSIC_CONTRACT:
+                log(f"skipping {p.name}: an intrinsic preset (bench.intrinsic_speed and "
+                    "bench.intrinsic_effects measure it)")
+                continue
             cards.append(card)
         except Exception as err:  # noqa: BLE001  a broken card is reported, not measured
             log(f"skipping {p.name}: {err}")
