@@ -25,6 +25,10 @@ MATTE_SUFFIX = " matte"
 # turns it into its exit status and, with --debug, shows its traceback).
 last_error = None
 
+# The interactive run going on (one at a time: a second would fight the first for the CPU and,
+# on the same strip, for its output folder), or None.
+running = None
+
 # Where a synchronous run (execute) sends its progress (done, total, text) and log lines; None
 # prints them. The batch run's --progress json (ops/batch.py) sets its own.
 progress_sink = None
@@ -106,7 +110,7 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
     """Relight the active footage strip under the chosen lighting; adds a relit EXR strip above"""
     bl_idname = "relight.relight_strip"
     bl_label = "Relight Strip"
-    bl_options = {'REGISTER'}
+    bl_options = {'REGISTER', 'UNDO'}
 
     strip: bpy.props.StringProperty(name="Strip", options={'SKIP_SAVE'},
                                     description="Strip to relight; empty uses the active strip")
@@ -123,7 +127,20 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return context.scene is not None
+        if context.scene is None:
+            return False
+        if running is not None:
+            cls.poll_message_set(f"Relighting '{running}' is under way; wait for it, or press "
+                                 "Esc to cancel it")
+            return False
+        if bpy.app.background:  # scripts and the batch run name their strip
+            return True
+        editor = context.scene.sequence_editor
+        strip = editor.active_strip if editor else None
+        if strip is None or strip.type not in bridge.FOOTAGE_TYPES:
+            cls.poll_message_set("Select a footage strip (a movie or an image sequence)")
+            return False
+        return True
 
     def _strip(self, context):
         editor = context.scene.sequence_editor
@@ -191,6 +208,8 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
         except RelightError as err:
             self.report({'ERROR'}, str(err))
             return {'CANCELLED'}
+        global running
+        running = job.strip_name
         self._state = _WorkerState(job=job, warnings=warnings, started=time.perf_counter())
         self._thread = threading.Thread(target=self._state.run, args=(lights,), daemon=True)
         self._thread.start()
@@ -205,6 +224,7 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
         state = self._state
         if event.type == 'ESC':
             state.cancel.set()
+            return {'RUNNING_MODAL'}  # consumed: Esc cancels the run, nothing else
         if event.type != 'TIMER':
             return {'PASS_THROUGH'}
         context.window_manager.progress_update(state.done)
@@ -227,6 +247,8 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
         return {'FINISHED'}
 
     def _end_modal(self, context):
+        global running
+        running = None
         wm = context.window_manager
         wm.event_timer_remove(self._timer)
         wm.progress_end()

@@ -50,3 +50,13 @@ def test_preview_outside_the_strip_says_where_to_go(extension, toy_models, tmp_p
 def test_preview_is_greyed_without_a_footage_strip(extension):
     bpy.ops.wm.read_homefile(use_empty=True)
     assert not bpy.ops.relight.preview_frame.poll()
+
+
+def test_preview_waits_for_a_running_relight(extension, toy_models, tmp_path):
+    footage_scene(tmp_path, count=2)
+    assert bpy.ops.relight.preview_frame.poll()
+    extension.ops.relight_strip.running = "other shot"
+    try:
+        assert not bpy.ops.relight.preview_frame.poll()
+    finally:
+        extension.ops.relight_strip.running = None

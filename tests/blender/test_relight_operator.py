@@ -224,3 +224,18 @@ def test_the_panel_defaults_to_the_pipelines_background_and_the_run_records_it(
     relight(toy_models)
     run = json.loads((tmp_path / "out" / source.name / "relight_run.json").read_text())
     assert run["identity"]["settings"]["background"] == pipeline.DEFAULT_BACKGROUND
+
+
+def test_one_run_at_a_time_and_greyed_with_the_reason(extension, toy_models, tmp_path):
+    footage_scene(tmp_path, count=2)
+    relight_strip = extension.ops.relight_strip
+    assert bpy.ops.relight.relight_strip.poll()
+    relight_strip.running = "other shot"  # an interactive run is going on
+    try:
+        assert not bpy.ops.relight.relight_strip.poll()
+        with pytest.raises(RuntimeError, match="under way"):
+            relight(toy_models)
+    finally:
+        relight_strip.running = None
+    assert relight(toy_models) == {'FINISHED'}
+    assert 'UNDO' in relight_strip.RELIGHT_OT_relight_strip.bl_options
