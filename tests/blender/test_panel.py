@@ -174,3 +174,19 @@ def test_preferences_choose_the_models_folder(prefs, toy_models, tmp_path):
     job = bridge.gather_job(bpy.context, bpy.context.scene.sequence_editor.active_strip)
     assert job.options.providers == ["CPUExecutionProvider"] and job.options.threads == 1
     assert bpy.ops.relight.relight_strip() == {'FINISHED'}      # no override: the preferences
+
+
+def test_preferences_offer_only_the_installed_execution_providers(prefs):
+    import onnxruntime
+
+    from portrait_relight.ui import prefs as prefs_module
+
+    offered = [item[0] for item in prefs_module.provider_items(prefs, bpy.context)]
+    have = set(onnxruntime.get_available_providers())
+    assert offered[0] == 'AUTO' and 'CPU' in offered
+    assert ('CUDA' in offered) == ("CUDAExecutionProvider" in have)  # this CPU build: no CUDA
+    assert ('DIRECTML' in offered) == ("DmlExecutionProvider" in have)
+    with pytest.raises(TypeError):
+        prefs.provider = 'CUDA' if 'CUDA' not in offered else 'NOT_A_PROVIDER'
+    prefs.provider = 'CPU'
+    assert prefs.provider == 'CPU'
