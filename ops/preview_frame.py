@@ -44,16 +44,7 @@ class RELIGHT_OT_preview_frame(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if relight_strip.running is not None:
-            cls.poll_message_set(f"Relighting '{relight_strip.running}' is under way; wait for "
-                                 "it, or press Esc to cancel it")
-            return False
-        editor = context.scene.sequence_editor if context.scene else None
-        strip = editor.active_strip if editor else None
-        if strip is None or strip.type not in bridge.FOOTAGE_TYPES:
-            cls.poll_message_set("Select a footage strip (a movie or an image sequence)")
-            return False
-        return True
+        return relight_strip.poll_run(cls, context, need_strip=True)
 
     def execute(self, context):
         from ..addon import pipeline

@@ -106,6 +106,24 @@ def show_source_light(job: bridge.Job) -> None:
         preview_light.set_preview(preview_light.SOURCE_IMAGE, np.mean(lights, axis=0))
 
 
+def poll_run(operator, context, need_strip: bool) -> bool:
+    """Whether a relight may start now, with the reason set as the poll message where not: one
+    run at a time, and (``need_strip``) an active footage strip to run on."""
+    if context.scene is None:
+        return False
+    reason = None
+    if running is not None:
+        reason = f"Relighting '{running}' is under way; wait for it, or press Esc to cancel it"
+    elif need_strip:
+        editor = context.scene.sequence_editor
+        strip = editor.active_strip if editor else None
+        if strip is None or strip.type not in bridge.FOOTAGE_TYPES:
+            reason = "Select a footage strip (a movie or an image sequence)"
+    if reason:
+        operator.poll_message_set(reason)
+    return reason is None
+
+
 class RELIGHT_OT_relight_strip(bpy.types.Operator):
     """Relight the active footage strip under the chosen lighting; adds a relit EXR strip above"""
     bl_idname = "relight.relight_strip"
@@ -127,20 +145,8 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if context.scene is None:
-            return False
-        if running is not None:
-            cls.poll_message_set(f"Relighting '{running}' is under way; wait for it, or press "
-                                 "Esc to cancel it")
-            return False
-        if bpy.app.background:  # scripts and the batch run name their strip
-            return True
-        editor = context.scene.sequence_editor
-        strip = editor.active_strip if editor else None
-        if strip is None or strip.type not in bridge.FOOTAGE_TYPES:
-            cls.poll_message_set("Select a footage strip (a movie or an image sequence)")
-            return False
-        return True
+        # scripts and the batch run name their strip: only the UI needs an active one
+        return poll_run(cls, context, need_strip=not bpy.app.background)
 
     def _strip(self, context):
         editor = context.scene.sequence_editor
