@@ -605,6 +605,24 @@ def stale_partial(name: str) -> str | None:
     return None if pid == os.getpid() or pid_alive(pid) else m.group("final")
 
 
+def sweep_stale_partials(folder, pattern) -> list[str]:
+    """Remove from ``folder`` the partial files dead processes of this machine left for final
+    names matching ``pattern`` (stale_partial); returns the removed paths. A concurrent
+    writer's file in progress is kept, and one swept by another process meanwhile is skipped."""
+    removed: list[str] = []
+    if not os.path.isdir(str(folder)):
+        return removed
+    for entry in os.scandir(str(folder)):
+        final = stale_partial(entry.name)
+        if final and pattern.match(final) and entry.is_file(follow_symlinks=False):
+            try:
+                os.remove(entry.path)
+            except FileNotFoundError:
+                continue  # another process swept it first
+            removed.append(entry.path)
+    return removed
+
+
 def pid_alive(pid: int) -> bool:
     """Whether process ``pid`` of this machine is running."""
     if sys.platform == "win32":  # os.kill(pid, 0) would send Ctrl+C there

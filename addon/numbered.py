@@ -57,15 +57,7 @@ def publish(src, dest) -> None:
 
 def sweep_partials(out_dir) -> None:
     """Remove half-made numbered names that a killed process of this machine left."""
-    if not os.path.isdir(str(out_dir)):
-        return
-    for entry in os.scandir(str(out_dir)):
-        final = frames.stale_partial(entry.name)
-        if final and _PUBLISHED.match(final) and entry.is_file(follow_symlinks=False):
-            try:
-                os.remove(entry.path)
-            except FileNotFoundError:
-                pass  # another chunk swept it first
+    frames.sweep_stale_partials(out_dir, _PUBLISHED)
 
 
 def publish_frames(out_dir, indices, numbers, digits: int, matte: bool = False) -> list[str]:

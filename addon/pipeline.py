@@ -294,16 +294,7 @@ def sweep_partials(out_dir: str) -> list[str]:
                             (os.path.join(out_dir, "relit"), _OUTPUT_NAME),
                             (os.path.join(out_dir, "matte"), _OUTPUT_NAME),
                             (os.path.join(out_dir, "source_light"), _OUTPUT_NAME)):
-        if not os.path.isdir(folder):
-            continue
-        for entry in os.scandir(folder):
-            final = frames.stale_partial(entry.name)
-            if final and pattern.match(final) and entry.is_file(follow_symlinks=False):
-                try:
-                    os.remove(entry.path)
-                except FileNotFoundError:
-                    continue  # another process swept it first
-                removed.append(entry.path)
+        removed += frames.sweep_stale_partials(folder, pattern)
     return removed
 
 
