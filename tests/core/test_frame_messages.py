@@ -8,14 +8,8 @@ import pytest
 from addon import frames, lightvec, pipeline
 from addon.errors import InputError
 from tests.clip_fixtures import ramp_frames, write_movie, write_png, write_png_sequence
-from tests.onnx_fixtures import write_toy_model
 
 UNIFORM = lightvec.uniform(1.0)[None]
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return str(write_toy_model(tmp_path_factory.mktemp("model")))
 
 
 def run(toy, files, out, first=1, scene_start=101):

@@ -22,7 +22,7 @@ from onnx import helper
 from addon import api, colour, contract, engine, frames, hdri, lamps, lightvec, pipeline
 from addon.errors import LightingError, OutputError
 from tests.clip_fixtures import ramp_frames, write_exr_sequence, write_png
-from tests.onnx_fixtures import card_fields, graph_model, save_model, write_toy_model
+from tests.onnx_fixtures import card_fields, graph_model, save_model
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 CATALOGUE = ROOT / "tests" / "HARD_CASES.md"
@@ -83,11 +83,6 @@ def build_negative_model() -> onnx.ModelProto:
     return graph_model(nodes, {"offset": np.float32(0.3), "zero": np.float32(0.0),
                           "one": np.float32(1.0), "axes_c": np.array([1], np.int64)},
                   "negative")
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return str(write_toy_model(tmp_path_factory.mktemp("toy")))
 
 
 @pytest.fixture(scope="module")

@@ -16,16 +16,10 @@ import pytest
 from addon import frames, lightvec, pipeline, runlock
 from addon.errors import Cancelled, OutputError
 from tests.clip_fixtures import ramp_frames, write_movie
-from tests.onnx_fixtures import write_toy_model
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 N = 6
 UNIFORM = lightvec.uniform(1.0)[None]
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return str(write_toy_model(tmp_path_factory.mktemp("model")))
 
 
 @pytest.fixture(scope="module")

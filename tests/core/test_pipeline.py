@@ -14,15 +14,9 @@ from addon import colour, frames, lightvec, pipeline
 from addon.errors import Cancelled, InputError, LightingError, ModelError, OutputError
 from tests.clip_fixtures import (ramp_frames, write_exr_float, write_exr_sequence, write_movie,
                                  write_png, write_png_sequence)
-from tests.onnx_fixtures import write_toy_model
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 N = 6
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return str(write_toy_model(tmp_path_factory.mktemp("model")))
 
 
 @pytest.fixture(scope="module")

@@ -9,21 +9,14 @@ import subprocess
 import sys
 import threading
 
-import numpy as np
 import pytest
 
 from addon import frames, lightvec, pipeline
 from addon.errors import Cancelled, InputError, OutputError
 from tests.clip_fixtures import ramp_frames, write_movie, write_png_sequence
-from tests.onnx_fixtures import write_toy_model
 
 N = 6
 UNIFORM = lightvec.uniform(1.0)[None]
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return str(write_toy_model(tmp_path_factory.mktemp("model")))
 
 
 @pytest.fixture(scope="module")
