@@ -20,3 +20,11 @@ def shared_data() -> pathlib.Path:
     if not (SHARED_DATA / "README.md").is_file():
         pytest.skip(f"needs the shared data folder ({SHARED_DATA}), which is absent on this machine")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    """The toy ONNX model (tests/onnx_fixtures.py) with its card, one per test module."""
+    from tests.onnx_fixtures import write_toy_model
+
+    return str(write_toy_model(tmp_path_factory.mktemp("model")))
