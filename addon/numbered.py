@@ -1,11 +1,11 @@
 """Relit frames under the footage's own frame numbers: shot.1001.exr relights to relit.1001.exr.
 
 The pipeline names its frames by 0-based clip index (relit/relit_000000.exr); resuming, farm
-chunks and the run record rely on those names. A run of footage named on the command line (the
-batch script's ``--input``) also publishes each finished frame under its source number, in the
-run's folder, as a hard link to the pipeline's file (no second copy on disk; a copy where the
-file system has no hard links). Movies carry no numbers: their frames take the scene frames they
-are shown on."""
+chunks and the run record rely on those names. A strip's run (the Relight Strip operator, the
+batch script, a farm chunk) also publishes each finished frame under its source number, in its
+take's folder, as a hard link to the pipeline's file (no second copy on disk; a copy where the
+file system has no hard links); the relit strip shows those. Movies carry no numbers: their
+frames take the scene frames they are shown on."""
 
 from __future__ import annotations
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import (colour, contract, detail, engine, framing, frames, lightvec, normalise,
-               portrait, runlock)
+               portrait, runlock, takes)
 from .errors import Cancelled, InputError, LightingError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
 
@@ -91,6 +91,9 @@ class RelightOptions:
     providers: tuple[str, ...] | None = None
     threads: int | None = None
     overwrite: bool = False    # replace another run's output in out_dir instead of refusing
+    # out_dir is a strip's folder of takes (addon/takes.py): the run writes into the take that
+    # holds it, else a new take (overwrite: the latest take); RunResult.out_dir names the take.
+    takes: bool = False
     exr_compression: str = "none"     # see frames.COMPRESSIONS; not part of the run identity
     # What stands behind the relit subject (BACKGROUNDS): the network's own output, or the
     # source's background composited in by the network's foreground matte, as it was or relit as
@@ -660,10 +663,12 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
     working = int(options.working_size or session.card.working_size)
     if working < 1:
         raise InputError(f"The working size must be positive, got {working}.")
-    _check_not_source(clip, out_dir)
     identity = run_identity(clip, lights, options, session.card, working)
-    _create_folder(out_dir)
     run = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
+    if options.takes:
+        out_dir = takes.choose_take(out_dir, run, options.overwrite, out.warn, should_cancel)
+    _check_not_source(clip, out_dir)
+    _create_folder(out_dir)
     # Held until the run ends, however it ends: another run cannot write here meanwhile.
     with runlock.FolderLock(out_dir, run, note=out.warn, should_cancel=should_cancel) as lock:
         stored = prepare_output(out_dir, identity, options.overwrite)

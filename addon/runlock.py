@@ -158,29 +158,54 @@ class FolderLock:
         self._in_setup = True
 
     def _refuse_other_runs(self) -> None:
-        try:
-            names = sorted(os.listdir(self.out_dir))
-        except OSError as err:
-            raise OutputError(f"Cannot list the output folder {self.out_dir} ({err}).") from err
-        for name in names:
-            path = os.path.join(self.out_dir, name)
-            if not (name.startswith(HOLDER_PREFIX) and name.endswith(HOLDER_SUFFIX)) \
-                    or path == self.holder_path:
-                continue
-            record = _read(path)
-            if record is None:
-                continue
-            if _dead(path, record):
-                self.note(f"Took over the output folder from a relight run that ended without "
-                          f"releasing it ({describe(path, record)}).")
-                _remove(path)
-            elif record.get("run") != self.run:
-                raise OutputError(
-                    f"The output folder {self.out_dir} is in use by another relight run (with "
-                    f"other footage, lighting or settings): {describe(path, record)}. Wait for "
-                    "it to finish or choose another output folder (enable Overwrite to replace "
-                    "its frames once it has finished). If that run is no longer running (its "
-                    "machine crashed), delete the lock file.")
+        other = other_live_run(self.out_dir, self.run, self.note, skip=self.holder_path)
+        if other is not None:
+            raise OutputError(
+                f"The output folder {self.out_dir} is in use by another relight run (with "
+                f"other footage, lighting or settings): {describe(*other)}. Wait for it to "
+                "finish or choose another output folder. If that run is no longer running (its "
+                "machine crashed), delete the lock file.")
+
+
+def other_live_run(folder: str, run: str, note=None, skip: str = "") -> tuple[str, dict] | None:
+    """(lock file, record) of a live process holding ``folder`` for a run other than ``run``,
+    else None. Holder files that dead processes left are removed on the way, with a note."""
+    note = note or (lambda msg: None)
+    try:
+        names = sorted(os.listdir(folder))
+    except FileNotFoundError:
+        return None
+    except OSError as err:
+        raise OutputError(f"Cannot list the output folder {folder} ({err}).") from err
+    for name in names:
+        path = os.path.join(folder, name)
+        if not (name.startswith(HOLDER_PREFIX) and name.endswith(HOLDER_SUFFIX)) or path == skip:
+            continue
+        record = _read(path)
+        if record is None:
+            continue
+        if _dead(path, record):
+            note(f"Took over the output folder from a relight run that ended without releasing "
+                 f"it ({describe(path, record)}).")
+            _remove(path)
+        elif record.get("run") != run:
+            return path, record
+    return None
+
+
+class SetupLock:
+    """``with SetupLock(folder):`` holds ``folder``'s short exclusive setup lock (the one
+    FolderLock takes while a run decides what the folder holds)."""
+
+    def __init__(self, folder: str, note=None, should_cancel=None, wait_s: float = SETUP_WAIT_S):
+        self._lock = FolderLock(folder, "", note, should_cancel, wait_s)
+
+    def __enter__(self) -> SetupLock:
+        self._lock._begin_setup()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._lock.end_setup()
 
 
 def _remove(path: str) -> None:

@@ -9,15 +9,17 @@ module registers. What to relight:
 - ``--demo``: the built-in demo clip;
 - ``--input PATH``: a movie or an image sequence with no .blend. A strip is made for it with the
   Import Footage operator in an empty file, or in ``--lights-from FILE`` (opened, its lamps,
-  world, camera and Relight settings used, never saved). Its relit frames are also published
-  under the footage's own numbers (addon/numbered.py: shot.1001.exr -> relit.1001.exr).
+  world, camera and Relight settings used, never saved).
+
+Every way writes a take of the strip, ``OUT/STRIP/v001`` (a new take when the lighting or
+settings change, ops/relight_strip.py), with the frames named like the source's (shot.1001.exr
+-> relit.1001.exr); the last line of a run names the take's folder.
 
 Exit statuses are EXIT_STATUS below; ``--help`` lists them with the models and studio HDRIs."""
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import os
@@ -54,7 +56,7 @@ EXIT_STATUS = """exit status (one line on stderr says what happened; tracebacks 
   143  stopped by SIGTERM (a farm manager), the same as Ctrl-C"""
 
 EXAMPLES = """examples:
-  blender -c relight --input shot/ --studio sunset --out relit/      (shot.1001.exr -> relit/shot/relit.1001.exr)
+  blender -c relight --input shot/ --studio sunset --out relit/      (shot.1001.exr -> relit/shot/v001/relit.1001.exr)
   blender -c relight --input take.mov --lights-from lights.blend --out relit/
   blender -b scene.blend -P scripts/relight_batch.py -- --strip "Take 1" --frames 1-50"""
 
@@ -117,7 +119,7 @@ def build_parser(prog: str = NAME, lists: str = "") -> argparse.ArgumentParser:
     what.add_argument("--input", metavar="PATH",
                       help="a movie, an image of a numbered sequence, or a folder holding one: "
                            "relit with no .blend; frames keep their numbers "
-                           "(shot.1001.exr -> OUT/<clip>/relit.1001.exr)")
+                           "(shot.1001.exr -> OUT/<clip>/v001/relit.1001.exr)")
     what.add_argument("--demo", action="store_true", help="relight the built-in demo clip")
     footage = p.add_argument_group("footage given with --input")
     footage.add_argument("--input-colorspace", metavar="NAME",
@@ -151,8 +153,9 @@ def build_parser(prog: str = NAME, lists: str = "") -> argparse.ArgumentParser:
                      help="compression of the relit EXRs, all lossless (default: the .blend's "
                           "setting, PIZ in a new file)")
     out.add_argument("--models", metavar="DIR", help="folder of models (default: preferences)")
-    out.add_argument("--out", metavar="DIR", help="output folder, one sub-folder per strip "
-                                                  "(default: the .blend's setting)")
+    out.add_argument("--out", metavar="DIR", help="output folder: DIR/STRIP/v001, v002, ... one "
+                                                  "take per lighting (default: the .blend's "
+                                                  "setting)")
     out.add_argument("--frames", type=frame_range, metavar="A-B",
                      help="scene frames to relight (one farm chunk)")
     out.add_argument("--matte", action="store_true", help="also write the portrait matte")
@@ -162,7 +165,9 @@ def build_parser(prog: str = NAME, lists: str = "") -> argparse.ArgumentParser:
                           "camera (default: the .blend's setting)")
     out.add_argument("--keep-background", action="store_true",
                      help="the same as --background keep")
-    out.add_argument("--overwrite", action="store_true", help="redo frames an earlier run made")
+    out.add_argument("--overwrite", action="store_true",
+                     help="replace the strip's latest take instead of making a new one when the "
+                          "lighting or settings changed (the same ones resume their take)")
     out.add_argument("--save", action="store_true", help="save the .blend with the relit strip")
     out.add_argument("--progress", choices=["text", "json"], default="text",
                      help="json: one JSON object per line on stdout (state, frame, total, fps, "
@@ -288,14 +293,6 @@ def set_up_demo(args) -> str:
     return bpy.context.scene.sequence_editor.active_strip.name
 
 
-@dataclasses.dataclass(frozen=True)
-class Footage:
-    """A strip made for --input, and the number each of its frames is published under."""
-    strip: str
-    numbers: tuple[int, ...]   # numbers[i]: clip frame i's number (the source's, or its scene frame)
-    digits: int                # zero padding of the numbers
-
-
 def first_footage_file(path: pathlib.Path) -> pathlib.Path:
     """The file Import Footage is given: the movie, or the first image of the sequence that
     the image or folder holds."""
@@ -317,9 +314,10 @@ def is_image(path: pathlib.Path) -> bool:
     return path.suffix.lower() in frames.IMAGE_EXTS
 
 
-def set_up_input(args) -> Footage:
-    """A strip for --input in an empty file, or in --lights-from FILE (which is never saved)."""
-    from ..addon import frames, numbered
+def set_up_input(args) -> str:
+    """A strip for --input in an empty file, or in --lights-from FILE (which is never saved);
+    its name."""
+    from ..addon import frames
 
     first = first_footage_file(pathlib.Path(args.input).resolve())
     if args.lights_from:
@@ -345,12 +343,7 @@ def set_up_input(args) -> Footage:
                              f"Blender has: {', '.join(names)}.") from None
     if args.lights_from and not (args.hdri or args.studio or args.scene_lights or args.world):
         use_file_lighting(scene)
-    count = int(strip.frame_final_duration)
-    if strip.type == 'IMAGE':
-        numbers, digits = numbered.sequence_numbering(bridge.image_files(strip), start)
-    else:
-        numbers, digits = [start + i for i in range(count)], numbered.MOVIE_DIGITS
-    return Footage(strip.name, tuple(numbers[:count]), digits)
+    return strip.name
 
 
 def use_file_lighting(scene) -> None:
@@ -430,26 +423,15 @@ def run_frames(scene, strip) -> list[int]:
     return bridge.frames_to_run(strip, (s.frame_start, s.frame_end) if s.use_frame_range else None)
 
 
-def publish_numbered(scene, strip, out: pathlib.Path, footage: Footage) -> list[str]:
-    from ..addon import numbered
-
-    first = strip.frame_final_start
-    indices = [f - first for f in run_frames(scene, strip)]
-    return numbered.publish_frames(out, indices, footage.numbers, footage.digits,
-                                   matte=scene.relight.write_matte)
-
-
 def run(args, progress: "Progress") -> None:
     if args.blend:
         open_blend(args.blend)
     if args.models:
         args.models = str(pathlib.Path(args.models).resolve())
-    footage = None
     if args.demo:
         strip = set_up_demo(args)
     elif args.input:
-        footage = set_up_input(args)
-        strip = footage.strip
+        strip = set_up_input(args)
     else:
         strip = args.strip
     apply_settings(bpy.context.scene, args)
@@ -457,11 +439,9 @@ def run(args, progress: "Progress") -> None:
     relight(strip, args.models or "")
     scene = bpy.context.scene
     source = scene.sequence_editor.strips[strip]
-    out = bridge.output_dir(scene, source, scene.relight.output_dir)
-    where = out / "relit"
-    if footage is not None:
-        names = publish_numbered(scene, source, out, footage)
-        where = f"{out} ({names[0]} to {names[-1]})" if len(names) > 1 else f"{out / names[0]}"
+    out = pathlib.Path(relight_strip.last_result.out_dir)
+    names = relight_strip.last_published
+    where = f"{out} ({names[0]} to {names[-1]})" if len(names) > 1 else f"{out / names[0]}"
     if args.save:
         if not bpy.data.filepath:
             raise BatchError("--save needs a .blend file to save into; open one first.")

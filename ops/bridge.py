@@ -26,13 +26,15 @@ class Job:
     clip: object                 # addon.pipeline.ClipSpec
     scene_frames: tuple          # scene frames to relight now (whole strip, or one farm chunk)
     clip_frames: tuple           # the same frames as 0-based indices into the clip
-    out_dir: pathlib.Path
+    out_dir: pathlib.Path        # the strip's folder of takes (addon/takes.py)
     model: engine.ModelCard
     options: object              # addon.pipeline.RelightOptions
     light_args: dict             # keyword arguments for ops.scene_light.light_schedule
     channel: int                 # the source strip's channel; results go above it
     frame_start: int             # the source strip's first visible scene frame
     frame_count: int             # its visible length
+    numbers: tuple = ()          # the source's frame number of each clip frame (file names)
+    digits: int = 4              # the zero padding of those numbers
 
 
 def addon_prefs(context):
@@ -136,6 +138,21 @@ def image_files(strip) -> list[str]:
     return [str(pathlib.Path(folder) / e.filename) for e in strip.elements]
 
 
+def source_numbering(strip) -> tuple[tuple[int, ...], int]:
+    """(the frame number of each visible frame, the digits to pad them to): an image sequence's
+    own numbers (shot.0998.exr: 998, 4 digits; files without numbers count up from the strip's
+    first frame), a movie's scene frames. Relit files take these names (relit.0998.exr)."""
+    from ..addon import numbered
+
+    first = content_index(strip, strip.frame_final_start)
+    count = int(strip.frame_final_duration)
+    if strip.type == 'IMAGE':
+        numbers, digits = numbered.sequence_numbering(image_files(strip), round(strip.frame_start))
+        return tuple(numbers[first:first + count]), digits
+    start = int(strip.frame_final_start)
+    return tuple(range(start, start + count)), numbered.MOVIE_DIGITS
+
+
 def clip_spec(strip, scene):
     """The visible part of a footage strip as an addon.pipeline.ClipSpec.
 
@@ -181,8 +198,9 @@ def frames_to_run(strip, frame_range: tuple[int, int] | None) -> list[int]:
 
 
 def output_dir(scene, strip, folder: str) -> pathlib.Path:
-    """<output folder>/<folder for the strip's name>: one folder per strip, so runs never mix
-    (addon.pipeline.folder_name: readable, and distinct for distinct names)."""
+    """<output folder>/<folder for the strip's name>: one folder per strip, holding its takes
+    (v001, v002, ...: addon/takes.py), so runs never mix (addon.pipeline.folder_name: readable,
+    and distinct for distinct names)."""
     from ..addon.pipeline import folder_name
 
     if not folder:
@@ -228,10 +246,11 @@ def gather_job(context, strip, *, models_override: str = "") -> Job:
     first_visible = strip.frame_final_start
     out_dir = output_dir(scene, strip, settings.output_dir)
     model = choose_model(context, settings.preset, models_override)
+    numbers, digits = source_numbering(strip)
     prefs = addon_prefs(context)
     options = RelightOptions(
         model_path=str(model.onnx_path), detail_transfer=settings.detail_transfer,
-        write_matte=settings.write_matte, overwrite=settings.overwrite,
+        write_matte=settings.write_matte, overwrite=settings.overwrite, takes=True,
         background=settings.background.lower(), exposure_mode=settings.exposure_mode.lower(),
         exr_compression=settings.exr_compression.lower(),
         providers=ORT_PROVIDERS.get(prefs.provider) if prefs else None,
@@ -240,4 +259,4 @@ def gather_job(context, strip, *, models_override: str = "") -> Job:
                clip_frames=tuple(f - first_visible for f in scene_frames), out_dir=out_dir,
                model=model, options=options, light_args=light_args(scene, settings),
                channel=strip.channel, frame_start=first_visible,
-               frame_count=int(strip.frame_final_duration))
+               frame_count=int(strip.frame_final_duration), numbers=numbers, digits=digits)

@@ -2,7 +2,7 @@
 
 The frame is relit exactly as the whole run would relight it (the same framing, exposure gain and
 model, computed over the whole strip and kept for the next preview of the same lighting), into the
-strip's preview folder beside its output folder, and shown as a one-frame image strip above the
+strip's preview folder beside its takes, and shown as a one-frame image strip above the
 source at the current frame. Relighting the strip afterwards is not affected."""
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from ..addon.errors import RelightError
 from . import bridge, relight_strip
 
 PREVIEW_SUFFIX = " preview"
+PREVIEW_FOLDER = "preview"  # in the strip's folder, beside its takes (v001, ...)
 
 
 def preview_job(context, strip, models_override: str = "") -> bridge.Job:
@@ -27,9 +28,9 @@ def preview_job(context, strip, models_override: str = "") -> bridge.Job:
         raise RelightError(f"The current frame {frame} is outside the strip '{strip.name}' "
                            f"({job.frame_start}-{job.frame_start + job.frame_count - 1}); move "
                            "the playhead onto it.")
-    options = dataclasses.replace(job.options, overwrite=True, write_matte=False)
+    options = dataclasses.replace(job.options, overwrite=True, write_matte=False, takes=False)
     return dataclasses.replace(job, scene_frames=(frame,), clip_frames=(frame - job.frame_start,),
-                               out_dir=job.out_dir.with_name(job.out_dir.name + "_preview"),
+                               out_dir=job.out_dir / PREVIEW_FOLDER,
                                options=options)
 
 

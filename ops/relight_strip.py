@@ -1,5 +1,10 @@
 """RELIGHT_OT_relight_strip: relight a footage strip and add the result as a new strip.
 
+Each lighting is a take: a folder of the strip's (v001, v002, ...: addon/takes.py) and a strip
+named after it ("Shot relit v002"), so changing the light and relighting keeps the earlier take
+beside the new one; the same lighting again resumes its take. The frames in a take are named like
+the source's (shot.1001.exr -> relit.1001.exr; a movie's by scene frame).
+
 In the UI the pipeline runs on a worker thread driven by a modal timer (progress bar, ESC cancels);
 under ``bpy.app.background`` timers never fire, so the same pipeline runs synchronously and prints
 its progress. The worker touches no Blender data: everything it needs is gathered beforehand."""
@@ -24,6 +29,10 @@ MATTE_SUFFIX = " matte"
 # for scripts that need its kind, not only the reported text (the batch run, ops/batch.py,
 # turns it into its exit status and, with --debug, shows its traceback).
 last_error = None
+# The addon.pipeline.RunResult of the last synchronous run that finished (its out_dir is the
+# take's folder) and the numbered names its frames were published under (relit.1001.exr, ...).
+last_result = None
+last_published = []
 
 # The interactive run going on (one at a time: a second would fight the first for the CPU and,
 # on the same strip, for its output folder), or None.
@@ -75,32 +84,52 @@ def add_image_strip(scene, name: str, files: list[pathlib.Path], channel: int, f
     return strip
 
 
+def publish_numbered(job: bridge.Job, result) -> list[str]:
+    """This run's finished frames under the source's frame numbers in its take folder (hard
+    links to the pipeline's files: addon/numbered.py); the relit names, in frame order."""
+    from ..addon import numbered
+
+    return numbered.publish_frames(result.out_dir, job.clip_frames, job.numbers, job.digits,
+                                   matte=job.options.write_matte)
+
+
+def take_label(result) -> str:
+    """'v002': the take a run wrote into."""
+    return pathlib.Path(result.out_dir).name
+
+
 def add_result_strips(context, job: bridge.Job, result) -> list:
-    """The relit strip above the source (and the matte above that), with the source's timing.
+    """The take's relit strip above the source (and its matte above that), with the source's
+    timing. Only a take that has every visible frame gets strips; a farm chunk just writes
+    frames."""
+    from ..addon import numbered
 
-    Only a run that covers every visible frame gets strips; a farm chunk just writes frames."""
-    from ..addon import pipeline
+    take = pathlib.Path(result.out_dir)
 
-    frames = range(job.frame_count)
-    relit = [pathlib.Path(pipeline.relit_path(job.out_dir, i)) for i in frames]
+    def files(prefix):
+        return [take / numbered.numbered_name(prefix, job.numbers[i], job.digits)
+                for i in range(job.frame_count)]
+
+    relit = files("relit")
     if not all(p.is_file() for p in relit):
         return []
     scene = context.scene
-    added = [add_image_strip(scene, job.strip_name + RELIT_SUFFIX, relit, job.channel + 1,
-                             job.frame_start, bridge.LINEAR)]
+    label = take_label(result)
+    added = [add_image_strip(scene, f"{job.strip_name}{RELIT_SUFFIX} {label}", relit,
+                             job.channel + 1, job.frame_start, bridge.LINEAR)]
     if job.options.write_matte:
-        matte = [pathlib.Path(pipeline.matte_path(job.out_dir, i)) for i in frames]
+        matte = files("matte")
         if all(p.is_file() for p in matte):
-            strip = add_image_strip(scene, job.strip_name + MATTE_SUFFIX, matte,
+            strip = add_image_strip(scene, f"{job.strip_name}{MATTE_SUFFIX} {label}", matte,
                                     added[0].channel + 1, job.frame_start, "Non-Color")
             strip.mute = True  # an opaque matte above would hide the relit strip
             added.append(strip)
     return added
 
 
-def show_source_light(job: bridge.Job) -> None:
+def show_source_light(result) -> None:
     """Preview the mean source light the network estimated (saved by the pipeline as .npy)."""
-    files = sorted((job.out_dir / "source_light").glob("*.npy"))
+    files = sorted((pathlib.Path(result.out_dir) / "source_light").glob("*.npy"))
     if files:
         lights = [np.load(f) for f in files[:64]]
         preview_light.set_preview(preview_light.SOURCE_IMAGE, np.mean(lights, axis=0))
@@ -166,24 +195,29 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
     def _finish(self, context, job, result, warnings, seconds):
         for warning in [*warnings, *getattr(result, "warnings", ())]:
             self.report({'WARNING'}, str(warning))
-        show_source_light(job)
+        show_source_light(result)
+        published = publish_numbered(job, result)
         added = add_result_strips(context, job, result)
         n = len(job.clip_frames)
         where = (f"added strip '{added[0].name}'" if added
                  else "no strip added (the other frames are not relit yet)")
         self.report({'INFO'}, f"Relit {n} frames of '{job.strip_name}' in {seconds:.1f} s "
-                              f"({result.resumed} resumed) into {job.out_dir}; {where}")
+                              f"({result.resumed} resumed) into take {take_label(result)}, "
+                              f"{result.out_dir}; {where}")
+        return published
 
     # Synchronous: background mode, scripts, and tests.
     def execute(self, context):
-        global last_error
+        global last_error, last_result, last_published
         started = time.perf_counter()
-        last_error = None
+        last_error, last_result, last_published = None, None, []
         try:
             job, lights, warnings = self._prepare(context)
             result = run_pipeline(job, lights, on_progress=progress_sink or _print_progress,
                                   log=log_sink or _print_log)
-            self._finish(context, job, result, warnings, time.perf_counter() - started)
+            last_published = self._finish(context, job, result, warnings,
+                                          time.perf_counter() - started)
+            last_result = result
         except RelightError as err:
             last_error = err
             self.report({'ERROR'}, str(err))

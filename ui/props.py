@@ -63,7 +63,8 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
                                        "uses the recommended model (Portrait where installed)")
     output_dir: StringProperty(name="Output", subtype='DIR_PATH', default="//relit/",
                                options=BLEND_RELATIVE,
-                               description="Folder for the relit EXR frames (one sub-folder per strip)")
+                               description="Folder for the relit EXR frames: a sub-folder per strip, "
+                                           "holding one take (v001, v002, ...) per lighting")
     write_matte: BoolProperty(name="Matte Strip", default=False,
                               description="Also write the portrait matte and add it as a strip")
     background: EnumProperty(
@@ -97,8 +98,12 @@ class RELIGHT_PG_settings(bpy.types.PropertyGroup):
     detail_transfer: BoolProperty(name="Keep Fine Detail", default=True,
                                   description="Bring the footage's full-resolution detail back "
                                               "into the relit frames")
-    overwrite: BoolProperty(name="Overwrite", default=False,
-                            description="Replace an earlier run's frames instead of resuming it")
+    # Named "overwrite" as in earlier versions' files and the batch script's --overwrite.
+    overwrite: BoolProperty(name="Replace Latest Take", default=False,
+                            description="When the lighting or settings changed, relight into the "
+                                        "strip's latest take, replacing its frames and strip, "
+                                        "instead of making a new take (the same lighting and "
+                                        "settings resume their take either way)")
     use_frame_range: BoolProperty(name="Frame Range", default=False,
                                   description="Relight only these scene frames (render farm chunks)")
     frame_start: IntProperty(name="Start", default=1)

@@ -62,7 +62,7 @@ def test_a_sequence_keeps_its_numbers_and_chunks_equal_one_run(toy_models, tmp_p
     common = ["--studio", "sunset", "--models", toy_models]
     whole = run("--input", plate, *common, "--out", tmp_path / "whole")
     assert whole.returncode == 0, whole.stderr
-    out = tmp_path / "whole" / "shot"
+    out = tmp_path / "whole" / "shot" / "v001"
     assert f"relit frames are in {out} (relit.1001.exr to relit.1006.exr)" in whole.stdout
     for i, n in enumerate(range(1001, 1007)):  # the pipeline's own frames, under their numbers
         assert (out / f"relit.{n}.exr").samefile(out / "relit" / f"relit_{i:06d}.exr")
@@ -74,7 +74,7 @@ def test_a_sequence_keeps_its_numbers_and_chunks_equal_one_run(toy_models, tmp_p
     for p in chunks:
         _, err = p.communicate(timeout=300)
         assert p.returncode == 0, err
-    assert digests(tmp_path / "chunked" / "shot", "relit.*.exr") == \
+    assert digests(tmp_path / "chunked" / "shot" / "v001", "relit.*.exr") == \
         digests(out, "relit.*.exr")
     assert len(digests(out, "relit.*.exr")) == 6
 
@@ -87,7 +87,7 @@ def test_a_movie_is_numbered_by_scene_frame_in_its_colour_space(toy_models, tmp_
                toy_models, "--out", tmp_path / "out", "--input-colorspace", "Linear Rec.709",
                "--start-frame", "7", "--matte", "--exposure-mode", "physical")
     assert done.returncode == 0, done.stderr
-    out = tmp_path / "out" / "take"
+    out = tmp_path / "out" / "take" / "v001"
     assert sorted(p.name for p in out.glob("*.exr")) == [
         "matte.0007.exr", "matte.0008.exr", "matte.0009.exr",
         "relit.0007.exr", "relit.0008.exr", "relit.0009.exr"]
@@ -108,7 +108,7 @@ def test_lights_from_a_blend_light_the_footage_and_the_file_is_not_saved(toy_mod
     studio = run("--input", plate, "--studio", "sunset", "--models", toy_models,
                  "--out", tmp_path / "studio")
     assert studio.returncode == 0, studio.stderr
-    ids = [json.loads((tmp_path / d / "shot" / "relight_run.json").read_text())["identity"]
+    ids = [json.loads((tmp_path / d / "shot" / "v001" / "relight_run.json").read_text())["identity"]
            for d in ("lamp", "studio")]
     assert ids[0]["lights_sha256"] != ids[1]["lights_sha256"]  # the lamp lit it, not a default
     # A file with nothing that gives light is refused, naming what it lacks.
@@ -170,7 +170,7 @@ def test_sigterm_is_a_cancel_with_exit_143_said_in_json_and_the_rerun_resumes(to
     assert resumed.returncode == 0, resumed.stderr
     started = json.loads(resumed.stdout.splitlines()[0])
     assert started["state"] == "started" and started["frame"] >= 2  # resumed, not redone
-    assert len(list((tmp_path / "out" / "shot").glob("relit.*.exr"))) == 24
+    assert len(list((tmp_path / "out" / "shot" / "v001").glob("relit.*.exr"))) == 24
 
 
 def test_help_shows_both_forms_the_exit_statuses_presets_and_studios(toy_models):
@@ -212,9 +212,9 @@ def test_the_command_runs_the_scripts_main_with_its_exit_statuses(extension, toy
     script = run("--input", plate, "--studio", "sunset", "--models", toy_models,
                  "--out", tmp_path / "script")
     assert script.returncode == 0, script.stderr
-    assert digests(tmp_path / "cli" / "shot", "relit.*.exr") == \
-        digests(tmp_path / "script" / "shot", "relit.*.exr")
-    assert len(digests(tmp_path / "cli" / "shot", "relit.*.exr")) == 2
+    assert digests(tmp_path / "cli" / "shot" / "v001", "relit.*.exr") == \
+        digests(tmp_path / "script" / "shot" / "v001", "relit.*.exr")
+    assert len(digests(tmp_path / "cli" / "shot" / "v001", "relit.*.exr")) == 2
     capfd.readouterr()
     assert cli(["--help"]) == 0
     assert "blender -c relight" in capfd.readouterr().out

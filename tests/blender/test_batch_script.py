@@ -34,8 +34,8 @@ def run(cmd, **kw):
     return subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT, **kw)
 
 
-def relit_digests(out, strip):
-    folder = pathlib.Path(out) / strip / "relit"
+def relit_digests(out, strip, take="v001"):
+    folder = pathlib.Path(out) / strip / take / "relit"
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(folder.glob("relit_*.exr"))}
 
@@ -155,7 +155,7 @@ def test_demo_relights_the_built_in_clip(toy_models, tmp_path):
     done = run([sys.executable, str(SCRIPT), "--demo", "--models", str(toy_models), "--out",
                 str(tmp_path / "demo")])
     assert done.returncode == 0, done.stderr
-    relit = list((tmp_path / "demo").glob("*/relit/relit_*.exr"))
+    relit = list((tmp_path / "demo").glob("*/v001/relit/relit_*.exr"))
     assert len(relit) == len(frames)
     assert "relit frames are in" in done.stdout
 
@@ -168,7 +168,7 @@ def test_background_flags_reach_the_run(toy_models, tmp_path, flags, want):
     done = run([sys.executable, str(SCRIPT), "--demo", "--models", str(toy_models), "--out",
                 str(tmp_path / "demo"), *flags, "--frames", "1-2"])
     assert done.returncode == 0, done.stderr
-    (run_file,) = (tmp_path / "demo").glob("*/relight_run.json")
+    (run_file,) = (tmp_path / "demo").glob("*/v001/relight_run.json")
     settings = json.loads(run_file.read_text())["identity"]["settings"]
     assert {k: settings[k] for k in want} == want
 
@@ -239,30 +239,37 @@ def test_ctrl_c_cancels_in_one_line_with_exit_130_and_the_rerun_resumes(extensio
     assert relit_digests(tmp_path / "out", strip) == relit_digests(tmp_path / "whole", strip)
 
 
-def test_a_folder_in_use_by_another_run_is_refused_naming_the_holder(extension, toy_models,
-                                                                    tmp_path):
+def test_a_take_in_use_by_another_run_is_never_replaced_under_it(extension, toy_models,
+                                                                 tmp_path):
+    """Another run is writing the strip's take v001: a run of other lighting makes take v002
+    beside it; asked to replace the latest take, it is refused naming the holder."""
     blend, strip = save_scene(tmp_path, count=2)
-    folder = tmp_path / "out" / strip
-    folder.mkdir(parents=True)
+    take = tmp_path / "out" / strip / "v001"
+    take.mkdir(parents=True)
+    (take / "take.json").write_text(json.dumps({"run": "another-run"}))
     hold = ("import sys\nfrom addon import runlock\n"
             "with runlock.FolderLock(sys.argv[1], 'another-run') as lock:\n"
             "    lock.end_setup()\n    print('held', flush=True)\n    sys.stdin.read()\n")
-    holder = subprocess.Popen([sys.executable, "-c", hold, str(folder)], cwd=ROOT,
+    holder = subprocess.Popen([sys.executable, "-c", hold, str(take)], cwd=ROOT,
                               env=dict(os.environ, PYTHONPATH=str(ROOT)), stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        for extra in ((), ("--overwrite",)):
-            done = run(batch_cmd(blend, strip, toy_models, tmp_path / "out", *extra))
-            assert done.returncode == 1, done.stdout + done.stderr
-            assert "is in use by another relight run" in done.stderr
-            assert f"process {holder.pid} on " in done.stderr
-            assert "Traceback" not in done.stderr
-        assert not list(folder.rglob("relit_*.exr"))
+        done = run(batch_cmd(blend, strip, toy_models, tmp_path / "out", "--overwrite"))
+        assert done.returncode == 1, done.stdout + done.stderr
+        assert "is still being written by another relight run" in done.stderr
+        assert f"process {holder.pid} on " in done.stderr
+        assert "Traceback" not in done.stderr
+        assert not list(take.rglob("relit_*.exr"))
+        done = run(batch_cmd(blend, strip, toy_models, tmp_path / "out"))
+        assert done.returncode == 0, done.stdout + done.stderr
+        assert f"relit frames are in {take.with_name('v002')}" in done.stdout
+        assert not list(take.rglob("relit_*.exr"))
     finally:
         holder.stdin.close()
         holder.wait(timeout=60)
-    assert run(batch_cmd(blend, strip, toy_models, tmp_path / "out")).returncode == 0
+    assert run(batch_cmd(blend, strip, toy_models, tmp_path / "out",
+                         "--overwrite")).returncode == 0  # v002 is free: resumed, all done
 
 
 def test_the_operator_reports_a_bug_once_and_keeps_it_for_scripts(extension, tmp_path, capfd):

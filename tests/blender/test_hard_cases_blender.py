@@ -92,29 +92,33 @@ def test_batch_hdri_with_a_1e5_sun_and_bad_texels_gives_finite_frames(extension,
         assert np.all(np.isfinite(px)) and 0 <= px.min() and px.max() <= 65504
 
 
-def test_batch_rerun_never_replaces_another_run_unless_asked(extension, toy_models, tmp_path):
-    """Another lighting into the same output folder exits 1 with a message and touches nothing;
-    with --overwrite it replaces the frames. Lighting that an exposure of -100 makes black exits
-    1 before anything is touched, even with --overwrite."""
+def test_batch_rerun_never_replaces_another_take_unless_asked(extension, toy_models, tmp_path):
+    """Another lighting into the same output folder makes a new take and leaves the first as it
+    was; with --overwrite it replaces the latest take's frames. Lighting that an exposure of -100
+    makes black exits 1 before anything is touched, even with --overwrite."""
     blend, strip = save_scene(tmp_path)
     out = tmp_path / "out"
-    first = batch(blend, strip, toy_models, out)
+    first = batch(blend, strip, toy_models, out, "--exposure-mode", "physical")
     assert first.returncode == 0, first.stderr
-    before = stamps(out)
-    refused = batch(blend, strip, toy_models, out, "--exposure", "1")
-    assert refused.returncode == 1
-    assert "already holds another relight run" in refused.stderr
-    assert "Traceback" not in refused.stderr
-    assert stamps(out) == before
+    take1 = stamps(out / strip / "v001")
+    second = batch(blend, strip, toy_models, out, "--exposure-mode", "physical", "--exposure", "1")
+    assert second.returncode == 0, second.stderr
+    assert f"relit frames are in {out / strip / 'v002'}" in second.stdout
+    assert stamps(out / strip / "v001") == take1
+    before, take2 = stamps(out), stamps(out / strip / "v002")
     black = batch(blend, strip, toy_models, out, "--exposure", "-100", "--overwrite")
     assert black.returncode == 1, black.stdout + black.stderr
     assert "The lighting is black: the HDRI is black" in black.stderr
     assert "The exposure -100 darkens any light" in black.stderr
+    assert "Traceback" not in black.stderr
     assert stamps(out) == before
-    replaced = batch(blend, strip, toy_models, out, "--exposure", "1", "--overwrite")
+    replaced = batch(blend, strip, toy_models, out, "--exposure-mode", "physical", "--exposure",
+                     "2", "--overwrite")
     assert replaced.returncode == 0, replaced.stderr
-    relit = sorted(out.rglob("relit_*.exr"))
-    assert len(relit) == 3 and stamps(out) != before
+    assert sorted(p.name for p in (out / strip).iterdir()) == ["v001", "v002"]
+    assert stamps(out / strip / "v001") == take1
+    assert stamps(out / strip / "v002") != take2
+    assert len(sorted((out / strip / "v002").rglob("relit_*.exr"))) == 3
 
 
 def _lamp(name, energy, location=(0.0, -3.0, 0.0)):
@@ -183,7 +187,7 @@ def test_strips_whose_names_share_a_slug_never_share_a_folder(extension, toy_mod
         assert relight(first) == {'FINISHED'} and relight(second) == {'FINISHED'}
     folders = sorted(p.name for p in out.iterdir())
     assert len(folders) == 4 and "a_b" in folders, folders
-    assert all(len(list((out / f / "relit").glob("relit_*.exr"))) == 2 for f in folders)
+    assert all(len(list((out / f / "v001" / "relit").glob("relit_*.exr"))) == 2 for f in folders)
     before = {f: stamps(out / f) for f in folders}
     settings = bpy.context.scene.relight
     settings.exposure, settings.overwrite = 1.0, True

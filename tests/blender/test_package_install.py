@@ -120,6 +120,6 @@ def test_installed_copy_relights_a_clip(extension, linux_zip, toy_models, tmp_pa
     assert result["operator_module"].startswith("bl_ext.user_default.portrait_relight.")
     for name, path in result["modules"].items():
         assert pathlib.Path(path).is_relative_to(user), (name, path)
-    assert strip.name + " relit" in result["strips"]
-    relit = sorted((tmp_path / "out" / strip.name / "relit").glob("relit_*.exr"))
+    assert strip.name + " relit v001" in result["strips"]
+    relit = sorted((tmp_path / "out" / strip.name / "v001" / "relit").glob("relit_*.exr"))
     assert len(relit) == 4

@@ -40,11 +40,22 @@ class FakeLayout:
 
 
 def draw_panel():
+    """Everything the Relight tab draws: the main panel, then its sub-panels, open."""
     from portrait_relight.ui import panel
 
     layout = FakeLayout()
-    panel.RELIGHT_PT_sequencer.draw(type("P", (), {"layout": layout})(), bpy.context)
+    for cls in panel.classes:
+        layout.use_property_split = layout.use_property_decorate = None
+        cls.draw(stand_in(cls, layout), bpy.context)
+        layout.log.append(("split", cls.__name__, layout.use_property_split,
+                           layout.use_property_decorate))
     return layout
+
+
+def stand_in(cls, layout):
+    """An object to call ``cls.draw`` on (a bpy Panel cannot be made outside a region)."""
+    methods = {k: getattr(cls, k) for k in dir(cls) if k.startswith(("draw_", "decorate"))}
+    return type("P", (), {"layout": layout, **methods})()
 
 
 @pytest.fixture
@@ -65,6 +76,21 @@ def card_with_figures(folder):
                             "per_size": {"256": {"ms": 9.5}, "512": {"ms": 38.25}}}}
     card["working_size"] = 512
     card_path.write_text(json.dumps(card))
+
+
+def test_settings_sit_in_sub_panels_laid_out_as_blenders_own(extension, tmp_path):
+    from portrait_relight.ui import panel
+
+    footage_scene(tmp_path, count=2)
+    log = draw_panel().log
+    splits = {e[1]: e[2:] for e in log if e[0] == "split"}
+    assert splits.pop("RELIGHT_PT_sequencer") == (None, None)  # footage and the buttons
+    assert splits == {"RELIGHT_PT_lighting": (True, True),      # rotation, exposure animate
+                      "RELIGHT_PT_quality": (True, False), "RELIGHT_PT_output": (True, False),
+                      "RELIGHT_PT_source_light": (True, False)}
+    assert all(cls.bl_parent_id == "RELIGHT_PT_sequencer" for cls in panel.classes[1:])
+    drawn = [e[1] for e in log if e[0] == "prop"]
+    assert {"light_source", "preset", "output_dir", "overwrite", "exr_compression"} <= set(drawn)
 
 
 def test_panel_says_plainly_when_no_model_is_installed(prefs, tmp_path):

@@ -20,8 +20,8 @@ def test_preview_is_the_runs_own_frame_and_leaves_the_run_alone(extension, toy_m
     shown = strips[source.name + " preview"]
     assert (shown.frame_final_start, shown.frame_final_duration) == (5, 1)
     assert shown.channel > source.channel and shown.colorspace_settings.name == "Linear Rec.709"
-    preview = tmp_path / "out" / (source.name + "_preview") / "relit" / "relit_000002.exr"
-    assert preview.is_file() and not (tmp_path / "out" / source.name).exists()
+    preview = tmp_path / "out" / source.name / "preview" / "relit" / "relit_000002.exr"
+    assert preview.is_file() and not (tmp_path / "out" / source.name / "v001").exists()
     import OpenEXR
 
     with OpenEXR.File(str(preview), header_only=True) as f:  # lossless PIZ unless chosen
@@ -29,7 +29,7 @@ def test_preview_is_the_runs_own_frame_and_leaves_the_run_alone(extension, toy_m
     # The whole run gives that very frame, bit for bit.
     bpy.context.scene.sequence_editor.active_strip = source
     assert bpy.ops.relight.relight_strip(models_dir=str(toy_models)) == {'FINISHED'}
-    assert digest(tmp_path / "out" / source.name / "relit" / "relit_000002.exr") == digest(preview)
+    assert digest(tmp_path / "out" / source.name / "v001" / "relit.0003.exr") == digest(preview)
     # Another lighting: the preview is replaced, never an Overwrite question; one preview strip.
     bpy.context.scene.relight.exposure = 1.0
     bpy.context.scene.relight.exposure_mode = 'PHYSICAL'

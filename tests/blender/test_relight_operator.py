@@ -13,6 +13,11 @@ def relight(toy_models, **kwargs):
     return bpy.ops.relight.relight_strip(models_dir=str(toy_models), **kwargs)
 
 
+def take(tmp_path, source, number=1):
+    """The folder of the strip's take ``number`` (v001, ...)."""
+    return tmp_path / "out" / source.name / f"v{number:03d}"
+
+
 def digest(paths):
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in paths}
 
@@ -28,13 +33,14 @@ def test_relit_strip_appears_above_with_same_timing(extension, toy_models, tmp_p
     source = footage_scene(tmp_path, count=8, frame_start=3)
     before = digest(sorted((tmp_path / "footage").iterdir()))
     assert relight(toy_models) == {'FINISHED'}
-    relit = bpy.context.scene.sequence_editor.strips[source.name + " relit"]
+    relit = bpy.context.scene.sequence_editor.strips[source.name + " relit v001"]
     assert relit.type == 'IMAGE' and relit.channel == source.channel + 1
     assert (relit.frame_final_start, relit.frame_final_duration) == (3, 8)
     assert relit.colorspace_settings.name == "Linear Rec.709"
     names = [e.filename for e in relit.elements]
-    assert names == [f"relit_{i:06d}.exr" for i in range(8)]
-    px = read_exr(tmp_path / "out" / source.name / "relit" / names[0])
+    assert names == [f"relit.{n:04d}.exr" for n in range(1, 9)]  # frame_0001.png ...
+    assert bpy.path.abspath(relit.directory).rstrip("/") == str(take(tmp_path, source))
+    px = read_exr(take(tmp_path, source) / names[0])
     assert px.shape == (64, 64, 3) and np.isfinite(px).all() and px.max() > 0
     # The source footage is never touched.
     assert digest(sorted((tmp_path / "footage").iterdir())) == before
@@ -46,10 +52,14 @@ def test_trimmed_strip_relights_only_visible_frames(extension, toy_models, tmp_p
     source.frame_final_duration = 4                        # shows footage frames 2..5
     assert (source.frame_final_start, source.frame_final_end) == (3, 7)
     relight(toy_models)
-    out = tmp_path / "out" / source.name / "relit"
-    assert sorted(p.name for p in out.glob("*.exr")) == [f"relit_{i:06d}.exr" for i in range(4)]
-    relit = bpy.context.scene.sequence_editor.strips[source.name + " relit"]
+    out = take(tmp_path, source)
+    assert sorted(p.name for p in (out / "relit").glob("*.exr")) == \
+        [f"relit_{i:06d}.exr" for i in range(4)]
+    # named like the footage frames the strip shows (frame_0003.png ... frame_0006.png)
+    assert sorted(p.name for p in out.glob("*.exr")) == [f"relit.{n:04d}.exr" for n in (3, 4, 5, 6)]
+    relit = bpy.context.scene.sequence_editor.strips[source.name + " relit v001"]
     assert (relit.frame_final_start, relit.frame_final_duration) == (3, 4)
+    assert [e.filename for e in relit.elements] == [f"relit.{n:04d}.exr" for n in (3, 4, 5, 6)]
 
 
 def test_clip_spec_of_a_trimmed_strip(extension, tmp_path):
@@ -68,7 +78,7 @@ def test_matte_strip_above_the_relit_strip(extension, toy_models, tmp_path):
     bpy.context.scene.relight.write_matte = True
     relight(toy_models)
     strips = bpy.context.scene.sequence_editor.strips
-    relit, matte = strips[source.name + " relit"], strips[source.name + " matte"]
+    relit, matte = strips[source.name + " relit v001"], strips[source.name + " matte v001"]
     assert matte.channel == relit.channel + 1
     assert matte.colorspace_settings.name == "Non-Color" and matte.mute
     assert (matte.frame_final_start, matte.frame_final_duration) == (1, 4)
@@ -77,7 +87,7 @@ def test_matte_strip_above_the_relit_strip(extension, toy_models, tmp_path):
 def test_rerun_resumes_and_replaces_its_strip(extension, toy_models, tmp_path, capsys):
     source = footage_scene(tmp_path, count=4)
     relight(toy_models)
-    frames = sorted((tmp_path / "out" / source.name / "relit").glob("*.exr"))
+    frames = sorted((take(tmp_path, source) / "relit").glob("*.exr"))
     first = digest(frames)
     relight(toy_models)
     assert "4 resumed" in capsys.readouterr().out
@@ -86,14 +96,40 @@ def test_rerun_resumes_and_replaces_its_strip(extension, toy_models, tmp_path, c
     assert len(relit) == 1
 
 
-def test_other_run_in_output_folder_is_refused_unless_overwrite(extension, toy_models, tmp_path):
-    footage_scene(tmp_path, count=4)
+def test_changed_lighting_makes_a_new_take_beside_the_first(extension, toy_models, tmp_path):
+    source = footage_scene(tmp_path, count=4)
+    bpy.context.scene.relight.exposure_mode = 'PHYSICAL'  # the exposure shows in the frames
     relight(toy_models)
-    bpy.context.scene.relight.exposure = 1.0               # different lighting: another run
-    with pytest.raises(RuntimeError, match="already holds another relight run"):
-        relight(toy_models)
-    bpy.context.scene.relight.overwrite = True
+    first = digest(sorted(take(tmp_path, source).glob("relit.*.exr")))
+    bpy.context.scene.relight.exposure = 1.0               # different lighting: a new take
     assert relight(toy_models) == {'FINISHED'}
+    second = digest(sorted(take(tmp_path, source, 2).glob("relit.*.exr")))
+    assert len(second) == 4 and set(second.values()).isdisjoint(first.values())
+    assert digest(sorted(take(tmp_path, source).glob("relit.*.exr"))) == first  # kept
+    strips = bpy.context.scene.sequence_editor.strips
+    one, two = strips[source.name + " relit v001"], strips[source.name + " relit v002"]
+    assert two.channel > one.channel                       # the new take on top, both kept
+    assert (two.frame_final_start, two.frame_final_duration) == (1, 4)
+    bpy.context.scene.relight.exposure = 0.0               # the first lighting again: take 1
+    relight(toy_models)
+    assert not take(tmp_path, source, 3).exists()
+    assert len([s for s in strips if "relit" in s.name]) == 2
+
+
+def test_replace_latest_take_relights_into_it(extension, toy_models, tmp_path):
+    source = footage_scene(tmp_path, count=4)
+    bpy.context.scene.relight.exposure_mode = 'PHYSICAL'
+    relight(toy_models)
+    bpy.context.scene.relight.exposure = 1.0
+    relight(toy_models)
+    second = digest(sorted(take(tmp_path, source, 2).glob("relit.*.exr")))
+    s = bpy.context.scene.relight
+    s.exposure, s.overwrite = 2.0, True
+    assert relight(toy_models) == {'FINISHED'}
+    assert not take(tmp_path, source, 3).exists()
+    replaced = digest(sorted(take(tmp_path, source, 2).glob("relit.*.exr")))
+    assert replaced.keys() == second.keys() and set(replaced.values()).isdisjoint(second.values())
+    assert len([s for s in bpy.context.scene.sequence_editor.strips if "relit" in s.name]) == 2
 
 
 def test_frame_range_relights_a_chunk_without_adding_a_strip(extension, toy_models, tmp_path):
@@ -101,9 +137,11 @@ def test_frame_range_relights_a_chunk_without_adding_a_strip(extension, toy_mode
     s = bpy.context.scene.relight
     s.use_frame_range, s.frame_start, s.frame_end = True, 3, 5
     relight(toy_models)
-    out = tmp_path / "out" / source.name / "relit"
-    assert sorted(p.name for p in out.glob("*.exr")) == [f"relit_{i:06d}.exr" for i in (2, 3, 4)]
-    assert source.name + " relit" not in bpy.context.scene.sequence_editor.strips
+    out = take(tmp_path, source)
+    assert sorted(p.name for p in (out / "relit").glob("*.exr")) == \
+        [f"relit_{i:06d}.exr" for i in (2, 3, 4)]
+    assert sorted(p.name for p in out.glob("*.exr")) == [f"relit.{n:04d}.exr" for n in (3, 4, 5)]
+    assert not [s for s in bpy.context.scene.sequence_editor.strips if "relit" in s.name]
     s.frame_start, s.frame_end = 20, 30
     with pytest.raises(RuntimeError, match="do not overlap"):
         relight(toy_models)
@@ -204,7 +242,7 @@ def test_ui_worker_cancels_half_way_and_resumes(extension, toy_models, tmp_path)
     state.cancel.is_set = lambda: next(answers, True)
     state.run(lights)
     assert isinstance(state.error, Cancelled)
-    out = tmp_path / "out" / source.name / "relit"
+    out = take(tmp_path, source) / "relit"
     done = sorted(out.glob("relit_*.exr"))
     assert 0 < len(done) < 6
     state = relight_strip._WorkerState(job=job, warnings=[], started=0.0)
@@ -222,7 +260,7 @@ def test_the_panel_defaults_to_the_pipelines_background_and_the_run_records_it(
     source = footage_scene(tmp_path, count=2)
     assert bpy.context.scene.relight.background.lower() == pipeline.DEFAULT_BACKGROUND
     relight(toy_models)
-    run = json.loads((tmp_path / "out" / source.name / "relight_run.json").read_text())
+    run = json.loads((take(tmp_path, source) / "relight_run.json").read_text())
     assert run["identity"]["settings"]["background"] == pipeline.DEFAULT_BACKGROUND
 
 
