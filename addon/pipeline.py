@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import (colour, contract, detail, engine, framing, frames, lightvec, normalise,
-               portrait, runlock, takes)
+               portrait, runlock, takes, temporal)
 from .errors import Cancelled, InputError, LightingError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
 
@@ -94,6 +94,9 @@ class RelightOptions:
     # out_dir is a strip's folder of takes (addon/takes.py): the run writes into the take that
     # holds it, else a new take (overwrite: the latest take); RunResult.out_dir names the take.
     takes: bool = False
+    # Blend each frame's change of light with its neighbours' (addon/temporal.py): steadier
+    # shadow edges; a light that jumps still changes on its frame. Intrinsic presets only.
+    temporal: bool = True
     exr_compression: str = "none"     # see frames.COMPRESSIONS; not part of the run identity
     # What stands behind the relit subject (BACKGROUNDS): the network's own output, or the
     # source's background composited in by the network's foreground matte, as it was or relit as
@@ -115,6 +118,8 @@ class RunResult:
     resumed: int
     exposure_scale: float
     warnings: list[str] = field(default_factory=list)
+    model: str = ""            # the card's name
+    provider: str = ""         # the onnxruntime execution provider that ran it
 
 
 # Device names Windows reserves in every folder, with or without an extension.
@@ -266,7 +271,7 @@ def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,
         "model_sha256": card.sha256,
         "settings": {"working_size": working, "detail_transfer": options.detail_transfer,
                      "write_matte": options.write_matte, "background": options.background,
-                     "exposure_mode": options.exposure_mode},
+                     "exposure_mode": options.exposure_mode, "temporal": options.temporal},
     }
 
 
@@ -711,16 +716,21 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
                      "neighbours (a frame with no subject comes out unchanged). The subject's "
                      "face must be visible and at least a few pixels across.")
         written = _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed,
-                              len(selected), on_progress, should_cancel, out, boxes, gain)
+                              len(selected), on_progress, should_cancel, out, boxes, gain,
+                              options.temporal)
     return RunResult(out_dir, [relit_path(out_dir, i) for i in selected],
                      [matte_path(out_dir, i) for i in selected] if options.write_matte else [],
-                     written, resumed, scale, out.warnings)
+                     written, resumed, scale, out.warnings, session.card.name,
+                     session.providers[0])
 
 
 def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, total,
-                on_progress, should_cancel, out: Log, boxes=None, gain: float = 1.0) -> int:
+                on_progress, should_cancel, out: Log, boxes=None, gain: float = 1.0,
+                steady: bool = False) -> int:
     """Decode, linearise and shrink (worker thread) -> network and low-resolution coefficients
     (this thread) -> full-resolution finish and write (worker thread), each frame channels-first.
+    ``steady``: each frame's coefficients are blended with its neighbours' (addon/temporal.py),
+    which are decoded and inferred too where the run does not relight them.
 
     Any thread's failure stops the other two; this thread then raises the first failure (a
     worker's is raised with its own traceback). Frames written before it stay finished, so a
@@ -730,11 +740,16 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
     results: queue.Queue = queue.Queue(maxsize=2)
     # each key written by one thread
     counts = {"bad_in": 0, "clamped": 0, "written": 0, "negative": 0, "lowest": 0.0}
+    # Only the intrinsic path's coefficients are the change of light alone (a ratio and a
+    # highlight); the end-to-end models' also carry the frame's content, which would ghost.
+    steady = steady and boxes is not None
+    wanted = set(todo)
+    infer = temporal.context_frames(todo, clip.count) if steady else list(todo)
 
     def produce():
         try:
             for d in frames.iter_frames(clip.kind, clip.path, clip.files,
-                                        [clip.first + i for i in todo], plan.size, planar=True,
+                                        [clip.first + i for i in infer], plan.size, planar=True,
                                         name=source_frame_name(clip)):
                 if stop.is_set():
                     return
@@ -772,6 +787,20 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             reported[0] = done
             on_progress(done, total, f"{done} of {total} frames")
 
+    window = {}  # frame -> (x_full, x_max, ab, fg, source, light): this frame and its neighbours
+
+    def emit(i):
+        x_full, x_max, ab, fg, source, light = window[i]
+        if steady and ab is not None:
+            near = []
+            for j in (i - 1, i + 1):
+                other = window.get(j)
+                near.append(other[2] if other is not None and other[2] is not None
+                            and temporal.similar_lights(light, other[5]) else None)
+            ab = temporal.blend(ab, *near, mask=fg)
+        _put(results, (i, x_full, x_max, ab, fg, source), stop, alive=writer)
+        _raise_if_failed(writer)
+
     reader, writer = _Worker(produce, "relight-decode"), _Worker(consume, "relight-write")
     reader.start()
     writer.start()
@@ -798,8 +827,14 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
                 source = source * np.float32(plan.scale)  # the source light in footage units
                 ab = scaled(with_background(ab, fg, light, source, plan), gain)
-            _put(results, (i, x_full, x_max, ab, fg, source), stop, alive=writer)
-            _raise_if_failed(writer)
+            window[i] = (x_full, x_max, ab, fg, source, light)
+            # A frame goes out once its following neighbour is in (or there is none).
+            if steady and i - 1 in wanted and i - 1 in window:
+                emit(i - 1)
+            if i in wanted and (not steady or i + 1 >= clip.count):
+                emit(i)
+            for j in [j for j in window if not steady or j < i - 1]:
+                del window[j]
     finally:
         stop.set()
         _drain(decoded)

@@ -90,7 +90,9 @@ def test_rerun_resumes_and_replaces_its_strip(extension, toy_models, tmp_path, c
     frames = sorted((take(tmp_path, source) / "relit").glob("*.exr"))
     first = digest(frames)
     relight(toy_models)
-    assert "4 resumed" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "4 resumed" in said
+    assert "Relit 4 frames of 'frame' with toy on CPUExecutionProvider in " in said  # the provider
     assert digest(frames) == first
     relit = [s for s in bpy.context.scene.sequence_editor.strips if "relit" in s.name]
     assert len(relit) == 1

@@ -392,3 +392,37 @@ def test_keep_exposure_is_one_gain_for_the_clip_and_physical_follows_the_light(m
     two, g2 = relit("physical", 2 * lights[:1], "physical2")
     assert g1 == g2 and g1 != gain  # the absolute gain does not depend on the light
     np.testing.assert_allclose(two[0][disc], 2 * one[0][disc], rtol=1e-2)
+
+
+def test_frames_blend_with_their_neighbours_and_chunks_still_equal_one_run(model, tmp_path):
+    """Temporal blend on (the default): interior frames differ from relighting each frame alone,
+    and a run split in two chunks (each infers the neighbour just outside it) writes the whole
+    run's frames bit for bit."""
+    files = write_exr_sequence(tmp_path / "src", clip_frames())
+    whole = run(model, files, tmp_path / "whole")
+    alone = pipeline.relight_clip(image_clip(files), RIGHT_LAMP[None], tmp_path / "alone",
+                                  pipeline.RelightOptions(model, threads=1, write_matte=True,
+                                                          temporal=False))
+    changed = [np.abs(frames.read_exr(a) - frames.read_exr(b)).max()
+               for a, b in zip(whole.relit_files, alone.relit_files)]
+    assert min(changed) > 1e-3, changed  # the disc drifts: each frame takes its neighbours'
+    for chunk in ((0, 1), (2, 3)):
+        pipeline.relight_clip(image_clip(files), RIGHT_LAMP[None], tmp_path / "chunked",
+                              pipeline.RelightOptions(model, threads=1, write_matte=True),
+                              frames=list(chunk))
+    assert [sha(pipeline.relit_path(tmp_path / "chunked", i)) for i in range(N)] == \
+        [sha(p) for p in whole.relit_files]
+
+
+def test_a_light_that_jumps_is_never_blended_across(model, tmp_path):
+    """A light twice as strong every other frame (a strobe): no frame takes its neighbours'
+    change, so the run equals relighting each frame alone."""
+    files = write_exr_sequence(tmp_path / "src", clip_frames())
+    lights = np.stack([RIGHT_LAMP * (1.0 + i % 2) for i in range(N)])
+
+    def relit(temporal, out):
+        res = pipeline.relight_clip(image_clip(files), lights, tmp_path / out,
+                                    pipeline.RelightOptions(model, threads=1, temporal=temporal))
+        return [sha(p) for p in res.relit_files]
+
+    assert relit(True, "blend") == relit(False, "alone")

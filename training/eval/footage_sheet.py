@@ -125,12 +125,14 @@ class Run:
 
 
 def relight(clip: pipeline.ClipSpec, light: np.ndarray, out_dir: pathlib.Path, model: pathlib.Path,
-            threads: int, background: str) -> tuple[int, float, float | None]:
+            threads: int, background: str,
+            temporal: bool = True) -> tuple[int, float, float | None]:
     """Run the product pipeline; (frames written, wall seconds, steady-state fps)."""
     stamps: list[tuple[float, int]] = []
     # The matte is written to measure which side of the portrait the light falls on (balance).
     options = pipeline.RelightOptions(str(model), threads=threads, write_matte=True,
-                                      overwrite=True, background=background)
+                                      overwrite=True, background=background,
+                                      temporal=temporal)
     start = time.perf_counter()
     result = pipeline.relight_clip(clip, light[None], str(out_dir), options,
                                    on_progress=lambda done, total, _: stamps.append(
@@ -315,6 +317,9 @@ def parse_args(argv):
                    choices=pipeline.BACKGROUNDS,
                    help="what stands behind the relit subject (the panel's Background choice; "
                         "default: the product's)")
+    p.add_argument("--no-temporal", action="store_true",
+                   help="relight each frame alone (RelightOptions.temporal off), to measure "
+                        "what the blend with neighbouring frames buys")
     a = p.parse_args(argv)
     if a.frames < 1 or a.seq_length < 2:
         p.error("--frames must be at least 1 and --seq-length at least 2")
@@ -322,10 +327,12 @@ def parse_args(argv):
 
 
 def run_one(spec, clip_name: str, name: str, light, model: pathlib.Path, out: pathlib.Path,
-            threads: int, mid: int, x_mid: np.ndarray, background: str) -> Run:
+            threads: int, mid: int, x_mid: np.ndarray, background: str,
+            temporal: bool = True) -> Run:
     """Relight one clip under one lighting with one model, and measure its middle frame."""
     run_dir = out / clip_name / name / model.stem
-    written, seconds, steady = relight(spec, light, run_dir, model, threads, background)
+    written, seconds, steady = relight(spec, light, run_dir, model, threads, background,
+                                       temporal)
     matte = read_matte(run_dir, mid)
     return Run(clip_name, name, model.stem, run_dir, spec.count, written, seconds, steady,
                (balance(x_mid, matte), balance(relit_frame(run_dir, mid), matte)),
@@ -333,7 +340,7 @@ def run_one(spec, clip_name: str, name: str, light, model: pathlib.Path, out: pa
 
 
 def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
-                background: str):
+                background: str, temporal: bool = True):
     """[(clip spec, {lighting: Run})], one entry per clip and model, grouped by clip."""
     rows, mid = [], frames_n // 2
     for clip_name in clips:
@@ -343,7 +350,7 @@ def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
             row = {}
             for name, light in lights.items():
                 run = run_one(spec, clip_name, name, light, model, out, threads, mid, x_mid,
-                              background)
+                              background, temporal)
                 print(f"{clip_name:>4} {name:<9} {model.stem}: {run.fps_text()}; left/right "
                       f"balance input {run.balance[0]:.2f} -> relit {run.balance[1]:.2f}; "
                       f"matte covers {run.matte_cover:.0%}", flush=True)
@@ -384,7 +391,8 @@ def make_sheets(a) -> dict:
     models = [model_path(m) for m in a.models]
     out = pathlib.Path(a.out)
     mid = a.frames // 2
-    rows = relight_all(data, clips, lights, models, out, a.frames, a.threads, a.background)
+    rows = relight_all(data, clips, lights, models, out, a.frames, a.threads, a.background,
+                       not a.no_temporal)
     write_png(out / "sheet.png", main_sheet(rows, lights, mid))
     length = min(a.seq_length, a.frames)
     first = max(0, min(mid - length // 2, a.frames - length))
@@ -397,6 +405,7 @@ def make_sheets(a) -> dict:
         "lightings": {lt.name: lt.what for lt in lightings},
         "middle_frame": mid,
         "background": a.background,
+        "temporal": not a.no_temporal,
         "sequence": {"lighting": seq_name, "frames": [first, first + length - 1],
                      "mean_change": changes},
         "runs": [{"clip": r.clip, "lighting": r.lighting, "model": r.model, "frames": r.frames,
