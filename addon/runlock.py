@@ -11,10 +11,11 @@ Both are files in the output folder created atomically (``O_CREAT | O_EXCL``) ho
 id, the machine and the time; a holder file also names its run (a digest of the run's identity).
 They are removed when the run ends, however it ends (``with`` / ``finally``; the batch script
 turns Ctrl-C and SIGTERM into such an end). A file left by a process that died (killed,
-crashed) on this machine is taken over with a note; another machine's process cannot be
-checked, so its holder file is honoured and the message says which run it names and to delete
-it if that run is no longer running (its setup lock, held for seconds, is taken over after an
-hour).
+crashed) on this machine is taken over with a note. Another machine's process cannot be
+checked, so a running process touches its holder file every HEARTBEAT_S: another machine's
+holder file untouched for HOLDER_STALE_S was left by a crash (the machine died, or lost the
+shared storage) and is taken over with a note; until then the message says which run it names
+(its setup lock, held for seconds, is taken over after an hour).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import threading
 import time
 
 from .errors import Cancelled, OutputError
@@ -32,6 +34,8 @@ HOLDER_PREFIX, HOLDER_SUFFIX = "relight_run_", ".lock"
 SETUP_WAIT_S = 300.0  # a setup reads a few sample frames; wait this long for another's
 SETUP_STALE_S = 3600.0  # a setup lock of another machine this old was left by a crash
 UNREADABLE_AFTER_S = 10.0  # a lock file still empty or garbled after this was left by a crash
+HEARTBEAT_S = 60.0  # a running process touches its holder file this often
+HOLDER_STALE_S = 900.0  # another machine's holder file untouched this long was left by a crash
 _counter = itertools.count()  # several runs of one process (threads) each hold their own file
 
 
@@ -63,16 +67,25 @@ def _read(path: str) -> dict | None:
         return {}
 
 
-def _dead(path: str, record: dict, max_age: float | None = None) -> bool:
+def _age(path: str) -> float:
+    """Seconds since ``path`` was last modified (0 if it is gone)."""
+    try:
+        return time.time() - os.stat(path).st_mtime
+    except FileNotFoundError:
+        return 0.0
+
+
+def _dead(path: str, record: dict, max_age: float | None = None,
+          untouched_s: float | None = None) -> bool:
     """Whether the lock file ``path`` was left by a process that no longer runs: one of this
-    machine whose pid is gone, a file still unreadable long after it was made, or (given
-    ``max_age``) one older than that from another machine."""
+    machine whose pid is gone, a file still unreadable long after it was made, or, from another
+    machine, one older than ``max_age`` (by its record) or untouched for ``untouched_s`` (its
+    heartbeat stopped)."""
     if not record:
-        try:
-            return time.time() - os.stat(path).st_mtime > UNREADABLE_AFTER_S
-        except FileNotFoundError:
-            return True
+        return not os.path.exists(path) or _age(path) > UNREADABLE_AFTER_S
     if record.get("host") != HOST:  # another machine's process cannot be checked from here
+        if untouched_s is not None and _age(path) > untouched_s:
+            return True
         try:
             return max_age is not None and time.time() - float(record.get("time")) > max_age
         except (TypeError, ValueError):
@@ -106,6 +119,7 @@ class FolderLock:
         self.holder_path = os.path.join(
             self.out_dir, f"{HOLDER_PREFIX}{HOST}_{os.getpid()}_{next(_counter)}{HOLDER_SUFFIX}")
         self._in_setup = self._holding = False
+        self._beating = threading.Event()
 
     def _record(self) -> dict:
         return {"pid": os.getpid(), "host": HOST, "run": self.run,
@@ -117,6 +131,8 @@ class FolderLock:
             if not _create(self.holder_path, self._record()):
                 raise OutputError(f"The lock file {self.holder_path} exists already; delete it.")
             self._holding = True
+            threading.Thread(target=self._heartbeat, name="relight-lock-heartbeat",
+                             daemon=True).start()
             self._refuse_other_runs()
         except BaseException:
             self.__exit__(None, None, None)
@@ -125,9 +141,18 @@ class FolderLock:
 
     def __exit__(self, *exc) -> None:
         self.end_setup()
+        self._beating.set()
         if self._holding:
             self._holding = False
             _remove(self.holder_path)
+
+    def _heartbeat(self) -> None:
+        """Touch the holder file every HEARTBEAT_S while held: other machines see it alive."""
+        while not self._beating.wait(HEARTBEAT_S):
+            try:
+                os.utime(self.holder_path)
+            except OSError:  # removed (the run ended) or the storage is away for a moment
+                pass
 
     def end_setup(self) -> None:
         if self._in_setup:
@@ -164,7 +189,8 @@ class FolderLock:
                 f"The output folder {self.out_dir} is in use by another relight run (with "
                 f"other footage, lighting or settings): {describe(*other)}. Wait for it to "
                 "finish or choose another output folder. If that run is no longer running (its "
-                "machine crashed), delete the lock file.")
+                "machine crashed), delete the lock file; it is taken over anyway once nobody "
+                f"has touched it for {HOLDER_STALE_S / 60:.0f} minutes.")
 
 
 def other_live_run(folder: str, run: str, note=None, skip: str = "") -> tuple[str, dict] | None:
@@ -184,7 +210,7 @@ def other_live_run(folder: str, run: str, note=None, skip: str = "") -> tuple[st
         record = _read(path)
         if record is None:
             continue
-        if _dead(path, record):
+        if _dead(path, record, untouched_s=HOLDER_STALE_S):
             note(f"Took over the output folder from a relight run that ended without releasing "
                  f"it ({describe(path, record)}).")
             _remove(path)

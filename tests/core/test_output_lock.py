@@ -148,22 +148,43 @@ def test_locks_left_by_dead_processes_are_taken_over_with_a_note(toy, movie, tmp
     assert lock_files(out) == []
 
 
-def test_a_lock_of_another_machine_is_never_taken_over(toy, movie, tmp_path):
+def test_a_lock_of_another_machine_is_taken_over_only_once_its_heartbeat_stops(toy, movie,
+                                                                               tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     other = {"pid": _dead_pid(), "host": "render-node-7", "run": "another-run",
              "started": "2020-01-01 00:00:00", "time": 0.0}
     holder = out / f"{runlock.HOLDER_PREFIX}render-node-7_{other['pid']}_0{runlock.HOLDER_SUFFIX}"
-    holder.write_text(json.dumps(other))
-    with pytest.raises(OutputError, match="render-node-7.*delete the lock file"):
+    holder.write_text(json.dumps(other))  # touched just now: its process may be running
+    with pytest.raises(OutputError, match="render-node-7.*delete the lock file; it is taken "
+                                          "over anyway once nobody has touched it for 15 min"):
         pipeline.relight_clip(clip(movie), UNIFORM, out, opts(toy))
     assert not list((out / "relit").glob("*.exr")) and holder.is_file()
     assert lock_files(out) == [holder.name]  # the refused run left nothing behind
+    stale = time.time() - runlock.HOLDER_STALE_S - 60
+    os.utime(holder, (stale, stale))  # its machine died: the heartbeat stopped
+    res = pipeline.relight_clip(clip(movie), UNIFORM, out, opts(toy))
+    assert res.written == N and not holder.exists()
+    assert any("ended without releasing" in w and "render-node-7" in w for w in res.warnings)
+    for p in out.glob("relit/*.exr"):
+        p.unlink()
+    (out / pipeline.RUN_FILE).unlink()
     # Its setup lock (held for seconds) is another matter once it is an hour old.
-    holder.unlink()
     (out / runlock.SETUP_FILE).write_text(json.dumps({**other, "time": time.time() - 7200}))
     res = pipeline.relight_clip(clip(movie), UNIFORM, out, opts(toy))
     assert res.written == N and any("render-node-7" in w for w in res.warnings)
+
+
+def test_a_held_folder_keeps_its_holder_file_touched(tmp_path, monkeypatch):
+    monkeypatch.setattr(runlock, "HEARTBEAT_S", 0.05)
+    with runlock.FolderLock(tmp_path, "mine") as lock:
+        lock.end_setup()
+        os.utime(lock.holder_path, (0, 0))
+        deadline = time.monotonic() + 10
+        while os.stat(lock.holder_path).st_mtime < 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert time.time() - os.stat(lock.holder_path).st_mtime < 5
+    assert lock_files(tmp_path) == []
 
 
 def test_waiting_for_another_setup_can_be_cancelled_or_times_out(tmp_path):
