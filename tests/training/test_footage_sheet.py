@@ -94,3 +94,16 @@ def test_lightings_point_where_they_say(shared_data):
     assert mean_direction(sun)[0] > 0.2
     total = lightvec.total_power(sun)
     assert total[0] > total[2]
+
+
+def test_skin_chroma_ignores_exposure_and_sees_greyed_skin():
+    rng = np.random.default_rng(0)
+    skin = np.array([0.6, 0.4, 0.3], np.float32) * rng.uniform(0.5, 1.0, (32, 32, 1))
+    skin = skin.astype(np.float32)
+    matte = np.ones((32, 32), np.float32)
+    base = fs.skin_chroma(skin, matte, skin)
+    assert base > 0.05
+    assert fs.skin_chroma(skin * 3.0, matte, skin) == pytest.approx(base, rel=1e-5)
+    grey = skin.mean(axis=2, keepdims=True)
+    assert fs.skin_chroma(0.5 * skin + 0.5 * grey, matte, skin) == pytest.approx(base / 2, rel=1e-3)
+    assert np.isnan(fs.skin_chroma(skin, np.zeros_like(matte), skin))  # no subject

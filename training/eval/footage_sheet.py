@@ -78,6 +78,10 @@ LIGHTINGS = (
              hdri="hdri/pmndrs/apartment.exr"),
     Lighting("key-left", "one warm-white point lamp, camera-left, 45 deg up-front, 1.5 m",
              lamps=(_point((-1.0, 0.5, 1.0), (1.0, 0.93, 0.85), 1000.0),)),
+    Lighting("key-white-left", "one white point lamp, camera-left, 45 deg up-front, 1.5 m (skin "
+             "must keep its colour)", lamps=(_point((-1.0, 0.5, 1.0), (1.0, 1.0, 1.0), 1000.0),)),
+    Lighting("key-white-right", "the same white lamp, camera-right",
+             lamps=(_point((1.0, 0.5, 1.0), (1.0, 1.0, 1.0), 1000.0),)),
     Lighting("rim-blue", "blue point lamp behind the subject, up-right, + white fill at the "
              "camera (1/8 power)",
              lamps=(_point((0.8, 0.7, -1.1), (0.25, 0.5, 1.0), 2000.0),
@@ -115,6 +119,7 @@ class Run:
     steady_fps: float | None   # from the first finished frame to the last (no load, no probe)
     balance: tuple[float, float] = (float("nan"), float("nan"))  # (input, relit), see balance()
     matte_cover: float = float("nan")  # share of the middle frame the foreground matte covers
+    chroma: tuple[float, float] = (float("nan"), float("nan"))  # skin_chroma (input, relit)
 
     def fps_text(self) -> str:
         if not self.written:
@@ -169,6 +174,25 @@ def balance(linear: np.ndarray, matte: np.ndarray) -> float:
     y = normalise.luminance(linear)
     lo, hi = y[left], y[m & ~left]
     return float(lo.mean() / hi.mean()) if lo.size and hi.size and hi.mean() > 0 else float("nan")
+
+
+def skin_chroma(linear: np.ndarray, matte: np.ndarray, source: np.ndarray) -> float:
+    """How coloured the subject's skin is: the mean distance of its chromaticity (r, g, b over
+    their sum) from grey, over the matte's core where the source is skin-like (r > g > b) and
+    lit (luminance above the median there, so shadows' noise does not count). Comparing a
+    relit frame's with its source's under a white light says whether skin kept its colour."""
+    y_src = normalise.luminance(source)
+    m = (np.asarray(matte) > 0.9) & (source[..., 0] > source[..., 1]) & \
+        (source[..., 1] > source[..., 2]) & (y_src > 0)
+    if m.sum() < 64:
+        return float("nan")
+    y = normalise.luminance(linear)
+    m &= y > np.median(y[m])
+    rgb = np.clip(linear[m], 0.0, None)
+    total = rgb.sum(axis=1, keepdims=True)
+    ok = total[:, 0] > 0
+    chroma = np.linalg.norm(rgb[ok] / total[ok] - 1.0 / 3.0, axis=1)
+    return float(chroma.mean()) if chroma.size else float("nan")
 
 
 def read_matte(out_dir: pathlib.Path, i: int) -> np.ndarray:
@@ -334,9 +358,10 @@ def run_one(spec, clip_name: str, name: str, light, model: pathlib.Path, out: pa
     written, seconds, steady = relight(spec, light, run_dir, model, threads, background,
                                        temporal)
     matte = read_matte(run_dir, mid)
+    y_mid = relit_frame(run_dir, mid)
     return Run(clip_name, name, model.stem, run_dir, spec.count, written, seconds, steady,
-               (balance(x_mid, matte), balance(relit_frame(run_dir, mid), matte)),
-               float(np.mean(matte)))
+               (balance(x_mid, matte), balance(y_mid, matte)), float(np.mean(matte)),
+               (skin_chroma(x_mid, matte, x_mid), skin_chroma(y_mid, matte, x_mid)))
 
 
 def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
@@ -353,6 +378,7 @@ def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
                               background, temporal)
                 print(f"{clip_name:>4} {name:<9} {model.stem}: {run.fps_text()}; left/right "
                       f"balance input {run.balance[0]:.2f} -> relit {run.balance[1]:.2f}; "
+                      f"skin chroma relit/input {run.chroma[1] / run.chroma[0]:.2f}; "
                       f"matte covers {run.matte_cover:.0%}", flush=True)
                 row[name] = run
             rows.append((spec, row))
@@ -412,7 +438,8 @@ def make_sheets(a) -> dict:
                   "written": r.written, "seconds": round(r.seconds, 3),
                   "steady_fps": r.steady_fps and round(r.steady_fps, 2),
                   "balance_input": _num(r.balance[0]), "balance_relit": _num(r.balance[1]),
-                  "matte_cover": _num(r.matte_cover)}
+                  "matte_cover": _num(r.matte_cover), "skin_chroma_input": _num(r.chroma[0]),
+                  "skin_chroma_relit": _num(r.chroma[1])}
                  for r in runs],
     }
     (out / "sheet.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
