@@ -201,7 +201,8 @@ class RELIGHT_OT_relight_strip(bpy.types.Operator):
         n = len(job.clip_frames)
         where = (f"added strip '{added[0].name}'" if added
                  else "no strip added (the other frames are not relit yet)")
-        self.report({'INFO'}, f"Relit {n} frames of '{job.strip_name}' in {seconds:.1f} s "
+        self.report({'INFO'}, f"Relit {n} frames of '{job.strip_name}' with {result.model} on "
+                              f"{result.provider} in {seconds:.1f} s "
                               f"({result.resumed} resumed) into take {take_label(result)}, "
                               f"{result.out_dir}; {where}")
         return published
