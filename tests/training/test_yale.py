@@ -265,7 +265,8 @@ def test_command_line_quick_run_writes_the_table_and_sheet(toy, shared_data, yal
     assert ye.main(["--onnx", str(toy), "--quick", "--data", str(shared_data), "--json", str(out),
                     "--sheet", str(sheet)]) == 0
     res = json.loads(out.read_text())
-    assert res["split"] == {"tune": ["yaleB01"], "test": ["yaleB11", "yaleB12"]}
+    assert res["split"] == {"tune": ["yaleB01"], "test": ["yaleB11", "yaleB12"],
+                            "reported": "test"}
     assert res["results"]["calibrated"]["toy"]["all"]["pairs"] == 6
     assert set(res["beats_both_baselines"]["calibrated"]) == {"toy"}
     paired = res["paired"]["calibrated"]["toy"]
@@ -280,3 +281,18 @@ def test_command_line_says_what_to_do_with_two_models_of_one_name(toy, shared_da
                   "--json", str(tmp_path / "y.json"), "--sheet", ""])
     assert rc == 2 and "its own name" in capsys.readouterr().err
     assert not (tmp_path / "y.json").exists()
+
+
+def test_the_tune_split_reports_only_tune_subjects_and_never_overwrites_the_results(
+        toy, shared_data, yale_root, tmp_path, capsys):
+    out = tmp_path / "tune.json"
+    assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--data", str(shared_data),
+                    "--json", str(out), "--sheet", ""]) == 0
+    res = json.loads(out.read_text())
+    assert res["split"] == {"tune": ["yaleB01"], "test": ["yaleB01", "yaleB02"],
+                            "reported": "tune"}
+    assert all(int(n[5:]) in ye.TUNE_SUBJECTS for n in res["split"]["test"])
+    assert "tune subjects, not the held-out test subjects" in out.with_suffix(".md").read_text()
+    with pytest.raises(SystemExit):  # the default --json holds the test subjects' results
+        ye.main(["--onnx", str(toy), "--quick", "--split", "tune"])
+    assert "give --json elsewhere" in capsys.readouterr().err

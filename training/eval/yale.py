@@ -697,19 +697,28 @@ def check_data(root, names) -> None:
 
 # --------------------------------------------------------------------------------- main
 
-def select_subjects(names: list[str], quick: bool) -> tuple[list[str], list[str]]:
+DEFAULT_JSON = ROOT / "bench" / "results" / "yale.json"
+
+
+def select_subjects(names: list[str], quick: bool,
+                    split: str = "test") -> tuple[list[str], list[str]]:
+    """(subjects the gains are fitted on, subjects reported). ``split`` "tune": the tune
+    subjects are reported too, for choosing between variants without looking at the test
+    subjects (their calibrated view is then in-sample)."""
     tune = [n for n in names if int(n[5:]) in TUNE_SUBJECTS]
     test = [n for n in names if int(n[5:]) not in TUNE_SUBJECTS]
+    if split == "tune":
+        test = tune
     return (tune[:1], test[:2]) if quick else (tune, test)
 
 
 def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 2021,
         quick: bool = False, threads: int = 1, sheet_path=None, sheet_rows: int = 6,
-        progress=print) -> dict:
+        progress=print, split: str = "test") -> dict:
     """Evaluate the models; returns the JSON-able result (tables on the test subjects)."""
     data_root = pathlib.Path(data_root) if data_root else default_root().parents[1]
     root = pathlib.Path(root) if root else data_root / "yale" / "CroppedYale"
-    tune_names, test_names = select_subjects(subject_names(root), quick)
+    tune_names, test_names = select_subjects(subject_names(root), quick, split)
     if quick:
         n_pairs = min(n_pairs, len(KINDS))
     relighters = {}
@@ -748,7 +757,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
                        else str(relighters[m].card.onnx_path),
                        "sha256": relighters[m].card.sha256,
                        "working_size": relighters[m].card.working_size} for m in models},
-        "split": {"tune": tune_names, "test": test_names},
+        "split": {"tune": tune_names, "test": test_names, "reported": split},
         "pairs_per_subject": n_pairs, "seed": seed, "quick": quick,
         "gains": gains, "results": summary, "beats_both_baselines": verdict(summary, models),
         "beats_flattened_ratio": verdict(summary, models, (FLATTENED,)),
@@ -764,8 +773,11 @@ def report_body(res: dict) -> str:
     """The Markdown of one run: what was compared, the tables, the balance correlations."""
     models = list(res["models"])
     n_test = len(res["split"]["test"])
-    lines = [f"Real one-light-at-a-time images of {n_test} held-out CroppedYale subjects "
-             f"({len(res['split']['tune'])} more are kept to calibrate one gain per method), "
+    who = (f"{n_test} held-out CroppedYale subjects ({len(res['split']['tune'])} more are kept "
+           "to calibrate one gain per method)" if res["split"].get("reported") != "tune" else
+           f"the {n_test} CroppedYale tune subjects, not the held-out test subjects (the gains "
+           "are fitted on the same ones, so the calibrated view is in-sample)")
+    lines = [f"Real one-light-at-a-time images of {who}, "
              f"{res['pairs_per_subject']} pairs each, relit from lighting A to B and compared with "
              "the real sum for B, grey in and grey out. Every image goes through "
              "`addon.relight_image`, exactly what the pipeline does to a frame. Calibrated view: "
@@ -793,11 +805,16 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=2021)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--quick", action="store_true", help="1 tune and 2 test subjects, 3 pairs each")
-    p.add_argument("--json", default=str(ROOT / "bench" / "results" / "yale.json"))
+    p.add_argument("--json", default=str(DEFAULT_JSON))
     p.add_argument("--sheet", default=str(ROOT / "out" / "yale" / "yale_sheet.png"),
                    help="PNG sheet (git-ignored out/: never commit pictures of this data)")
     p.add_argument("--check-data", action="store_true", help="print the data checks and exit")
+    p.add_argument("--split", choices=["test", "tune"], default="test",
+                   help="tune: report the 10 tune subjects instead, to choose between variants "
+                        "without looking at the test subjects (give --json elsewhere)")
     a = p.parse_args(argv)
+    if a.split == "tune" and pathlib.Path(a.json).resolve() == DEFAULT_JSON.resolve():
+        p.error("--split tune would overwrite the test subjects' results; give --json elsewhere")
     data_root = pathlib.Path(a.data) if a.data else default_root().parents[1]
     root = data_root / "yale" / "CroppedYale"
     if a.check_data:
@@ -808,7 +825,7 @@ def main(argv=None) -> int:
     m = report.machine()
     try:
         res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
-                  progress=lambda msg: print(msg, file=sys.stderr))
+                  progress=lambda msg: print(msg, file=sys.stderr), split=a.split)
     except InputError as e:  # bad data or models: the message says what to do
         print(f"yale: {e}", file=sys.stderr)
         return 2
