@@ -835,7 +835,8 @@ def main(argv=None) -> int:
                 "command": "python -m training.eval.yale " + " ".join(argv if argv is not None
                                                                      else sys.argv[1:])})
     print(table)
-    print("beats both baselines (overall RMSE, test subjects):", res["beats_both_baselines"])
+    print(f"beats both baselines (overall RMSE, {a.split} subjects):",
+          res["beats_both_baselines"])
     print("beats the light-blind flattened_ratio:", res["beats_flattened_ratio"])
     print("balance correlation with the ground truth (left/right, top/bottom):")
     for name, c in res["balance_correlation"].items():
