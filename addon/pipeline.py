@@ -13,7 +13,12 @@ the per-frame stage functions below (what relight_image and the benchmarks run t
 resumed runs agree bit for bit; ``k`` is the target light's mean radiance (k == 0: black frame,
 network not run; a run whose light is black on every frame is refused before anything is
 written). Decoding runs in a worker thread and writing in another while onnxruntime
-runs, so the three overlap.
+runs, so the three overlap. Intrinsic presets (Portrait) frame the portrait first and blend each
+frame's change of light with its neighbours' (temporal.py), inferring the neighbours just outside
+the frames asked for, so the result never depends on how a clip is chunked.
+
+With ``RelightOptions.takes`` (the strip runs), ``out_dir`` is the strip's folder of takes and
+the run writes into the take that holds its identity, or a new one (takes.py).
 
 Outputs (i = 0-based clip frame index): relit/relit_{i:06d}.exr, matte/matte_{i:06d}.exr (optional),
 source_light/source_{i:06d}.npy, and relight_run.json (the run's identity). A frame is finished
