@@ -792,16 +792,17 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             reported[0] = done
             on_progress(done, total, f"{done} of {total} frames")
 
-    window = {}  # frame -> (x_full, x_max, ab, fg, source, light): this frame and its neighbours
+    # frame -> (x_full, x_max, ab, fg, source, light's signature): this frame and its neighbours
+    window = {}
 
     def emit(i):
-        x_full, x_max, ab, fg, source, light = window[i]
+        x_full, x_max, ab, fg, source, sig = window[i]
         if steady and ab is not None:
             near = []
             for j in (i - 1, i + 1):
                 other = window.get(j)
                 near.append(other[2] if other is not None and other[2] is not None
-                            and temporal.similar_lights(light, other[5]) else None)
+                            and temporal.alike(sig, other[5]) else None)
             ab = temporal.blend(ab, *near, mask=fg)
         _put(results, (i, x_full, x_max, ab, fg, source), stop, alive=writer)
         _raise_if_failed(writer)
@@ -832,7 +833,8 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
                 source = source * np.float32(plan.scale)  # the source light in footage units
                 ab = scaled(with_background(ab, fg, light, source, plan), gain)
-            window[i] = (x_full, x_max, ab, fg, source, light)
+            window[i] = (x_full, x_max, ab, fg, source,
+                         temporal.signature(light) if steady else None)
             # A frame goes out once its following neighbour is in (or there is none).
             if steady and i - 1 in wanted and i - 1 in window:
                 emit(i - 1)

@@ -32,15 +32,23 @@ def context_frames(todo, count: int) -> list[int]:
     return sorted(need)
 
 
+def signature(light: np.ndarray) -> np.ndarray:
+    """(256, 3): the diffuse irradiance ``light`` gives a surface facing each of the light
+    vector's directions; two lights shade alike when their signatures do."""
+    return lightvec.irradiance(light, lightvec.directions().reshape(-1, 3))
+
+
+def alike(sig_a: np.ndarray, sig_b: np.ndarray, tolerance: float = LIGHT_TOLERANCE) -> bool:
+    """Whether two signatures differ by at most ``tolerance`` of the larger in L2 (two black
+    lights are alike)."""
+    scale = max(float(np.linalg.norm(sig_a)), float(np.linalg.norm(sig_b)))
+    return scale == 0.0 or float(np.linalg.norm(sig_a - sig_b)) <= tolerance * scale
+
+
 def similar_lights(a: np.ndarray, b: np.ndarray, tolerance: float = LIGHT_TOLERANCE) -> bool:
-    """Whether light vectors ``a`` and ``b`` shade alike: the diffuse irradiance they give a
-    surface facing each of the light vector's directions differs by at most ``tolerance`` of
-    the larger in L2 (two black lights are alike). A key lamp turning 1 degree a frame differs
-    by 1.7%, twice that by 3.4%; the lamp 20% brighter by 17%."""
-    normals = lightvec.directions().reshape(-1, 3)
-    ea, eb = lightvec.irradiance(a, normals), lightvec.irradiance(b, normals)
-    scale = max(float(np.linalg.norm(ea)), float(np.linalg.norm(eb)))
-    return scale == 0.0 or float(np.linalg.norm(ea - eb)) <= tolerance * scale
+    """Whether light vectors ``a`` and ``b`` shade alike (signature): a key lamp turning 1
+    degree a frame differs by 1.7%, twice that by 3.4%; the lamp 20% brighter by 17%."""
+    return alike(signature(a), signature(b), tolerance)
 
 
 def _fit(x: np.ndarray, shape) -> np.ndarray | None:
@@ -61,22 +69,27 @@ def blend(ab, previous, following, mask=None, weights=WEIGHTS):
     or left the frame)."""
     a, b = ab
     w_prev, w_this, w_next = (float(w) for w in weights)
-    sum_a = a * np.float32(w_this)
-    sum_b = b * np.float32(w_this)
-    total = w_this
+    near = []
     for other, w in ((previous, w_prev), (following, w_next)):
         if other is None or w == 0.0:
             continue
         oa, ob = _fit(other[0], a.shape), _fit(other[1], b.shape)
-        if oa is None or ob is None:
-            continue
-        sum_a += oa * np.float32(w)
-        sum_b += ob * np.float32(w)
-        total += w
-    if total == w_this:
+        if oa is not None and ob is not None:
+            near.append((oa, ob, w))
+    if not near:
         return a, b
-    k = np.float32(1.0 / total)
-    if mask is None:
-        return sum_a * k, sum_b * k
-    m = np.clip(np.asarray(mask, np.float32), 0.0, 1.0)[None]
-    return a + m * (sum_a * k - a), b + m * (sum_b * k - b)
+    total = w_this + sum(w for _, _, w in near)
+    out = []
+    for k, x in enumerate((a, b)):
+        # The neighbours' weighted difference from this frame, added on the subject:
+        # x + m * sum_j w_j (x_j - x) / total (in place: the grid is large at 4K).
+        acc = np.zeros_like(x)
+        for other in near:
+            diff = np.subtract(other[k], x)
+            diff *= np.float32(other[2] / total)
+            acc += diff
+        if mask is not None:
+            acc *= np.clip(np.asarray(mask, np.float32), 0.0, 1.0)[None]
+        acc += x
+        out.append(acc)
+    return out[0], out[1]
