@@ -1,5 +1,5 @@
 """Speed of the intrinsic presets: network and renderer at the working size, and a 1080p frame
-end to end (framing pass, relighting, full-resolution finish).
+end to end (framing pass, relighting, the temporal blend, full-resolution finish).
 
     .venv/bin/python -m bench.intrinsic_speed [--model models/relight-portrait.onnx] [--threads 2]
 
@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from addon import api, colour, detail, intrinsic, lightvec, pipeline, portrait
+from addon import api, colour, detail, intrinsic, lightvec, pipeline, portrait, temporal
 from training.lightstage.png import read_png
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -70,11 +70,15 @@ def run(model: str, threads: int, repeats: int) -> dict:
             timed(lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats),
         "full-resolution finish at 1080p":
             timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
+        f"temporal blend with two neighbours ({res.a.shape[1]}x{res.a.shape[2]} grid)":
+            timed(lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
+                                         mask=res.matte), repeats),
     }
+    blend_row = list(rows)[-1]
     net_render = rows[f"network, {size} px crop"] + rows["renderer, key lamp (diffuse + shadow + highlight)"]
     end_to_end = (rows[framing_row] / pipeline.FRAMING_STEP
                   + rows["relight_frame at 1080p (coarse + face passes, key lamp)"]
-                  + rows["full-resolution finish at 1080p"])
+                  + rows["full-resolution finish at 1080p"] + rows[blend_row])
     return {"stages_ms": rows, "network_plus_renderer_fps": 1000 / net_render,
             "end_to_end_1080p_fps": 1000 / end_to_end, "threads": threads, "working_size": size,
             "decode_and_write": "not included (the pipeline overlaps them in other threads)"}
@@ -97,8 +101,8 @@ def main(argv=None):
              "| --- | --- | --- |"]
     lines += [f"| {k} | {v:.1f} | {1000 / v:.1f} |" for k, v in res["stages_ms"].items()]
     lines += ["", f"Network plus renderer at the working size: {res['network_plus_renderer_fps']:.1f}"
-              f" frames/s; 1080p end to end (framing, relighting, finish; decode and write overlap "
-              f"in other threads): {res['end_to_end_1080p_fps']:.1f} frames/s."]
+              f" frames/s; 1080p end to end (framing, relighting, blend, finish; decode and write "
+              f"overlap in other threads): {res['end_to_end_1080p_fps']:.1f} frames/s."]
     md = "\n".join(lines) + "\n"
     print(md)
     pathlib.Path(a.out + ".md").write_text(md)
