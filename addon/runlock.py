@@ -126,7 +126,7 @@ class FolderLock:
                 "started": time.strftime("%Y-%m-%d %H:%M:%S"), "time": time.time()}
 
     def __enter__(self) -> FolderLock:
-        self._begin_setup()
+        self.begin_setup()
         try:
             if not _create(self.holder_path, self._record()):
                 raise OutputError(f"The lock file {self.holder_path} exists already; delete it.")
@@ -159,7 +159,8 @@ class FolderLock:
             self._in_setup = False
             _remove(self.setup_path)
 
-    def _begin_setup(self) -> None:
+    def begin_setup(self) -> None:
+        """Take the folder's setup lock (waiting for another process's, within ``wait_s``)."""
         deadline = time.monotonic() + self.wait_s
         while not _create(self.setup_path, self._record()):
             record = _read(self.setup_path)
@@ -227,7 +228,7 @@ class SetupLock:
         self._lock = FolderLock(folder, "", note, should_cancel, wait_s)
 
     def __enter__(self) -> SetupLock:
-        self._lock._begin_setup()
+        self._lock.begin_setup()
         return self
 
     def __exit__(self, *exc) -> None:

@@ -93,8 +93,8 @@ def choose_take(strip_dir, run: str, replace: bool = False, note=None,
             if busy is not None:
                 raise OutputError(
                     f"The latest take {path} is still being written by another relight run "
-                    f"({runlock.describe(*busy)}); wait for it to finish, or turn Overwrite off "
-                    "to make a new take.")
+                    f"({runlock.describe(*busy)}); wait for it to finish, or turn Replace Latest "
+                    "Take (--overwrite) off to make a new take.")
             _claim(path, run)
             return path
         path = os.path.join(strip_dir, take_name(takes[-1][0] + 1 if takes else 1))

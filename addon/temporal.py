@@ -40,15 +40,10 @@ def signature(light: np.ndarray) -> np.ndarray:
 
 def alike(sig_a: np.ndarray, sig_b: np.ndarray, tolerance: float = LIGHT_TOLERANCE) -> bool:
     """Whether two signatures differ by at most ``tolerance`` of the larger in L2 (two black
-    lights are alike)."""
+    lights are alike): a key lamp turning 1 degree a frame differs by 1.7%, twice that by 3.4%;
+    the lamp 20% brighter by 17%."""
     scale = max(float(np.linalg.norm(sig_a)), float(np.linalg.norm(sig_b)))
     return scale == 0.0 or float(np.linalg.norm(sig_a - sig_b)) <= tolerance * scale
-
-
-def similar_lights(a: np.ndarray, b: np.ndarray, tolerance: float = LIGHT_TOLERANCE) -> bool:
-    """Whether light vectors ``a`` and ``b`` shade alike (signature): a key lamp turning 1
-    degree a frame differs by 1.7%, twice that by 3.4%; the lamp 20% brighter by 17%."""
-    return alike(signature(a), signature(b), tolerance)
 
 
 def _fit(x: np.ndarray, shape) -> np.ndarray | None:

@@ -60,6 +60,7 @@ def run(model: str, threads: int, repeats: int) -> dict:
     bufs = portrait.buffers(sess, crop)
     res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
     framing_row = f"framing pass (find_box; a run frames one frame in {pipeline.FRAMING_STEP})"
+    blend_row = f"temporal blend with two neighbours ({res.a.shape[1]}x{res.a.shape[2]} grid)"
     rows = {
         f"network, {size} px crop": timed(lambda: sess.run_planar(crop), repeats),
         "renderer, key lamp (diffuse + shadow + highlight)":
@@ -70,11 +71,9 @@ def run(model: str, threads: int, repeats: int) -> dict:
             timed(lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats),
         "full-resolution finish at 1080p":
             timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
-        f"temporal blend with two neighbours ({res.a.shape[1]}x{res.a.shape[2]} grid)":
-            timed(lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
+        blend_row: timed(lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
                                          mask=res.matte), repeats),
     }
-    blend_row = list(rows)[-1]
     net_render = rows[f"network, {size} px crop"] + rows["renderer, key lamp (diffuse + shadow + highlight)"]
     end_to_end = (rows[framing_row] / pipeline.FRAMING_STEP
                   + rows["relight_frame at 1080p (coarse + face passes, key lamp)"]

@@ -23,15 +23,19 @@ def turned(degrees):
                                     10.0)
 
 
+def alike(a, b):
+    return temporal.alike(temporal.signature(a), temporal.signature(b))
+
+
 def test_similar_lights_shade_alike():
     key = turned(0.0)
-    assert temporal.similar_lights(key, key * 1.04)
-    assert not temporal.similar_lights(key, key * 1.2)          # a flash
-    assert temporal.similar_lights(key, turned(2.0))             # an animated lamp, 2 deg a frame
-    assert not temporal.similar_lights(key, turned(10.0))
-    assert not temporal.similar_lights(key, lightvec.splat_direction([-1, 0, 0.3], 10.0))
-    assert temporal.similar_lights(lightvec.zeros(), lightvec.zeros())
-    assert not temporal.similar_lights(key, lightvec.zeros())
+    assert alike(key, key * 1.04)
+    assert not alike(key, key * 1.2)          # a flash
+    assert alike(key, turned(2.0))             # an animated lamp, 2 deg a frame
+    assert not alike(key, turned(10.0))
+    assert not alike(key, lightvec.splat_direction([-1, 0, 0.3], 10.0))
+    assert alike(lightvec.zeros(), lightvec.zeros())
+    assert not alike(key, lightvec.zeros())
 
 
 def test_blend_weights_and_missing_neighbours():
