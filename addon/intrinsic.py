@@ -9,7 +9,10 @@ those buffers and a light vector into a per-pixel change of the footage:
 * ``E_source``: the footage's own diffuse shading, an order-2 spherical-harmonic irradiance
   fitted to the crop's luminance over the predicted normals (divided by the albedo variations, so
   brows and lips do not read as shadow). Fitted on luminance: the footage keeps its own colour,
-  and the target light alone sets the colour change (a white light keeps skin colour).
+  and the target light alone sets the colour change (a white light keeps skin colour). Where the
+  footage's light is directional, nine coefficients cannot hold its hard terminator and cast
+  shadows, so on face skin the shading read per pixel (luminance over albedo) is blended in
+  (``source_shading``).
 * ``E_target``: the irradiance of the light vector on the predicted normals, summed exactly
   over its brightest cells and through order-2 SH for the rest (``irradiance``).
 * Effects on demand (``plan``): the light's strong, compact components (a lamp, a sun) get a
@@ -47,6 +50,11 @@ SKIN_ROUGHNESS = 0.38
 SKIN_F0 = 0.028
 SKIN_ALBEDO = 0.35          # luminance albedo of skin: absolute units for highlights and "physical"
 RATIO_MAX = 16.0            # a region the footage had in deep shadow is not amplified without bound
+# The source shading read per pixel counts up to this weight (log space) on face skin ...
+PIXEL_SOURCE_WEIGHT = 0.8
+# ... reached when the fitted source light is this directional (``directionality``: one lamp on
+# a sphere's visible half fits at 0.6-0.7, an overcast sky at 0.33, a uniform world at 0).
+PIXEL_SOURCE_DIRECTIONAL = 0.6
 
 
 def luminance(chw: np.ndarray) -> np.ndarray:
@@ -187,6 +195,41 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
     return c.astype(np.float32)
 
 
+def directionality(c: np.ndarray) -> float:
+    """How directional a fitted irradiance is: |band 1| / band 0 of its nine coefficients. The
+    full sphere's irradiance of one distant light gives 1.15 and a uniform world 0; fitted over
+    the visible half of a head (the robust fit down-weights the lamp's dark side), one lamp gives
+    about 0.6-0.7, an overcast sky 0.33, a broad glow over an ambient 0.16."""
+    return float(np.linalg.norm(c[1:4])) / max(abs(float(c[0])), 1e-8)
+
+
+def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
+                   weight: float | None = None) -> np.ndarray:
+    """(h, w) the footage's diffuse shading: the SH fit ``c`` on the predicted normals, with, on
+    face skin, the shading read per pixel (luminance over the albedo variations) blended in log
+    space, by up to ``weight`` as the fitted light is directional. Nine coefficients smooth a
+    hard source's terminator and nose shadow away, and the ratio then leaves them in the relit
+    frame; a soft source keeps the fit, whose errors in the normals cancel against the target's
+    rendering on the same normals. Skin only: its albedo is nearly uniform, so what luminance
+    over albedo leaves is shading; hair, eyes and clothes keep the fit. ``weight`` defaults to
+    PIXEL_SOURCE_WEIGHT (0: the fit alone)."""
+    weight = PIXEL_SOURCE_WEIGHT if weight is None else weight
+    e_fit = np.tensordot(c, sh_basis(bufs.normal), axes=(0, 0))
+    fg = bufs.matte > 0.5
+    t = weight * min(directionality(c) / PIXEL_SOURCE_DIRECTIONAL, 1.0)
+    if t <= 0 or not fg.any():
+        return e_fit
+    alb = luminance(bufs.albedo)
+    a_med = float(np.median(alb[fg]))
+    if not a_med > 0:
+        return e_fit
+    read = image_lum / np.maximum(alb / a_med, 0.02)
+    fit = np.maximum(e_fit, 1e-8)
+    ok = fg & np.isfinite(read) & (read > 0)
+    step = np.log(np.where(ok, read, 1.0) / fit) * np.where(ok, t * bufs.face, 0.0)
+    return (fit * np.exp(step)).astype(np.float32)
+
+
 def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
            steps: int = SHADOW_STEPS, lit: np.ndarray | None = None) -> np.ndarray:
     """(h, w) visibility in [0, 1] toward a distant light: march from each subject pixel toward
@@ -279,7 +322,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     effects = plan(light) if effects is None else effects
     lum = luminance(image_chw)
     c = fit_source(lum, bufs)
-    e_src = np.tensordot(c, sh_basis(bufs.normal), axes=(0, 0))  # (h, w) luminance shading
+    e_src = source_shading(lum, bufs, c)  # (h, w) luminance shading
     fg = bufs.matte > 0.5
     floor = 0.05 * float(np.percentile(e_src[fg], 90)) if fg.any() else 1e-6
     e_src = np.maximum(e_src, max(floor, 1e-8))

@@ -167,6 +167,91 @@ def test_fit_source_without_foreground_is_neutral():
     assert np.all(np.isfinite(c)) and c[0] > 0 and np.all(c[1:] == 0)
 
 
+def test_directionality_orders_lamps_skies_and_a_uniform_world():
+    """|band 1| / band 0 of the irradiance fitted on the sphere's visible half: a lamp reaches
+    PIXEL_SOURCE_DIRECTIONAL (full per-pixel weight), an overcast sky and a broad glow fall
+    short of it, a uniform world is 0."""
+    normal, height, matte, _, _ = sphere()
+    alb = np.full((3, S, S), 0.5, np.float32)
+    bufs = intrinsic.Buffers(normal, height, alb, matte, matte)
+
+    def d(light):
+        lum = intrinsic.luminance(exact_irradiance(light, normal).astype(np.float32)) * 0.5
+        return intrinsic.directionality(intrinsic.fit_source(lum, bufs))
+
+    full = intrinsic.PIXEL_SOURCE_DIRECTIONAL
+    assert d(lightvec.splat_direction([0.5, 0.2, 1.0], 5.0)) >= full
+    assert d(lightvec.splat_direction([1.0, 0.1, 0.4], 5.0)) >= full
+    assert 0.1 < d(smooth_sky()) < d(overcast()) < full
+    assert d(lightvec.uniform(1.0)) < 0.01
+
+
+def hard_source(fill=0.15):
+    """(image, Buffers, exact shading) of the skin sphere lit by a hard lamp from the right."""
+    normal, height, matte, _, _ = sphere()
+    alb = np.broadcast_to(SKIN[:, None, None], (3, S, S)).copy()
+    e = exact_irradiance(lamp([1.0, 0.1, 0.4], 5.0, fill), normal).astype(np.float32)
+    image = alb * e * matte / math.pi
+    return image, intrinsic.Buffers(normal, height, alb, matte, matte.copy()), e
+
+
+def gain_error(x, y):
+    """Relative RMSE of x against y after x's least-squares gain."""
+    g = float((x * y).sum() / (x * x).sum())
+    return float(np.sqrt(np.mean((g * x - y) ** 2) / np.mean(y ** 2)))
+
+
+def test_a_hard_source_is_read_per_pixel_on_skin(monkeypatch):
+    """Under a hard lamp, the source shading with the per-pixel read is closer to the exact
+    shading (up to a gain) than the nine-coefficient fit, and relighting to the mirrored lamp
+    comes closer to the truth with it (diffuse only: a sphere casts no shadow on itself)."""
+    image, bufs, e = hard_source()
+    lum = intrinsic.luminance(image)
+    c = intrinsic.fit_source(lum, bufs)
+    m = bufs.matte > 0.5
+    fit_only = intrinsic.source_shading(lum, bufs, c, weight=0.0)
+    np.testing.assert_allclose(fit_only, np.tensordot(c, intrinsic.sh_basis(bufs.normal),
+                                                      axes=(0, 0)), rtol=1e-6, atol=1e-7)
+    read = intrinsic.source_shading(lum, bufs, c)
+    truth = intrinsic.luminance(e)[m]
+    assert gain_error(read[m], truth) < 0.6 * gain_error(fit_only[m], truth)
+
+    target = lamp([-1.0, 0.1, 0.4], 5.0, 0.15)
+    gt = intrinsic.luminance(bufs.albedo * exact_irradiance(target, bufs.normal) / math.pi)[m]
+
+    def relit_error(weight):
+        monkeypatch.setattr(intrinsic, "PIXEL_SOURCE_WEIGHT", weight)
+        sh = intrinsic.shade(image, bufs, target, intrinsic.Plan())
+        return gain_error(intrinsic.luminance(image * sh.ratio)[m], gt)
+
+    assert relit_error(0.8) < 0.8 * relit_error(0.0)
+
+
+@pytest.mark.parametrize("case", ["uniform_source", "not_skin"])
+def test_soft_sources_and_non_skin_keep_the_fit(case):
+    """A uniform source is not directional, and pixels off face skin keep the fit: there the
+    source shading is the nine-coefficient fit exactly."""
+    normal, height, matte, u, _ = sphere()
+    alb = np.broadcast_to(SKIN[:, None, None], (3, S, S)).copy()
+    if case == "uniform_source":
+        image = alb * exact_irradiance(lightvec.uniform(1.0), normal).astype(np.float32) * matte
+        face = matte.copy()
+    else:
+        image, _, _ = hard_source()
+        face = (matte * (u > 0)).astype(np.float32)  # skin on the right half only
+    bufs = intrinsic.Buffers(normal, height, alb, matte, face)
+    lum = intrinsic.luminance(image)
+    c = intrinsic.fit_source(lum, bufs)
+    fit = np.maximum(np.tensordot(c, intrinsic.sh_basis(normal), axes=(0, 0)), 1e-8)
+    got = intrinsic.source_shading(lum, bufs, c)
+    off = face < 1e-6
+    np.testing.assert_allclose(got[off], fit[off], rtol=1e-5)
+    if case == "uniform_source":
+        np.testing.assert_allclose(got, fit, rtol=1e-4)
+    else:
+        assert np.abs(got[face > 0.5] - fit[face > 0.5]).max() > 0.05 * float(fit.max())
+
+
 # ---- shadows ---------------------------------------------------------------------------------
 
 BUMP_ROWS, BUMP_COLS = slice(29, 35), slice(29, 35)
