@@ -17,7 +17,9 @@ those buffers and a light vector into a per-pixel change of the footage:
   over its brightest cells and through order-2 SH for the rest (``irradiance``).
 * Effects on demand (``plan``): the light's strong, compact components (a lamp, a sun) get a
   screen-space cast shadow marched over the predicted height and a GGX highlight on skin; soft
-  light (an overcast sky, a uniform world) gets neither, and pays nothing for them.
+  light (an overcast sky, a uniform world) gets neither, and pays nothing for them. On skin the
+  target irradiance diffuses under the surface (``subsurface``), red furthest, as the light
+  stage renders it: terminators and shadow edges turn soft and warm.
 
 Everything is numpy, channels first, at the working size; addon/portrait.py brings the change
 to the footage's full resolution as a ratio, so the footage keeps its identity and detail.
@@ -55,6 +57,16 @@ PIXEL_SOURCE_WEIGHT = 0.8
 # ... reached when the fitted source light is this directional (``directionality``: one lamp on
 # a sphere's visible half fits at 0.6-0.7, an overcast sky at 0.33, a uniform world at 0).
 PIXEL_SOURCE_DIRECTIONAL = 0.6
+# Light diffusing under the skin, as the light stage renders it (training/lightstage/shading.py):
+# the share of each channel's irradiance that diffuses and how far (red travels furthest), in
+# centimetres at the skin ...
+SSS_ALPHA = (0.75, 0.55, 0.40)
+SSS_SIGMA_CM = (0.30, 0.14, 0.07)
+# ... brought to the working size by the face skin's size: the square root of its area taken as
+# this many centimetres. Six is half a real face's (~12): diffusion twice as wide as the light
+# stage's, chosen on the CroppedYale tune subjects (it also softens the terminator that the
+# predicted normals draw too sharp).
+SSS_FACE_CM = 6.0
 
 
 def luminance(chw: np.ndarray) -> np.ndarray:
@@ -230,6 +242,54 @@ def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
     return (fit * np.exp(step)).astype(np.float32)
 
 
+def gaussian_blur(a: np.ndarray, sigma: float) -> np.ndarray:
+    """(..., h, w) separable Gaussian blur over the last two axes (edges extended), sigma in
+    pixels, cut at three sigma."""
+    r = max(1, int(math.ceil(3.0 * sigma)))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    k = (k / k.sum()).astype(np.float32)
+    out = np.asarray(a, np.float32)
+    for axis in (-2, -1):
+        n = out.shape[axis]
+        pad = [(0, 0)] * out.ndim
+        pad[axis] = (r, r)
+        p = np.pad(out, pad, mode="edge")
+        acc = np.zeros_like(out)
+        for i, kv in enumerate(k):
+            acc += kv * (p[..., i:i + n, :] if axis == -2 else p[..., i:i + n])
+        out = acc
+    return out
+
+
+def subsurface(irr: np.ndarray, skin: np.ndarray) -> np.ndarray:
+    """(3, h, w) irradiance diffused under the skin: per channel, SSS_ALPHA of it replaced by its
+    Gaussian average over the skin (weights ``skin`` (h, w), normalised, so hair and eyes do not
+    bleed in), SSS_SIGMA_CM wide at the scale SSS_FACE_CM gives the skin's size. A terminator
+    and a cast shadow's edge turn soft and warm, as on skin; off the skin nothing changes."""
+    area = float(skin.sum())
+    if area < 16:
+        return irr
+    px_per_cm = math.sqrt(area) / SSS_FACE_CM
+    sigmas = [c * px_per_cm for c in SSS_SIGMA_CM]
+    # Only the skin's bounding box changes: work there (a wide frame's grid is mostly not skin).
+    rows, cols = np.nonzero(skin > 0)
+    r = int(math.ceil(3.0 * max(sigmas)))  # gaussian_blur's reach
+    h, w = skin.shape
+    y0, y1 = max(rows.min() - r, 0), min(rows.max() + 1 + r, h)
+    x0, x1 = max(cols.min() - r, 0), min(cols.max() + 1 + r, w)
+    win = (slice(None), slice(y0, y1), slice(x0, x1))
+    sk = skin[win[1:]].astype(np.float32)
+    out = irr.copy()
+    for ch, (alpha, sigma) in enumerate(zip(SSS_ALPHA, sigmas)):
+        if sigma < 0.3:  # narrower than a pixel: nothing to diffuse at this size
+            continue
+        e = irr[ch][win[1:]]
+        num, den = gaussian_blur(np.stack([e * sk, sk]), sigma)
+        a = alpha * sk
+        out[ch][win[1:]] = e * (1.0 - a) + a * (num / np.maximum(den, 1e-6))
+    return out
+
+
 def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
            steps: int = SHADOW_STEPS, lit: np.ndarray | None = None) -> np.ndarray:
     """(h, w) visibility in [0, 1] toward a distant light: march from each subject pixel toward
@@ -339,7 +399,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         if effects.specular:
             s = specular(bufs.normal, comp.direction) * (vis if vis is not None else 1.0)
             spec += comp.irradiance[:, None, None] * (s * bufs.face)[None]
-    e_t = np.maximum(e_t, 0.0)
+    e_t = subsurface(np.maximum(e_t, 0.0), bufs.face * bufs.matte)
     # Bound the ratio relative to its typical value, so the bound does not depend on the light's
     # absolute power (the change stays linear in the light).
     typical = float(np.median(luminance(e_t)[fg])) if fg.any() else 0.0

@@ -341,19 +341,49 @@ def test_a_side_lamp_brightens_its_side(side):
     assert near > 3.0 * far
 
 
+def skin_chroma(chw, m):
+    """Mean red over green and blue over green on the pixels ``m``."""
+    return np.array([chw[0][m].mean() / chw[1][m].mean(), chw[2][m].mean() / chw[1][m].mean()])
+
+
 def test_white_light_keeps_skin_colour():
-    """A white light leaves the ratio achromatic (channels equal within 1e-5), so skin keeps its
-    colour; a red light does not."""
+    """A white light leaves the ratio achromatic off the skin (channels equal within 1e-5) and
+    keeps the skin's mean colour within 3% (only its terminator warms, the light diffusing
+    under it); a red light does not."""
     image, bufs = portrait()
+    no_skin = intrinsic.Buffers(bufs.normal, bufs.height, bufs.albedo, bufs.matte,
+                                np.zeros_like(bufs.face))
+    m = bufs.matte > 0.5
     for light in (lamp([1.0, 0.2, 0.5]), smooth_sky().mean(-1, keepdims=True).repeat(3, -1)):
-        ratio = intrinsic.shade(image, bufs, light).ratio
+        ratio = intrinsic.shade(image, no_skin, light).ratio
         scale = float(np.abs(ratio).max())
         assert np.abs(ratio[0] - ratio[1]).max() <= 1e-5 * scale
         assert np.abs(ratio[2] - ratio[1]).max() <= 1e-5 * scale
+        out = image * intrinsic.shade(image, bufs, light).ratio
+        np.testing.assert_allclose(skin_chroma(out, m), skin_chroma(image, m), rtol=0.03)
     red = lamp([1.0, 0.2, 0.5]) * np.array([1.0, 0.3, 0.2], np.float32)
     ratio = intrinsic.shade(image, bufs, red).ratio
-    m = bufs.matte > 0.5
     assert ratio[0][m].mean() > 2.0 * ratio[1][m].mean()
+
+
+def test_light_diffuses_under_skin_red_furthest():
+    """subsurface: uniform irradiance stays as it is, nothing changes off the skin, and across a
+    white lamp's terminator the dark side gets light back, red the most, blue the least."""
+    normal, height, matte, u, _ = sphere()
+    skin = matte.copy()
+    flat = np.full((3, S, S), 2.0, np.float32)
+    np.testing.assert_allclose(intrinsic.subsurface(flat, skin), flat, rtol=1e-5)
+    irr = exact_irradiance(lightvec.splat_direction([1.0, 0.0, 0.0], 5.0), normal).astype(np.float32)
+    half = skin * (u > 0)  # skin on the lit half only
+    out = intrinsic.subsurface(irr, half)
+    np.testing.assert_array_equal(out[:, half == 0], irr[:, half == 0])
+    out = intrinsic.subsurface(irr, skin)
+    band = (matte > 0.5) & (np.abs(u) < 0.12)  # around the terminator (normal x = 0)
+    gain = (out[:, band] - irr[:, band]).mean(1)
+    assert gain[0] > gain[1] > gain[2] > 0
+    dark = (matte > 0.5) & (u < -0.05) & (u > -0.2)  # just past it, on the dark side
+    assert out[0][dark].mean() > 4.0 * irr[0][dark].mean()
+    assert out[0][dark].mean() > 2.0 * out[2][dark].mean()
 
 
 @pytest.mark.parametrize("light", ["lamp", "sky", "dim"])

@@ -107,3 +107,11 @@ def test_export_matches_torch_and_follows_the_contract(tmp_path):
     assert [i.name for i in sess.get_inputs()] == [contract.INPUT_IMAGE]
     assert [o.name for o in sess.get_outputs()] == [contract.OUTPUT_NORMAL, contract.OUTPUT_HEIGHT,
                                                     contract.OUTPUT_ALBEDO, contract.OUTPUT_PARSING]
+
+
+def test_subsurface_constants_are_the_light_stage_s():
+    """The renderer diffuses light under skin with the light stage's own shares and widths."""
+    from training.lightstage import shading
+
+    assert intrinsic.SSS_ALPHA == shading.SSS_ALPHA
+    assert intrinsic.SSS_SIGMA_CM == shading.SSS_SIGMA_CM

@@ -161,6 +161,7 @@ def main(argv=None):
     net.load_state_dict(state["state_dict"])
     net.eval()
     out = pathlib.Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
     onnx_path = out / f"{a.name}.onnx"
     export_onnx(net, onnx_path)
     worst = check_against_torch(net, onnx_path)
