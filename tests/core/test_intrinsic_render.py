@@ -386,6 +386,36 @@ def test_light_diffuses_under_skin_red_furthest():
     assert out[0][dark].mean() > 2.0 * out[2][dark].mean()
 
 
+def test_hair_away_from_the_face_takes_the_wrapped_lobe():
+    """A side lamp on a sphere: with no face skin (all hair) the far side just past the
+    terminator gets light, as hair's wrapped lobe gives it; as face skin (Lambert) it stays
+    dark there; and the lobe itself is Lambert's without wrap and hair's with it."""
+    c = np.linspace(-1.0, 1.0, 9, dtype=np.float32)
+    np.testing.assert_array_equal(intrinsic.lobe(c), np.maximum(c, 0.0))
+    np.testing.assert_allclose(intrinsic.lobe(c, np.ones_like(c)), np.maximum(0.7 * c + 0.3, 0.0),
+                               atol=1e-7)
+    normal, height, matte, u, v = sphere()
+    alb = np.broadcast_to(SKIN[:, None, None], (3, S, S)).copy()
+    image = (alb * exact_irradiance(lightvec.uniform(1.0), normal) * matte / math.pi).astype(np.float32)
+    light = lightvec.splat_direction([1.0, 0.0, 0.0], 5.0)
+    upper = (matte > 0.5) & (v < -0.1)  # well above the chin and away from the skin below
+    beyond = upper & (u < -0.15) & (u > -0.35)  # just past the terminator
+    lit = upper & (u > 0.5)
+    chin = (matte * (v > 0.5)).astype(np.float32)  # face skin only in the sphere's lowest part
+    far = {}
+    for name, face in (("hair", chin), ("skin", matte.copy())):
+        bufs = intrinsic.Buffers(normal, height, alb, matte, face)
+        ratio = intrinsic.shade(image, bufs, light, intrinsic.Plan()).ratio
+        far[name] = float(ratio[1][beyond].mean() / ratio[1][lit].mean())
+    assert far["hair"] > 0.1 and far["skin"] < 0.5 * far["hair"]
+    share = intrinsic.hair_share(intrinsic.Buffers(normal, height, alb, matte, chin))
+    assert share[upper].min() > 0.9
+    assert share[(v > 0.65) & (np.abs(u) < 0.3) & (matte > 0.5)].max() == 0.0  # on skin
+    top = (matte * (v < -0.5)).astype(np.float32)  # face skin only in the upper part
+    below = intrinsic.hair_share(intrinsic.Buffers(normal, height, alb, matte, top))
+    assert below[v > -0.45].max() == 0.0  # below the chin: neck and clothes stay Lambert
+
+
 @pytest.mark.parametrize("light", ["lamp", "sky", "dim"])
 def test_keep_exposure_keeps_the_mean_luminance(light):
     """keep_exposure: the matte-weighted mean luminance of image * ratio + highlight equals the

@@ -109,9 +109,11 @@ def test_export_matches_torch_and_follows_the_contract(tmp_path):
                                                     contract.OUTPUT_ALBEDO, contract.OUTPUT_PARSING]
 
 
-def test_subsurface_constants_are_the_light_stage_s():
-    """The renderer diffuses light under skin with the light stage's own shares and widths."""
+def test_skin_and_hair_constants_are_the_light_stage_s():
+    """The renderer diffuses light under skin with the light stage's own shares and widths, and
+    wraps it around hair with the light stage's lobe."""
     from training.lightstage import shading
 
     assert intrinsic.SSS_ALPHA == shading.SSS_ALPHA
     assert intrinsic.SSS_SIGMA_CM == shading.SSS_SIGMA_CM
+    assert intrinsic.HAIR_WRAP == shading.HAIR_WRAP

@@ -32,6 +32,7 @@ SHADOW_CLOSE = 5   # holes up to this wide inside an occluder are filled without
 NORMAL_OFFSET = 2.0
 SSS_ALPHA = (0.75, 0.55, 0.40)     # share of irradiance that diffuses, per channel (R, G, B)
 SSS_SIGMA_CM = (0.30, 0.14, 0.07)  # diffusion width at the skin, per channel: red travels furthest
+HAIR_WRAP = (0.7, 0.3)  # hair's diffuse lobe max(0, 0.7 n.l + 0.3): light wraps around its volume
 
 
 def _basis(dirs: torch.Tensor):
@@ -159,7 +160,7 @@ def transfer(pos, nrm, tangent, material, f0, rough, dirs, vis, strands=None,
         cone = (tl * tv + torch.sqrt((1 - tl * tl).clamp(min=0)) * torch.sqrt((1 - tv * tv).clamp(min=0)))
         kh = k[hair][:, None]
         spec[hair] = kh * 0.06 * cone.clamp(min=0.0) ** 60 * cos[hair] + (1 - kh) * spec[hair]
-        wrap = (nl[hair] * 0.7 + 0.3).clamp(min=0.0)  # light wraps around hair's volume
+        wrap = (nl[hair] * HAIR_WRAP[0] + HAIR_WRAP[1]).clamp(min=0.0)
         diffuse[hair] = kh * wrap + (1 - kh) * diffuse[hair]
     return Transfer(vis * diffuse, vis * spec)
 
