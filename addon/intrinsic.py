@@ -28,6 +28,7 @@ to the footage's full resolution as a ratio, so the footage keeps its identity a
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -280,23 +281,32 @@ def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
     return (fit * np.exp(step)).astype(np.float32)
 
 
-def gaussian_blur(a: np.ndarray, sigma: float) -> np.ndarray:
-    """(..., h, w) separable Gaussian blur over the last two axes (edges extended), sigma in
-    pixels, cut at three sigma."""
+@functools.lru_cache(maxsize=32)
+def blur_matrix(n: int, sigma: float) -> np.ndarray:
+    """(n, n) the Gaussian blur of ``gaussian_blur`` along one axis of n samples as a matrix:
+    taps cut at three sigma, the taps that fall past an edge on its edge sample. Read-only
+    (cached)."""
     r = max(1, int(math.ceil(3.0 * sigma)))
     k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-    k = (k / k.sum()).astype(np.float32)
-    out = np.asarray(a, np.float32)
-    for axis in (-2, -1):
-        n = out.shape[axis]
-        pad = [(0, 0)] * out.ndim
-        pad[axis] = (r, r)
-        p = np.pad(out, pad, mode="edge")
-        acc = np.zeros_like(out)
-        for i, kv in enumerate(k):
-            acc += kv * (p[..., i:i + n, :] if axis == -2 else p[..., i:i + n])
-        out = acc
-    return out
+    k = k / k.sum()
+    i = np.arange(n)
+    d = i[None, :] - i[:, None]  # column minus row: the tap's offset
+    m = np.where(np.abs(d) <= r, k[np.clip(d + r, 0, 2 * r)], 0.0)
+    below = np.concatenate([[0.0], np.cumsum(k)])  # below[j]: the taps of offset < j - r
+    m[:, 0] += below[np.clip(r - i, 0, 2 * r + 1)]  # offsets -r .. -i - 1 fall before sample 0
+    m[:, n - 1] += below[-1] - below[np.clip(n - i + r, 0, 2 * r + 1)]  # offsets > n - 1 - i
+    m = m.astype(np.float32)
+    m.flags.writeable = False
+    return m
+
+
+def gaussian_blur(a: np.ndarray, sigma: float) -> np.ndarray:
+    """(..., h, w) separable Gaussian blur over the last two axes (edges extended), sigma in
+    pixels, cut at three sigma: two matrix products (blur_matrix), far cheaper than a tap loop
+    at the working size."""
+    a = np.asarray(a, np.float32)
+    h, w = a.shape[-2:]
+    return np.matmul(np.matmul(blur_matrix(h, sigma), a), blur_matrix(w, sigma).T)
 
 
 def subsurface(irr: np.ndarray, skin: np.ndarray) -> np.ndarray:
