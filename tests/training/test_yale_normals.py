@@ -1,0 +1,67 @@
+"""training/eval/yale_normals.py: photometric stereo recovers a Lambertian sphere's normals, the
+comparison reads a flattened prediction as flatter, and on a real CroppedYale subject the
+shipped Portrait's normals agree with photometric stereo far better than a flat face would (data
+test: skips without CroppedYale)."""
+
+import numpy as np
+import pytest
+
+from training.eval import yale as ye
+from training.eval import yale_normals as yn
+
+S = 48
+
+
+def sphere_normals():
+    yy, xx = np.mgrid[0:S, 0:S] + 0.5
+    u, v = (xx - S / 2) / (S * 0.45), (yy - S / 2) / (S * 0.45)
+    inside = u * u + v * v < 0.95
+    nz = np.sqrt(np.clip(1 - u * u - v * v, 0.0, 1.0))
+    n = np.stack([u, -v, nz]).reshape(3, -1)
+    return n / np.linalg.norm(n, axis=0), inside.reshape(-1)
+
+
+def lights():
+    angles = np.array([(a, e) for a in (-40, -20, 0, 20, 40) for e in (-30, 0, 30)], float)
+    dirs = np.stack([ye.yale_direction(a, e) for a, e in angles])
+    return dirs, angles
+
+
+def test_photometric_stereo_recovers_a_lambertian_sphere():
+    n, inside = sphere_normals()
+    dirs, angles = lights()
+    images = np.clip(dirs @ n, 0.0, None).reshape(len(dirs), S, S) * 0.6 + 0.1  # + ambient
+    got, ok = yn.photometric_normals(images - 0.1, dirs, angles)
+    m = ok & inside
+    assert m.sum() > 0.3 * inside.sum()
+    assert yn.compare(got, n, m)["angle_deg"] < 0.5
+
+
+def test_a_flatter_prediction_reads_as_flatter():
+    n, inside = sphere_normals()
+    same = yn.compare(n, n, inside)
+    assert same["angle_deg"] < 1e-3 and same["corr_y"] > 0.999
+    assert same["spread_x"] == pytest.approx(1.0) and same["spread_y"] == pytest.approx(1.0)
+    flat = n * np.array([1.0, 0.5, 1.0])[:, None]
+    flat /= np.linalg.norm(flat, axis=0)
+    r = yn.compare(flat, n, inside)
+    assert r["spread_y"] < 0.7 and r["spread_x"] > 0.9 and r["angle_deg"] > 3.0
+
+
+def test_the_shipped_portrait_s_normals_follow_a_real_face(shared_data):
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    s = ye.load_subject(root, "yaleB01")
+    truth, ok = yn.photometric_normals(s.images, s.dirs, s.angles)
+    mask = ye.face_mask(s.images.shape[1:]).reshape(-1) & ok
+    front = int(np.argmin(np.abs(s.angles).sum(1)))
+    from addon import api
+
+    pred = yn.network_normals(api.session("models/relight-portrait.onnx", 1), s.images[front])
+    assert pred is not None
+    got = yn.compare(pred, truth, mask)
+    flat = yn.compare(np.tile([[0.0], [0.0], [1.0]], (1, truth.shape[1])) + 1e-6 * truth,
+                      truth, mask)
+    assert got["angle_deg"] < 0.7 * flat["angle_deg"]
+    assert got["corr_x"] > 0.8 and got["corr_y"] > 0.3

@@ -1,0 +1,103 @@
+"""Real-face normals: the intrinsic network's normals against photometric stereo on CroppedYale.
+
+    .venv/bin/python -m training.eval.yale_normals --onnx models/relight-portrait.onnx [--onnx ...]
+        [--split tune|test]
+
+A subject's near-frontal single-light images (|azimuth| <= 50, |elevation| <= 40) give its
+Lambertian normals by least squares per pixel (photometric stereo, on the pixels lit and unclipped
+in all of them; the data decisions of training/eval/yale.py, linear codes and the camera-frame
+light directions, hold here too). The network sees the subject's frontal image as the product
+does (portrait framing, the crop at the working size, its normals put back on the image). Over
+the face ellipse of training/eval/yale.py this prints the mean angle between the two, and, per
+axis, the correlation of the normals' x (left/right) and y (up/down) components and the spread
+of the network's over the truth's (1: as curved as the real face; below 1: flatter). The y
+figures are the ones behind the relit faces' top/bottom balance.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from addon import api, detail, framing, intrinsic, portrait
+
+from . import yale
+
+FRONT_AZIMUTH, FRONT_ELEVATION = 50, 40
+
+
+def photometric_normals(images: np.ndarray, dirs: np.ndarray, angles: np.ndarray):
+    """((3, h*w) unit normals, (h*w,) bool where they were fitted) from (N, h, w) linear images
+    under distant lights ``dirs`` (N, 3) at ``angles`` (N, 2: azimuth, elevation in degrees)."""
+    az, el = np.abs(np.asarray(angles)).T
+    sel = np.flatnonzero((az <= FRONT_AZIMUTH) & (el <= FRONT_ELEVATION))
+    y = images[sel].reshape(len(sel), -1)
+    ok = np.all((y * 255.0 > 15.0) & (y * 255.0 < 250.0), axis=0)
+    b = np.zeros((3, y.shape[1]))
+    if ok.any():
+        b[:, ok] = np.linalg.lstsq(dirs[sel], y[:, ok], rcond=None)[0]
+    norm = np.linalg.norm(b, axis=0)
+    ok &= norm > 1e-9
+    return b / np.maximum(norm, 1e-9), ok
+
+
+def network_normals(session, gray: np.ndarray) -> np.ndarray | None:
+    """(3, h*w) the network's unit normals for an (h, w) linear gray image, framed as the product
+    frames a frame; None when no portrait is found."""
+    h, w = gray.shape
+    x = np.repeat(np.asarray(gray, np.float32)[None], 3, axis=0)
+    x = x * np.float32(intrinsic.exposure_scale(x))
+    box = portrait.find_box(session, x, detail.FullRes(threads=1))
+    if box is None:
+        return None
+    crop, valid = portrait.crop_planar(x, box, session.card.working_size)
+    bufs = portrait.buffers(session, crop, valid)
+    n = framing.uncrop(np.ascontiguousarray(bufs.normal.transpose(1, 2, 0)), box, (h, w), 0.0)
+    n = n.reshape(-1, 3).T
+    return n / np.maximum(np.linalg.norm(n, axis=0), 1e-9)
+
+
+def compare(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
+    """Mean angle (degrees) and per-axis correlation and spread ratio over ``mask``."""
+    p, t = pred[:, mask], truth[:, mask]
+    angle = np.degrees(np.arccos(np.clip((p * t).sum(0), -1.0, 1.0)))
+    out = {"angle_deg": float(angle.mean())}
+    for i, axis in ((0, "x"), (1, "y")):
+        out[f"corr_{axis}"] = float(np.corrcoef(p[i], t[i])[0, 1])
+        out[f"spread_{axis}"] = float(p[i].std() / max(t[i].std(), 1e-9))
+    return out
+
+
+def run(onnx_paths, split: str = "tune", root=None) -> dict:
+    root = root or yale.default_root()
+    names = yale.subject_names(root)
+    _, subjects = yale.select_subjects(names, False, split)  # "tune": the tune subjects
+    sessions = {p: api.session(p, 1) for p in onnx_paths}
+    rows = {p: [] for p in onnx_paths}
+    for name in subjects:
+        s = yale.load_subject(root, name)
+        truth, ok = photometric_normals(s.images, s.dirs, s.angles)
+        front = int(np.argmin(np.abs(s.angles).sum(1)))
+        mask = yale.face_mask(s.images.shape[1:]).reshape(-1) & ok
+        for p, sess in sessions.items():
+            pred = network_normals(sess, s.images[front])
+            if pred is not None and mask.sum() > 16:
+                rows[p].append(compare(pred, truth, mask))
+    return {p: {k: float(np.mean([r[k] for r in v])) for k in v[0]} | {"subjects": len(v)}
+            for p, v in rows.items() if v}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--onnx", action="append", required=True, help="intrinsic model (repeatable)")
+    ap.add_argument("--split", default="tune", choices=["tune", "test"])
+    a = ap.parse_args(argv)
+    for p, r in run(a.onnx, a.split).items():
+        print(f"{p} ({r['subjects']} {a.split} subjects): angle {r['angle_deg']:.1f} deg; "
+              f"left/right x corr {r['corr_x']:.3f} spread {r['spread_x']:.2f}; "
+              f"up/down y corr {r['corr_y']:.3f} spread {r['spread_y']:.2f}")
+
+
+if __name__ == "__main__":
+    main()
