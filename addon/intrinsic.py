@@ -281,12 +281,17 @@ def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
     return (fit * np.exp(step)).astype(np.float32)
 
 
+def blur_radius(sigma: float) -> int:
+    """How far ``gaussian_blur`` reaches: its taps are cut at three sigma."""
+    return max(1, int(math.ceil(3.0 * sigma)))
+
+
 @functools.lru_cache(maxsize=32)
 def blur_matrix(n: int, sigma: float) -> np.ndarray:
     """(n, n) the Gaussian blur of ``gaussian_blur`` along one axis of n samples as a matrix:
     taps cut at three sigma, the taps that fall past an edge on its edge sample. Read-only
     (cached)."""
-    r = max(1, int(math.ceil(3.0 * sigma)))
+    r = blur_radius(sigma)
     k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
     k = k / k.sum()
     i = np.arange(n)
@@ -321,7 +326,7 @@ def subsurface(irr: np.ndarray, skin: np.ndarray) -> np.ndarray:
     sigmas = [c * px_per_cm for c in SSS_SIGMA_CM]
     # Only the skin's bounding box changes: work there (a wide frame's grid is mostly not skin).
     rows, cols = np.nonzero(skin > 0)
-    r = int(math.ceil(3.0 * max(sigmas)))  # gaussian_blur's reach
+    r = blur_radius(max(sigmas))
     h, w = skin.shape
     y0, y1 = max(rows.min() - r, 0), min(rows.max() + 1 + r, h)
     x0, x1 = max(cols.min() - r, 0), min(cols.max() + 1 + r, w)

@@ -20,20 +20,15 @@ import argparse
 
 import numpy as np
 
-from addon import api, detail, framing, intrinsic, portrait
+from addon import api, framing, portrait
 
 from . import yale
-
-FRONT_AZIMUTH, FRONT_ELEVATION = 50, 40
-
 
 def photometric_normals(images: np.ndarray, dirs: np.ndarray, angles: np.ndarray):
     """((3, h*w) unit normals, (h*w,) bool where they were fitted) from (N, h, w) linear images
     under distant lights ``dirs`` (N, 3) at ``angles`` (N, 2: azimuth, elevation in degrees)."""
-    az, el = np.abs(np.asarray(angles)).T
-    sel = np.flatnonzero((az <= FRONT_AZIMUTH) & (el <= FRONT_ELEVATION))
+    sel, ok = yale.frontal_lit(images, angles)
     y = images[sel].reshape(len(sel), -1)
-    ok = np.all((y * 255.0 > 15.0) & (y * 255.0 < 250.0), axis=0)
     b = np.zeros((3, y.shape[1]))
     if ok.any():
         b[:, ok] = np.linalg.lstsq(dirs[sel], y[:, ok], rcond=None)[0]
@@ -47,8 +42,7 @@ def network_normals(session, gray: np.ndarray) -> np.ndarray | None:
     frames a frame; None when no portrait is found."""
     h, w = gray.shape
     x = np.repeat(np.asarray(gray, np.float32)[None], 3, axis=0)
-    x = x * np.float32(intrinsic.exposure_scale(x))
-    box = portrait.find_box(session, x, detail.FullRes(threads=1))
+    box = portrait.find_box(session, x)  # buffers() normalises the exposure itself
     if box is None:
         return None
     crop, valid = portrait.crop_planar(x, box, session.card.working_size)
