@@ -117,3 +117,26 @@ def test_skin_and_hair_constants_are_the_light_stage_s():
     assert intrinsic.SSS_ALPHA == shading.SSS_ALPHA
     assert intrinsic.SSS_SIGMA_CM == shading.SSS_SIGMA_CM
     assert intrinsic.HAIR_WRAP == shading.HAIR_WRAP
+
+
+def test_the_frame_cut_blacks_out_beyond_the_edge_and_drops_the_losses_there(frames):
+    """A cut sample's input is black beyond its frame edge (as the product pads a crop beyond the
+    frame), its buffers are not supervised there and its matte and face targets are empty there;
+    inside, nothing changes; uncut samples are untouched."""
+    from training.intrinsic.train import frame_cut, prepare
+
+    batch = frames.batch(range(8))
+    cut = frame_cut(batch, torch.Generator().manual_seed(0), p=1.0)
+    inside = cut["inside"]
+    out = inside < 0.5
+    assert out.any(), "no sample was cut"
+    assert (cut["fg"][out] == 0).all() and (cut["target"][:, 7:9][out.expand(-1, 2, -1, -1)] == 0).all()
+    keep = inside > 0.5
+    assert torch.equal(cut["fg"][keep], batch["fg"][keep])
+    assert torch.equal(cut["target"][:, :7], batch["target"][:, :7])
+    x = prepare(cut, torch.Generator().manual_seed(1))
+    assert (x[out.expand(-1, 3, -1, -1)] == 0).all() and x[keep.expand(-1, 3, -1, -1)].abs().sum() > 0
+    # The edge crosses the subject: some face pixels of a cut sample were dropped.
+    assert ((batch["target"][:, 8:9] > 0.5) & out).any()
+    none = frame_cut(batch, torch.Generator().manual_seed(0), p=0.0)
+    assert (none["inside"] == 1).all() and torch.equal(none["fg"], batch["fg"])

@@ -73,9 +73,50 @@ def zoom(batch: dict, gen: torch.Generator, p: float = 0.5) -> dict:
     return out
 
 
+CUT_SIDE_P = 0.6  # chance that each side of a cut sample's frame crosses the subject
+CUT_REACH = (-0.15, 0.35)  # where that side lands: face-box edge plus this share of the face's size
+
+
+def frame_cut(batch: dict, gen: torch.Generator, p: float = 0.3) -> dict:
+    """The frame's edge through the subject, for a random share ``p`` of the batch: a tight photo
+    (a face filling its frame, CroppedYale's crops) or a head cut by the top of a phone video
+    reaches the network with black room beyond the frame's edge (addon.portrait.crop_planar).
+    Each side of a picked sample lands, with CUT_SIDE_P, near the face box's edge; ``inside``
+    (B, 1, H, W) says which pixels stay. Beyond the edge nothing is seen: no buffer losses there
+    and no subject in the matte and face targets (the product zeroes both there too)."""
+    img = batch["image"]
+    n, _, h, w = img.shape
+    inside = torch.ones(n, 1, h, w)
+    face = batch["target"][:, 8] > 0.5
+    pick = torch.rand(n, generator=gen) < p
+    ys, xs = torch.arange(h).view(h, 1), torch.arange(w).view(1, w)
+    for i in torch.nonzero(pick).flatten().tolist():
+        rows, cols = torch.nonzero(face[i].any(1)).flatten(), torch.nonzero(face[i].any(0)).flatten()
+        if len(rows) < 4 or len(cols) < 4:
+            continue
+        size = float(max(rows[-1] - rows[0], cols[-1] - cols[0]) + 1)
+        u = torch.rand(4, generator=gen)
+        reach = CUT_REACH[0] + (CUT_REACH[1] - CUT_REACH[0]) * torch.rand(4, generator=gen)
+        edge = [float(e) for e in reach * size]
+        top = rows[0] - edge[0] if u[0] < CUT_SIDE_P else -1
+        bottom = rows[-1] + edge[1] if u[1] < CUT_SIDE_P else h
+        left = cols[0] - edge[2] if u[2] < CUT_SIDE_P else -1
+        right = cols[-1] + edge[3] if u[3] < CUT_SIDE_P else w
+        inside[i, 0] = ((ys >= top) & (ys <= bottom) & (xs >= left) & (xs <= right)).float()
+    out = dict(batch)
+    out["inside"] = inside
+    out["fg"] = batch["fg"] * inside
+    tgt = batch["target"].clone()
+    tgt[:, 7:9] *= inside
+    out["target"] = tgt
+    return out
+
+
 def prepare(batch: dict, gen: torch.Generator, strength: float = 1.0) -> torch.Tensor:
     img = camera.camera_pipeline(batch["image"], gen, strength)
     img = camera.greyscale(img, gen, 0.15)
+    if "inside" in batch:  # black beyond the frame's edge, after the camera, as the product pads
+        img = img * batch["inside"]
     return normalise_batch(img)
 
 
@@ -149,6 +190,8 @@ def train(a) -> pathlib.Path:
         batch = ds.batch(range(first, first + a.batch))
         if a.zoom > 0:
             batch = zoom(batch, gen, a.zoom)
+        if a.cut > 0:
+            batch = frame_cut(batch, gen, a.cut)
         inp = prepare(batch, gen)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=a.bf16):
             pred = model(inp)
@@ -197,6 +240,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--log-every", type=int, default=50)
     ap.add_argument("--init", help="start from this checkpoint's weights")
     ap.add_argument("--zoom", type=float, default=0.5, help="share of samples zoomed in (ZOOM)")
+    ap.add_argument("--cut", type=float, default=0.0, help="share of samples cut by the frame's "
+                    "edge (frame_cut)")
     ap.add_argument("--start-step", type=int, default=0, help="batch index to start at (a "
                     "continued run sees new samples)")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false")
