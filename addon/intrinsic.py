@@ -55,6 +55,12 @@ HAIR_FACE_SIGMA = 4.0       # pixels (a Gaussian's sigma) over which hair_share 
 SKIN_ROUGHNESS = 0.38
 SKIN_F0 = 0.028
 SKIN_ALBEDO = 0.35          # luminance albedo of skin: absolute units for highlights and "physical"
+# Where the footage left the skin unlit (its shading below these shares of its 90th percentile),
+# a ratio has nothing to brighten: the skin is rendered there from the predicted albedo instead,
+# fully below the first share, not at all above the second, as the fitted light is directional
+# (a soft source leaves no region unlit). On the CroppedYale tune subjects (0.1, 0.4) gained
+# 0.13 dB over the ratio alone (one-light pairs 0.46 dB); (0.05, 0.25) and (0.2, 0.6) less.
+UNLIT = (0.1, 0.4)
 RATIO_MAX = 16.0            # a region the footage had in deep shadow is not amplified without bound
 # The source shading is taken as at least this share of its 90th percentile on the subject (a
 # division by a shadow's near-zero shading): 0.02 over 0.05 gained 0.06 dB on the CroppedYale
@@ -281,6 +287,26 @@ def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
     return (fit * np.exp(step)).astype(np.float32)
 
 
+def unlit_share(rel: np.ndarray, directional: float) -> np.ndarray:
+    """(h, w) in [0, 1]: how far a pixel is rendered from its albedo rather than relit by the
+    ratio, from its source shading over the subject's 90th percentile (``rel``) and the fitted
+    light's directionality (UNLIT)."""
+    lo, hi = UNLIT
+    d = np.clip((hi - rel) / (hi - lo), 0.0, 1.0)
+    return (d * d * (3.0 - 2.0 * d) * min(directional / PIXEL_SOURCE_DIRECTIONAL, 1.0)).astype(
+        np.float32)
+
+
+def skin_radiance(image_chw: np.ndarray, lum: np.ndarray, bufs: Buffers, skin: np.ndarray,
+                  unit: float) -> np.ndarray:
+    """(3, h, w) the footage's radiance per unit of irradiance from the predicted albedo: the
+    skin's own colour in the footage (its median chromaticity) times ``unit`` (radiance per unit
+    irradiance of the median skin) times the albedo's variation about the skin's median."""
+    chroma = np.median(image_chw[:, skin] / np.maximum(lum[skin], 1e-12), axis=1)
+    ref = np.maximum(np.median(bufs.albedo[:, skin], axis=1), 1e-6)
+    return (unit * chroma / ref)[:, None, None] * bufs.albedo
+
+
 def blur_radius(sigma: float) -> int:
     """How far ``gaussian_blur`` reaches: its taps are cut at three sigma."""
     return max(1, int(math.ceil(3.0 * sigma)))
@@ -420,7 +446,8 @@ def specular(normal: np.ndarray, direction: np.ndarray,
 class Shading:
     """The change to apply, at the working size."""
     ratio: np.ndarray     # (3, h, w) multiplies the footage
-    highlight: np.ndarray  # (3, h, w) added, in the footage's units
+    highlight: np.ndarray  # (3, h, w) added, in the footage's units: specular highlights and
+    # the skin the footage left unlit, rendered from its albedo (unlit_share)
     plan: Plan
     unit: float = 1.0     # the footage's skin radiance per unit of fitted shading (its units)
 
@@ -437,8 +464,9 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     c = fit_source(lum, bufs)
     e_src = source_shading(lum, bufs, c)  # (h, w) luminance shading
     fg = bufs.matte > 0.5
-    floor = SOURCE_FLOOR * float(np.percentile(e_src[fg], 90)) if fg.any() else 1e-6
-    e_src = np.maximum(e_src, max(floor, 1e-8))
+    p90 = float(np.percentile(e_src[fg], 90)) if fg.any() else 0.0
+    unlit = unlit_share(e_src / p90, directionality(c)) if p90 > 0 else None
+    e_src = np.maximum(e_src, max(SOURCE_FLOOR * p90, 1e-8))
     wrap = hair_share(bufs)
     e_t = irradiance(light, bufs.normal, wrap=wrap)  # (3, h, w)
     spec = np.zeros_like(e_t)
@@ -465,6 +493,10 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     unit = float(np.median((lum / e_src)[skin])) if skin.sum() > 8 else float(
         np.median((lum / e_src)[fg])) if fg.any() else 1.0
     highlight = spec * (unit * math.pi * SKIN_ALBEDO)  # GGX radiance scaled from skin albedo
+    if unlit is not None and skin.sum() > 8:
+        share = (unlit * bufs.face)[None]
+        ratio = ratio * (1.0 - share)
+        highlight = highlight + share * skin_radiance(image_chw, lum, bufs, skin, unit) * e_t
     if keep_exposure and fg.any():
         w = bufs.matte
         before = float((lum * w).sum())

@@ -222,9 +222,41 @@ def test_a_hard_source_is_read_per_pixel_on_skin(monkeypatch):
     def relit_error(weight):
         monkeypatch.setattr(intrinsic, "PIXEL_SOURCE_WEIGHT", weight)
         sh = intrinsic.shade(image, bufs, target, intrinsic.Plan())
-        return gain_error(intrinsic.luminance(image * sh.ratio)[m], gt)
+        return gain_error(intrinsic.luminance(image * sh.ratio + sh.highlight)[m], gt)
 
+    monkeypatch.setattr(intrinsic, "unlit_share", lambda rel, d: np.zeros_like(rel))
     assert relit_error(0.8) < 0.8 * relit_error(0.0)
+
+
+def test_skin_the_footage_left_unlit_is_rendered_from_its_albedo(monkeypatch):
+    """A hard lamp from the right with little fill, relit by the mirrored lamp: the ratio cannot
+    brighten the side the footage left unlit (its shading is floored and its ratio bounded), so
+    there the skin comes from the albedo, in the footage's skin colour, and the relit sphere is
+    closer to the truth than with the ratio alone. A soft source leaves nothing unlit."""
+    image, bufs, e = hard_source(fill=0.01)
+    image = image * np.float32(0.7)  # any exposure: the fill is in the footage's units
+    m = bufs.matte > 0.5
+    target = lamp([-1.0, 0.1, 0.4], 5.0, 0.15)
+    gt = (bufs.albedo * exact_irradiance(target, bufs.normal) / math.pi)[:, m]
+
+    def relit(share=None):
+        if share is not None:
+            monkeypatch.setattr(intrinsic, "unlit_share", share)
+        sh = intrinsic.shade(image, bufs, target, intrinsic.Plan())
+        return (image * sh.ratio + sh.highlight)[:, m], sh
+
+    share_fn = intrinsic.unlit_share
+    out, sh = relit()
+    assert sh.highlight.max() > 0  # the fill (no specular in this plan)
+    ratio_only, _ = relit(lambda rel, d: np.zeros_like(rel))
+    err = gain_error(intrinsic.luminance(out), intrinsic.luminance(gt))
+    assert err < 0.7 * gain_error(intrinsic.luminance(ratio_only), intrinsic.luminance(gt))
+    dark = intrinsic.luminance(image)[m] < 0.05 * intrinsic.luminance(image)[m].max()
+    chroma = out[:, dark] / intrinsic.luminance(out)[dark]
+    np.testing.assert_allclose(chroma.mean(1), SKIN / intrinsic.luminance(SKIN), rtol=0.02)
+    # A uniform world lights every side: no share is rendered from the albedo.
+    assert not share_fn(np.full((4, 4), 0.05, np.float32), 0.0).any()
+    assert share_fn(np.full((4, 4), 0.05, np.float32), 0.7).min() == 1.0
 
 
 @pytest.mark.parametrize("case", ["uniform_source", "not_skin"])
@@ -458,8 +490,10 @@ def test_degenerate_inputs_stay_finite(case):
     assert sh.ratio.min() >= 0.0
 
 
-def test_highlights_only_when_the_plan_has_components():
-    """Effects off (Plan()) and a uniform light give zero highlight; a lamp gives one on skin."""
+def test_highlights_only_when_the_plan_has_components(monkeypatch):
+    """Effects off (Plan()) and a uniform light give zero highlight; a lamp gives one on skin.
+    (What shade adds also holds the fill of skin the footage left unlit: off here.)"""
+    monkeypatch.setattr(intrinsic, "unlit_share", lambda rel, d: np.zeros_like(rel))
     image, bufs = portrait()
     assert not intrinsic.shade(image, bufs, lamp([0.7, 0.4, 0.6]), intrinsic.Plan()).highlight.any()
     assert not intrinsic.shade(image, bufs, lightvec.uniform(1.0)).highlight.any()
