@@ -48,6 +48,19 @@ def test_a_flatter_prediction_reads_as_flatter():
     assert r["spread_y"] < 0.7 and r["spread_x"] > 0.9 and r["angle_deg"] > 3.0
 
 
+def test_the_tilt_reads_a_forehead_that_faces_up():
+    """A sphere's upper half faces up, its lower half down: a positive tilt, halved for a
+    sphere flattened vertically to half, and the opposite sign for one turned upside down."""
+    n, inside = sphere_normals()
+    r = yn.compare(n, n, inside, S)
+    assert r["tilt"] == pytest.approx(r["tilt_truth"]) and r["tilt"] > 0.5
+    upside_down = n * np.array([1.0, -1.0, 1.0])[:, None]
+    assert yn.tilt(upside_down, inside, S) == pytest.approx(-r["tilt"])
+    half = n * np.array([1.0, 0.5, 1.0])[:, None]
+    assert yn.tilt(half, inside, S) == pytest.approx(0.5 * r["tilt"])
+    assert yn.tilt(n, inside & False, S) == 0.0
+
+
 def test_the_shipped_portrait_s_normals_follow_a_real_face(shared_data):
     root = shared_data / "yale" / "CroppedYale"
     if not (root / "yaleB01").is_dir():

@@ -10,8 +10,11 @@ light directions, hold here too). The network sees the subject's frontal image a
 does (portrait framing, the crop at the working size, its normals put back on the image). Over
 the face ellipse of training/eval/yale.py this prints the mean angle between the two, and, per
 axis, the correlation of the normals' x (left/right) and y (up/down) components and the spread
-of the network's over the truth's (1: as curved as the real face; below 1: flatter). The y
-figures are the ones behind the relit faces' top/bottom balance.
+of the network's over the truth's (1: as curved as the real face; below 1: flatter), and the
+face's tilt: how much more its upper part faces up than its lower part (forehead over chin),
+averaged and correlated over subjects. The y figures are the ones behind the relit faces'
+top/bottom balance; per-pixel correlation is dominated by the nose and eye sockets, the tilt by
+the face's large-scale shape, which a frontal light (shading ~ n_z) leaves ambiguous in sign.
 """
 
 from __future__ import annotations
@@ -52,14 +55,31 @@ def network_normals(session, gray: np.ndarray) -> np.ndarray | None:
     return n / np.maximum(np.linalg.norm(n, axis=0), 1e-9)
 
 
-def compare(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
-    """Mean angle (degrees) and per-axis correlation and spread ratio over ``mask``."""
+TILT_BANDS = (0.4, 0.6)  # the face's upper and lower parts: rows above 40% and below 60% of its height
+
+
+def tilt(normals: np.ndarray, mask: np.ndarray, height: int) -> float:
+    """How much more the upper part of the masked face faces up than its lower part: the mean
+    up/down component over rows above TILT_BANDS[0] of the image's ``height`` minus that below
+    TILT_BANDS[1] (forehead over chin: positive on an upright real face)."""
+    rows = np.arange(mask.size) // (mask.size // height)
+    top, bottom = mask & (rows < TILT_BANDS[0] * height), mask & (rows >= TILT_BANDS[1] * height)
+    if not top.any() or not bottom.any():
+        return 0.0
+    return float(normals[1, top].mean() - normals[1, bottom].mean())
+
+
+def compare(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, height: int | None = None) -> dict:
+    """Mean angle (degrees) and per-axis correlation and spread ratio over ``mask``; with the
+    image's ``height``, the face's tilt (``tilt``) in the prediction and the truth."""
     p, t = pred[:, mask], truth[:, mask]
     angle = np.degrees(np.arccos(np.clip((p * t).sum(0), -1.0, 1.0)))
     out = {"angle_deg": float(angle.mean())}
     for i, axis in ((0, "x"), (1, "y")):
         out[f"corr_{axis}"] = float(np.corrcoef(p[i], t[i])[0, 1])
         out[f"spread_{axis}"] = float(p[i].std() / max(t[i].std(), 1e-9))
+    if height:
+        out["tilt"], out["tilt_truth"] = tilt(pred, mask, height), tilt(truth, mask, height)
     return out
 
 
@@ -77,9 +97,15 @@ def run(onnx_paths, split: str = "tune", root=None) -> dict:
         for p, sess in sessions.items():
             pred = network_normals(sess, s.images[front])
             if pred is not None and mask.sum() > 16:
-                rows[p].append(compare(pred, truth, mask))
-    return {p: {k: float(np.mean([r[k] for r in v])) for k in v[0]} | {"subjects": len(v)}
-            for p, v in rows.items() if v}
+                rows[p].append(compare(pred, truth, mask, s.images.shape[1]))
+    out = {}
+    for p, v in rows.items():
+        if v:
+            out[p] = {k: float(np.mean([r[k] for r in v])) for k in v[0]} | {"subjects": len(v)}
+            pt = np.array([[r["tilt"], r["tilt_truth"]] for r in v])
+            ok = len(v) > 2 and pt.std(0).min() > 0
+            out[p]["tilt_corr"] = float(np.corrcoef(pt.T)[0, 1]) if ok else 0.0
+    return out
 
 
 def main(argv=None):
@@ -90,7 +116,9 @@ def main(argv=None):
     for p, r in run(a.onnx, a.split).items():
         print(f"{p} ({r['subjects']} {a.split} subjects): angle {r['angle_deg']:.1f} deg; "
               f"left/right x corr {r['corr_x']:.3f} spread {r['spread_x']:.2f}; "
-              f"up/down y corr {r['corr_y']:.3f} spread {r['spread_y']:.2f}")
+              f"up/down y corr {r['corr_y']:.3f} spread {r['spread_y']:.2f}; forehead-over-chin "
+              f"tilt {r['tilt']:+.3f} (truth {r['tilt_truth']:+.3f}, correlation over subjects "
+              f"{r['tilt_corr']:.2f})")
 
 
 if __name__ == "__main__":
