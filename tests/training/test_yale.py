@@ -296,3 +296,30 @@ def test_the_tune_split_reports_only_tune_subjects_and_never_overwrites_the_resu
     with pytest.raises(SystemExit):  # the default --json holds the test subjects' results
         ye.main(["--onnx", str(toy), "--quick", "--split", "tune"])
     assert "give --json elsewhere" in capsys.readouterr().err
+
+
+def test_the_lambertian_ceilings_are_exact_on_a_lambertian_subject():
+    """A subject that is exactly Lambertian, lit everywhere by every light (a sphere facing the
+    lights, no attached shadows on the lit cap): the fit renders any lighting exactly, and so
+    does the exact shading ratio; where the fit does not exist both fall back to a gain."""
+    s = 24
+    yy, xx = np.mgrid[0:s, 0:s] + 0.5
+    u, v = (xx - s / 2) / (s * 0.9), (yy - s / 2) / (s * 0.9)
+    n = np.stack([u, -v, np.sqrt(np.clip(1 - u * u - v * v, 0, 1))]).reshape(3, -1)
+    n /= np.linalg.norm(n, axis=0)
+    albedo = 0.3 + 0.4 * (xx > s / 2).reshape(-1)
+    angles = np.array([(a, e) for a in (-20, 0, 20) for e in (-20, 0, 20)])
+    dirs = np.stack([ye.yale_direction(a, e) for a, e in angles])
+    images = (np.clip(dirs @ n, 0, None) * albedo).reshape(len(dirs), s, s).astype(np.float32)
+    subject = ye.Subject("toy", 99, angles, dirs, images, np.zeros(images.shape, bool), "", ())
+    shading = ye.subject_shading(subject)
+    assert shading[1].mean() > 0.5
+    rng = np.random.default_rng(3)
+    a = ye.Lighting("few", "a", rng.uniform(0, 1, len(dirs)))
+    b = ye.Lighting("few", "b", rng.uniform(0, 1, len(dirs)))
+    out = ye.ceilings(ye.relit_sum(subject, a.weights), a, b, shading)
+    gt = ye.relit_sum(subject, b.weights).reshape(-1)
+    ok = shading[1]
+    for name in (ye.LAMBERT_FIT, ye.LAMBERT_RATIO):
+        np.testing.assert_allclose(out[name].reshape(-1)[ok], gt[ok], rtol=1e-4)
+    assert {ye.LAMBERT_FIT, ye.LAMBERT_RATIO} <= set(ye.REFERENCES)

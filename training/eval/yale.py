@@ -91,6 +91,7 @@ import numpy as np
 
 from addon import api, hdri, lightvec, normalise
 from addon.errors import InputError
+from addon.intrinsic import SOURCE_FLOOR
 
 from . import report
 from .metrics import (baseline_identity, baseline_irradiance_ratio, image_metrics, mean_metrics,
@@ -105,7 +106,13 @@ BASELINES = ("identity", "irradiance_ratio")
 # its contrast halved in log terms. It knows B's power but not where the light comes from, so a
 # model that only flattens the input's shading scores about the same.
 FLATTENED = "flattened_ratio"
-REFERENCES = (*BASELINES, FLATTENED)
+# Two ceilings, not methods: they see all of the subject's photos (a Lambertian photometric-
+# stereo fit, albedo times normal per pixel, subject_shading), which no relighter of one image has.
+# LAMBERT_FIT renders lighting B from the fit; LAMBERT_RATIO multiplies the input by the fit's
+# Lambertian shading under B over that under A (floored as the product floors its source): what a
+# ratio of diffuse shadings can do with exact normals. Neither casts shadows.
+LAMBERT_FIT, LAMBERT_RATIO = "lambert_fit", "lambert_ratio"
+REFERENCES = (*BASELINES, FLATTENED, LAMBERT_FIT, LAMBERT_RATIO)
 GAIN_SEARCH_STRIDE = 4   # every 4th mask pixel is plenty to place one gain per method
 CELL_CAP_DEG = 20.0      # the Yale dome's largest nearest-neighbour spacing is 26 degrees
 FRONT_AZIMUTH = 95       # single / few lights come from |azimuth| <= this
@@ -430,6 +437,55 @@ def baselines(gray_a: np.ndarray, light_a: np.ndarray, light_b: np.ndarray) -> d
             FLATTENED: np.float32(ratio) * np.sqrt(gray * np.float32(gray.mean()))}
 
 
+def lambertian_fit(images: np.ndarray, dirs: np.ndarray, angles: np.ndarray):
+    """((3, h*w) albedo times unit normal, least squares per pixel over the near-frontal images
+    of ``frontal_lit``; (h*w,) bool where it was fitted) from (N, h, w) linear images under
+    distant lights ``dirs`` (N, 3) at ``angles`` (N, 2: azimuth, elevation in degrees)."""
+    sel, ok = frontal_lit(images, angles)
+    y = images[sel].reshape(len(sel), -1)
+    b = np.zeros((3, y.shape[1]))
+    if ok.any():
+        b[:, ok] = np.linalg.lstsq(dirs[sel], y[:, ok], rcond=None)[0]
+    return b, ok
+
+
+CEILING_MIN_LIT = 4  # a pixel's fit for the ceilings needs this many images where it is lit
+
+
+def subject_shading(subject: Subject) -> tuple[np.ndarray, np.ndarray]:
+    """((K, h*w) each usable light's Lambertian radiance from the subject's fit, (h*w,) bool
+    where the fit exists). Per pixel, least squares over all of the subject's images in which
+    that pixel is lit and unclipped (codes within (15, 250)), so that the sides of the face and
+    the eye sockets, which some lights leave dark, are fitted from the lights that reach them."""
+    k = len(subject.dirs)
+    y = subject.images.reshape(k, -1).astype(np.float64)
+    codes = y * 255.0
+    w = ((codes > 15) & (codes < 250)).astype(np.float64)
+    d = subject.dirs.astype(np.float64)
+    gram = np.einsum("kp,ki,kj->pij", w, d, d) + 1e-9 * np.eye(3)
+    rhs = np.einsum("kp,ki->pi", w * y, d)
+    ok = w.sum(0) >= CEILING_MIN_LIT
+    b = np.zeros((y.shape[1], 3))
+    b[ok] = np.linalg.solve(gram[ok], rhs[ok][..., None])[..., 0]
+    return np.clip(d @ b.T, 0.0, None), ok
+
+
+def ceilings(gray_a: np.ndarray, a: Lighting, b: Lighting, shading) -> dict:
+    """LAMBERT_FIT and LAMBERT_RATIO for one pair (``shading``: subject_shading); where the fit
+    does not exist both take the input times the fitted pixels' median ratio."""
+    per_light, ok = shading
+    h, w = gray_a.shape
+    x = np.asarray(gray_a, np.float64).reshape(-1)
+    e_a, e_b = a.weights @ per_light, b.weights @ per_light
+    if not ok.any():
+        return {LAMBERT_FIT: gray_a.copy(), LAMBERT_RATIO: gray_a.copy()}
+    floor = max(SOURCE_FLOOR * float(np.percentile(e_a[ok], 90)), 1e-12)
+    ratio = e_b / np.maximum(e_a, floor)
+    rest = float(np.median(ratio[ok]))
+    out = {LAMBERT_FIT: np.where(ok, e_b, x * rest), LAMBERT_RATIO: x * np.where(ok, ratio, rest)}
+    return {k: v.reshape(h, w).astype(np.float32) for k, v in out.items()}
+
+
 def ls_gain(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
     """The gain g minimising |g pred - gt|^2 over the mask (1 where pred is black there)."""
     p, t = pred[mask].astype(np.float64), gt[mask].astype(np.float64)
@@ -454,21 +510,25 @@ class PairResult:
     outputs: dict          # method -> (H, W) linear gray, absolute
 
 
-def relight_pair(subject: Subject, a: Lighting, b: Lighting, relighters: dict) -> PairResult:
-    """Ground truth, mask and every method's output for one (A, B) pair."""
+def relight_pair(subject: Subject, a: Lighting, b: Lighting, relighters: dict,
+                 shading=None) -> PairResult:
+    """Ground truth, mask and every method's output for one (A, B) pair (``shading``: the
+    subject's subject_shading, computed here when not given)."""
     img_a, gt = relit_sum(subject, a.weights), relit_sum(subject, b.weights)
     light_a = light_vector(subject.dirs, a.weights)
     light_b = light_vector(subject.dirs, b.weights)
     outs = {name: fn(img_a, light_b) for name, fn in relighters.items()}
     outs.update(baselines(img_a, light_a, light_b))
+    outs.update(ceilings(img_a, a, b, subject_shading(subject) if shading is None else shading))
     return PairResult(subject.name, a.kind, a.label, b.label, gt,
                       face_mask(gt.shape, subject, b.weights), img_a, light_b, outs)
 
 
 def iter_pairs(subjects, relighters: dict, n_pairs: int, seed: int, bank):
     for subject in subjects:
+        shading = subject_shading(subject)
         for a, b in draw_pairs(subject, n_pairs, seed, bank):
-            yield relight_pair(subject, a, b, relighters)
+            yield relight_pair(subject, a, b, relighters, shading)
 
 
 def fit_gains(results) -> dict:
@@ -790,7 +850,11 @@ def report_body(res: dict) -> str:
              "the real sum for B, grey in and grey out. Every image goes through "
              "`addon.relight_image`, exactly what the pipeline does to a frame. Calibrated view: "
              "one gain per method; scale-invariant view: each output times its own least-squares "
-             "gain. Models: " + ", ".join(f"`{res['models'][m]['onnx']}`" for m in models) + ".",
+             "gain. Models: " + ", ".join(f"`{res['models'][m]['onnx']}`" for m in models) + ". "
+             f"`{LAMBERT_FIT}` and `{LAMBERT_RATIO}` are ceilings, not methods: they see all of "
+             "the subject's photos (a Lambertian photometric-stereo fit per pixel); the first "
+             "renders B from the fit, the second multiplies the input by the fit's exact diffuse "
+             "shading ratio, B over A (no cast shadows in either).",
              "", res.get("table_markdown") or markdown(res["results"], models, res["paired"]), "",
              "Correlation of the output's left/right and top/bottom balance with the truth's:", "",
              "| | left/right | top/bottom |", "|---|---|---|"]
