@@ -437,18 +437,6 @@ def baselines(gray_a: np.ndarray, light_a: np.ndarray, light_b: np.ndarray) -> d
             FLATTENED: np.float32(ratio) * np.sqrt(gray * np.float32(gray.mean()))}
 
 
-def lambertian_fit(images: np.ndarray, dirs: np.ndarray, angles: np.ndarray):
-    """((3, h*w) albedo times unit normal, least squares per pixel over the near-frontal images
-    of ``frontal_lit``; (h*w,) bool where it was fitted) from (N, h, w) linear images under
-    distant lights ``dirs`` (N, 3) at ``angles`` (N, 2: azimuth, elevation in degrees)."""
-    sel, ok = frontal_lit(images, angles)
-    y = images[sel].reshape(len(sel), -1)
-    b = np.zeros((3, y.shape[1]))
-    if ok.any():
-        b[:, ok] = np.linalg.lstsq(dirs[sel], y[:, ok], rcond=None)[0]
-    return b, ok
-
-
 CEILING_MIN_LIT = 4  # a pixel's fit for the ceilings needs this many images where it is lit
 
 

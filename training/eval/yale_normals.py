@@ -30,7 +30,11 @@ from . import yale
 def photometric_normals(images: np.ndarray, dirs: np.ndarray, angles: np.ndarray):
     """((3, h*w) unit normals, (h*w,) bool where they were fitted) from (N, h, w) linear images
     under distant lights ``dirs`` (N, 3) at ``angles`` (N, 2: azimuth, elevation in degrees)."""
-    b, ok = yale.lambertian_fit(images, dirs, angles)
+    sel, ok = yale.frontal_lit(images, angles)
+    y = images[sel].reshape(len(sel), -1)
+    b = np.zeros((3, y.shape[1]))
+    if ok.any():
+        b[:, ok] = np.linalg.lstsq(dirs[sel], y[:, ok], rcond=None)[0]
     norm = np.linalg.norm(b, axis=0)
     ok &= norm > 1e-9
     return b / np.maximum(norm, 1e-9), ok
