@@ -437,25 +437,32 @@ def baselines(gray_a: np.ndarray, light_a: np.ndarray, light_b: np.ndarray) -> d
             FLATTENED: np.float32(ratio) * np.sqrt(gray * np.float32(gray.mean()))}
 
 
-CEILING_MIN_LIT = 4  # a pixel's fit for the ceilings needs this many images where it is lit
+CEILING_MIN_LIT = 4  # a pixel's photometric fit needs this many images in which it is lit
 
 
-def subject_shading(subject: Subject) -> tuple[np.ndarray, np.ndarray]:
-    """((K, h*w) each usable light's Lambertian radiance from the subject's fit, (h*w,) bool
-    where the fit exists). Per pixel, least squares over all of the subject's images in which
-    that pixel is lit and unclipped (codes within (15, 250)), so that the sides of the face and
-    the eye sockets, which some lights leave dark, are fitted from the lights that reach them."""
-    k = len(subject.dirs)
-    y = subject.images.reshape(k, -1).astype(np.float64)
+def photometric_fit(images: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((3, h*w) albedo times unit normal, (h*w,) bool where fitted) from (K, h, w) linear images
+    under distant lights ``dirs`` (K, 3): per pixel, least squares over the images in which that
+    pixel is lit and unclipped (codes within (15, 250)), so that the sides of the face and the
+    eye sockets, which some lights leave dark, are fitted from the lights that reach them."""
+    k = len(dirs)
+    y = images.reshape(k, -1).astype(np.float64)
     codes = y * 255.0
     w = ((codes > 15) & (codes < 250)).astype(np.float64)
-    d = subject.dirs.astype(np.float64)
+    d = np.asarray(dirs, np.float64)
     gram = np.einsum("kp,ki,kj->pij", w, d, d) + 1e-9 * np.eye(3)
     rhs = np.einsum("kp,ki->pi", w * y, d)
     ok = w.sum(0) >= CEILING_MIN_LIT
     b = np.zeros((y.shape[1], 3))
     b[ok] = np.linalg.solve(gram[ok], rhs[ok][..., None])[..., 0]
-    return np.clip(d @ b.T, 0.0, None), ok
+    return b.T, ok
+
+
+def subject_shading(subject: Subject) -> tuple[np.ndarray, np.ndarray]:
+    """((K, h*w) each usable light's Lambertian radiance from the subject's photometric_fit,
+    (h*w,) bool where the fit exists)."""
+    b, ok = photometric_fit(subject.images, subject.dirs)
+    return np.clip(subject.dirs @ b, 0.0, None), ok
 
 
 def ceilings(gray_a: np.ndarray, a: Lighting, b: Lighting, shading) -> dict:

@@ -3,10 +3,10 @@
     .venv/bin/python -m training.eval.yale_normals --onnx models/relight-portrait.onnx [--onnx ...]
         [--split tune|test]
 
-A subject's near-frontal single-light images (|azimuth| <= 50, |elevation| <= 40) give its
-Lambertian normals by least squares per pixel (photometric stereo, on the pixels lit and unclipped
-in all of them; the data decisions of training/eval/yale.py, linear codes and the camera-frame
-light directions, hold here too). The network sees the subject's frontal image as the product
+A subject's single-light images give its Lambertian normals by least squares per pixel over the
+images in which that pixel is lit and unclipped (photometric stereo, yale.photometric_fit: the
+sides of the face and the eye sockets too; the data decisions of training/eval/yale.py, linear
+codes and the camera-frame light directions, hold here too). The network sees the subject's frontal image as the product
 does (portrait framing, the crop at the working size, its normals put back on the image). Over
 the face ellipse of training/eval/yale.py this prints the mean angle between the two, and, per
 axis, the correlation of the normals' x (left/right) and y (up/down) components and the spread
@@ -27,14 +27,11 @@ from addon import api, framing, portrait
 
 from . import yale
 
-def photometric_normals(images: np.ndarray, dirs: np.ndarray, angles: np.ndarray):
+def photometric_normals(images: np.ndarray, dirs: np.ndarray):
     """((3, h*w) unit normals, (h*w,) bool where they were fitted) from (N, h, w) linear images
-    under distant lights ``dirs`` (N, 3) at ``angles`` (N, 2: azimuth, elevation in degrees)."""
-    sel, ok = yale.frontal_lit(images, angles)
-    y = images[sel].reshape(len(sel), -1)
-    b = np.zeros((3, y.shape[1]))
-    if ok.any():
-        b[:, ok] = np.linalg.lstsq(dirs[sel], y[:, ok], rcond=None)[0]
+    under distant lights ``dirs`` (N, 3): yale.photometric_fit, each pixel from the images in
+    which it is lit."""
+    b, ok = yale.photometric_fit(images, dirs)
     norm = np.linalg.norm(b, axis=0)
     ok &= norm > 1e-9
     return b / np.maximum(norm, 1e-9), ok
@@ -91,7 +88,7 @@ def run(onnx_paths, split: str = "tune", root=None) -> dict:
     rows = {p: [] for p in onnx_paths}
     for name in subjects:
         s = yale.load_subject(root, name)
-        truth, ok = photometric_normals(s.images, s.dirs, s.angles)
+        truth, ok = photometric_normals(s.images, s.dirs)
         front = int(np.argmin(np.abs(s.angles).sum(1)))
         mask = yale.face_mask(s.images.shape[1:]).reshape(-1) & ok
         for p, sess in sessions.items():
