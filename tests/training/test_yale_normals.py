@@ -78,3 +78,31 @@ def test_the_shipped_portrait_s_normals_follow_a_real_face(shared_data):
                       truth, mask)
     assert got["angle_deg"] < 0.7 * flat["angle_deg"]
     assert got["corr_x"] > 0.8 and got["corr_y"] > 0.3
+
+
+def test_photometric_buffers_put_the_given_normals_into_the_face_crop_and_then_step_aside(
+        shared_data):
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    from addon import api, portrait
+
+    s = ye.load_subject(root, "yaleB01")
+    h, w = s.images.shape[1:]
+    gray = s.images[int(np.argmin(np.abs(s.angles).sum(1)))]
+    x = np.repeat(gray[None], 3, axis=0).astype(np.float32)
+    sess = api.session("models/relight-portrait.onnx", 1)
+    box = portrait.find_box(sess, x)
+    up = np.tile([[0.0], [1.0], [0.0]], (1, h * w))  # every fitted pixel faces straight up
+    fitted = np.zeros(h * w, bool)
+    fitted[: h * w // 2] = True  # the image's upper half
+    with yn.photometric_buffers(up, fitted):
+        crop, valid = portrait.crop_planar(x, box, sess.card.working_size)
+        got = portrait.buffers(sess, crop, valid).normal
+    plain = portrait.buffers(sess, crop, valid).normal
+    assert portrait.buffers.__module__ == "addon.portrait"  # restored
+    changed = np.abs(got - plain).max(0) > 1e-6
+    assert changed.any() and np.allclose(got[:, changed], [[0.0], [1.0], [0.0]], atol=1e-5)
+    rows = np.nonzero(changed)[0]
+    # only the part of the crop that shows the image's upper half
+    assert rows.max() < sess.card.working_size / 2

@@ -1,7 +1,7 @@
 """Real-face normals: the intrinsic network's normals against photometric stereo on CroppedYale.
 
     .venv/bin/python -m training.eval.yale_normals --onnx models/relight-portrait.onnx [--onnx ...]
-        [--split tune|test]
+        [--split tune|test] [--relight]
 
 A subject's single-light images give its Lambertian normals by least squares per pixel over the
 images in which that pixel is lit and unclipped (photometric stereo, yale.photometric_fit: the
@@ -15,15 +15,19 @@ face's tilt: how much more its upper part faces up than its lower part (forehead
 averaged and correlated over subjects. The y figures are the ones behind the relit faces'
 top/bottom balance; per-pixel correlation is dominated by the nose and eye sockets, the tilt by
 the face's large-scale shape, which a frontal light (shading ~ n_z) leaves ambiguous in sign.
+``--relight`` also relights the split's pairs (training/eval/yale.py's) through
+addon.relight_image twice, with the network's normals and with photometric stereo's in their
+place (photometric_buffers): what better normals alone would buy.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 
 import numpy as np
 
-from addon import api, framing, portrait
+from addon import api, framing, intrinsic, portrait
 
 from . import yale
 
@@ -105,11 +109,84 @@ def run(onnx_paths, split: str = "tune", root=None) -> dict:
     return out
 
 
+@contextlib.contextmanager
+def photometric_buffers(normals: np.ndarray, fitted: np.ndarray):
+    """Within this context the product's face crops (addon.portrait) carry ``normals`` (3, h*w)
+    of the image being relit where ``fitted`` (h*w,) instead of the network's: what the
+    pipeline would make of the face with its real normals. A diagnostic for one image size at a
+    time; the network's matte, albedo and height stay."""
+    crop_planar, buffers = portrait.crop_planar, portrait.buffers
+    state = {}
+
+    def crop(x, box, size):
+        state["box"], state["hw"] = box, x.shape[1:]
+        return crop_planar(x, box, size)
+
+    def swap(session, x, valid=None):
+        out = buffers(session, x, valid)
+        size = session.card.working_size
+        if state.get("hw") is None or x.shape[1:] != (size, size):
+            return out
+        h, w = state["hw"]
+        field = np.concatenate([normals, fitted[None].astype(normals.dtype)], 0).reshape(4, h, w)
+        t = framing.crop(np.ascontiguousarray(field.transpose(1, 2, 0), np.float32), state["box"],
+                         size).transpose(2, 0, 1)
+        n = np.where(t[3] > 0.99, t[:3], out.normal)
+        n = (n / np.maximum(np.linalg.norm(n, axis=0, keepdims=True), 1e-6)).astype(np.float32)
+        return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
+
+    portrait.crop_planar, portrait.buffers = crop, swap
+    try:
+        yield
+    finally:
+        portrait.crop_planar, portrait.buffers = crop_planar, buffers
+
+
+def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: int = 2021) -> dict:
+    """The split's pairs (training/eval/yale.py's) relit through addon.relight_image with the
+    network's normals and with photometric stereo's: per kind and overall, the scale-invariant
+    PSNR, and the balance correlations."""
+    root = root or yale.default_root()
+    _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
+    rel = {"model": yale.PipelineRelighter(onnx_path, 1)}
+    bank = yale.HdriBank(root.parents[1])
+    rows = {"network": [], "photometric": []}
+    for name in subjects:
+        s = yale.load_subject(root, name)
+        truth, ok = photometric_normals(s.images, s.dirs)
+        shading = yale.subject_shading(s)
+        for a, b in yale.draw_pairs(s, n_pairs, seed, bank):
+            for which in rows:
+                with (photometric_buffers(truth, ok) if which == "photometric"
+                      else contextlib.nullcontext()):
+                    r = yale.relight_pair(s, a, b, rel, shading)
+                y = r.outputs["model"]
+                psnr = yale.metrics(yale.ls_gain(y, r.gt, r.mask) * y, r.gt, r.mask)["psnr"]
+                rows[which].append((r.kind, psnr, yale.balance(y, r.mask), yale.balance(r.gt, r.mask)))
+    out = {}
+    for which, v in rows.items():
+        p, g = np.array([x[2] for x in v]), np.array([x[3] for x in v])
+        out[which] = {k: float(np.mean([x[1] for x in v if k in ("all", x[0])]))
+                      for k in (*yale.KINDS, "all")}
+        out[which]["left_right"] = float(np.corrcoef(p[:, 0], g[:, 0])[0, 1])
+        out[which]["top_bottom"] = float(np.corrcoef(p[:, 1], g[:, 1])[0, 1])
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--onnx", action="append", required=True, help="intrinsic model (repeatable)")
     ap.add_argument("--split", default="tune", choices=["tune", "test"])
+    ap.add_argument("--relight", action="store_true",
+                    help="also relight the split's pairs with photometric stereo's normals in "
+                         "place of the network's (what better normals would buy)")
     a = ap.parse_args(argv)
+    if a.relight:
+        for p in a.onnx:
+            for which, r in relight(p, a.split).items():
+                print(f"{p}, {which} normals: scale-invariant PSNR {r['all']:.2f} dB ("
+                      + ", ".join(f"{k} {r[k]:.2f}" for k in yale.KINDS)
+                      + f"); balance {r['left_right']:.3f} / {r['top_bottom']:.3f}")
     for p, r in run(a.onnx, a.split).items():
         print(f"{p} ({r['subjects']} {a.split} subjects): angle {r['angle_deg']:.1f} deg; "
               f"left/right x corr {r['corr_x']:.3f} spread {r['spread_x']:.2f}; "
