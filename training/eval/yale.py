@@ -437,7 +437,7 @@ def baselines(gray_a: np.ndarray, light_a: np.ndarray, light_b: np.ndarray) -> d
             FLATTENED: np.float32(ratio) * np.sqrt(gray * np.float32(gray.mean()))}
 
 
-CEILING_MIN_LIT = 4  # a pixel's photometric fit needs this many images in which it is lit
+FIT_MIN_LIT = 4  # a pixel's photometric fit needs this many images in which it is lit
 
 
 def photometric_fit(images: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -452,7 +452,7 @@ def photometric_fit(images: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, n
     d = np.asarray(dirs, np.float64)
     gram = np.einsum("kp,ki,kj->pij", w, d, d) + 1e-9 * np.eye(3)
     rhs = np.einsum("kp,ki->pi", w * y, d)
-    ok = w.sum(0) >= CEILING_MIN_LIT
+    ok = w.sum(0) >= FIT_MIN_LIT
     b = np.zeros((y.shape[1], 3))
     b[ok] = np.linalg.solve(gram[ok], rhs[ok][..., None])[..., 0]
     return b.T, ok
