@@ -458,10 +458,10 @@ def photometric_fit(images: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, n
     return b.T, ok
 
 
-def subject_shading(subject: Subject) -> tuple[np.ndarray, np.ndarray]:
+def subject_shading(subject: Subject, fit=None) -> tuple[np.ndarray, np.ndarray]:
     """((K, h*w) each usable light's Lambertian radiance from the subject's photometric_fit,
-    (h*w,) bool where the fit exists)."""
-    b, ok = photometric_fit(subject.images, subject.dirs)
+    (h*w,) bool where the fit exists; ``fit``: that fit, when already made)."""
+    b, ok = photometric_fit(subject.images, subject.dirs) if fit is None else fit
     return np.clip(subject.dirs @ b, 0.0, None), ok
 
 
@@ -719,21 +719,13 @@ def azimuth_sign_check(subjects) -> dict:
     return {"pairs": total, "agree": agree}
 
 
-def frontal_lit(images: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(indices of the near-frontal images, |azimuth| <= 50 and |elevation| <= 40; (h*w,) bool:
-    the pixels lit and unclipped in all of them, codes within (15, 250)): what a Lambertian fit
-    of a subject uses."""
-    az, el = np.abs(np.asarray(angles)).T
-    sel = np.flatnonzero((az <= 50) & (el <= 40))
-    codes = images[sel].reshape(len(sel), -1) * 255.0
-    return sel, np.all((codes > 15) & (codes < 250), axis=0)
-
-
 def gamma_check(subject: Subject, gammas=(0.8, 1.0, 1.2, 1.8, 2.2)) -> dict:
     """Leave-one-out Lambertian prediction error (RMS, codes) of the near-frontal images for each
     decoding gamma, on pixels lit and unclipped in all of them: the true decoding predicts best."""
-    sel, ok = frontal_lit(subject.images, subject.angles)
+    az, el = np.abs(subject.angles).T
+    sel = np.flatnonzero((az <= 50) & (el <= 40))
     codes = subject.images[sel].reshape(len(sel), -1) * 255.0
+    ok = np.all((codes > 15) & (codes < 250), axis=0)
     lights, x = subject.dirs[sel], codes[:, ok]
     out = {}
     for g in gammas:

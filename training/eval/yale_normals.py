@@ -31,14 +31,13 @@ from addon import api, framing, intrinsic, portrait
 
 from . import yale
 
-def photometric_normals(images: np.ndarray, dirs: np.ndarray):
+def photometric_normals(images: np.ndarray, dirs: np.ndarray, fit=None):
     """((3, h*w) unit normals, (h*w,) bool where they were fitted) from (N, h, w) linear images
     under distant lights ``dirs`` (N, 3): yale.photometric_fit, each pixel from the images in
-    which it is lit."""
-    b, ok = yale.photometric_fit(images, dirs)
+    which it is lit (``fit``: that fit, when already made)."""
+    b, ok = yale.photometric_fit(images, dirs) if fit is None else fit
     norm = np.linalg.norm(b, axis=0)
-    ok &= norm > 1e-9
-    return b / np.maximum(norm, 1e-9), ok
+    return b / np.maximum(norm, 1e-9), ok & (norm > 1e-9)
 
 
 def network_normals(session, gray: np.ndarray) -> np.ndarray | None:
@@ -153,8 +152,9 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
     rows = {"network": [], "photometric": []}
     for name in subjects:
         s = yale.load_subject(root, name)
-        truth, ok = photometric_normals(s.images, s.dirs)
-        shading = yale.subject_shading(s)
+        fit = yale.photometric_fit(s.images, s.dirs)
+        truth, ok = photometric_normals(s.images, s.dirs, fit)
+        shading = yale.subject_shading(s, fit)
         for a, b in yale.draw_pairs(s, n_pairs, seed, bank):
             for which in rows:
                 with (photometric_buffers(truth, ok) if which == "photometric"
