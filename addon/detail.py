@@ -81,6 +81,28 @@ def resize(x: np.ndarray, height: int, width: int) -> np.ndarray:
     return np.ascontiguousarray(x, dtype=np.float32)
 
 
+def _linear_matrix(n: int, m: int) -> np.ndarray:
+    """(m, n) float32 matrix of _linear_taps (bilinear, pixel centres aligned)."""
+    idx, w = _linear_taps(n, m)
+    mat = np.zeros((m, n), np.float32)
+    np.add.at(mat, (np.repeat(np.arange(m), 2), idx.reshape(-1)), w.reshape(-1))
+    return mat
+
+
+def enlarge_planar(x: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(C, h, w) float32 -> (C, height, width), bilinear as resize() (each axis at least as
+    large as before): two matrix products, channels-first, no transposes."""
+    c, h, w = x.shape
+    if height < h or width < w:
+        raise ValueError(f"enlarge_planar cannot shrink {(h, w)} to {(height, width)}")
+    out = np.asarray(x, np.float32)
+    if width != w:
+        out = out @ _linear_matrix(w, width).T
+    if height != h:
+        out = _linear_matrix(h, height) @ out
+    return np.ascontiguousarray(out, np.float32)
+
+
 def box_mean(x: np.ndarray, r: int) -> np.ndarray:
     """float32 mean over (2r+1)^2 windows clipped at the borders (separable shifted sums)."""
     out = np.asarray(x, dtype=np.float32)
@@ -155,6 +177,30 @@ def area_blocks(n: int, m: int) -> np.ndarray | None:
     block = np.zeros((q, p), np.float32)
     np.add.at(block, (np.nonzero(inside)[0], idx[inside]), w[inside])
     return block
+
+
+def block_scale(height: int, width: int, f: float, tolerance: float = 0.1,
+                min_q: int = 4) -> tuple[int, int] | None:
+    """(q, p): a scale q/p near ``f`` (< 1) at which a height x width frame shrinks to whole numbers
+    of pixels in blocks no longer than MAX_BLOCK (p divides both sides, p <= MAX_BLOCK), so the
+    shrink takes area_graph and the enlargement back upsample_blocks: at 1080p the finish ran
+    in 11-12 ms on such grids and 19 ms on others. q >= ``min_q``: with fewer input samples a
+    block the enlargement's overlapping windows cost more than they save (q = 1: 17 ms).
+    The nearest such scale within ``tolerance`` (relative), else None."""
+    if not 0 < f < 1:
+        return None
+    g = math.gcd(int(height), int(width))
+    best, best_err = None, math.log1p(tolerance)
+    for p in range(min_q + 1, MAX_BLOCK + 1):
+        if g % p:
+            continue
+        for q in {max(1, math.floor(f * p)), math.ceil(f * p)}:
+            if q < min_q or q >= p or math.gcd(p, q) != 1:
+                continue
+            err = abs(math.log(q / (p * f)))
+            if err < best_err - 1e-12:
+                best, best_err = (q, p), err
+    return best
 
 
 def _clamp_tail(clamp: bool) -> list[bytes]:

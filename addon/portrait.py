@@ -131,9 +131,16 @@ def find_box(session: IntrinsicSession, x_full: np.ndarray,
 
 
 def grid_shape(height: int, width: int, box: framing.Box, size: int) -> tuple[int, int]:
-    """The grid on which the change is built: the frame scaled so the box spans ``size`` pixels
-    (the face crop's own resolution), never larger than the frame."""
+    """The grid on which the change is built: the frame scaled so the box spans about ``size``
+    pixels (the face crop's own resolution), never larger than the frame. The scale is snapped
+    to a nearby ratio of small whole numbers where the frame's sides allow one
+    (detail.block_scale), so the grid is shrunk from the frame and the change enlarged back to
+    it by exact blocks, the finish's fast path."""
     f = min(1.0, size / max(box.size, 1e-6))
+    snapped = detail.block_scale(height, width, f)
+    if snapped is not None:
+        q, p = snapped
+        return height * q // p, width * q // p
     return max(1, int(round(height * f))), max(1, int(round(width * f)))
 
 
@@ -182,21 +189,20 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
                            np.zeros((1, 1), np.float32), False, None)
     gh, gw = grid_shape(h, w, box, size)
     fr = shared_fullres(fullres)
-    grid_chw = fr.shrink_planar(x_full, gh, gw)  # the footage at the grid's resolution
-    grid = np.ascontiguousarray(grid_chw.transpose(1, 2, 0))
+    grid = fr.shrink_planar(x_full, gh, gw)  # the footage at the grid's resolution
     plan = intrinsic.plan(light) if effects is None else effects
+    # Everything below is channels-first on the grid: (ratio 3, highlight 3, weight, matte).
     # Coarse: the whole frame at COARSE times the working size (it lights the body beyond the
     # face's box), enlarged to the grid; not needed when the box holds the whole frame.
     covers = (box.cx - box.size / 2 <= 0 and box.cy - box.size / 2 <= 0
               and box.cx + box.size / 2 >= w and box.cy + box.size / 2 >= h)
     if covers:
-        coarse = np.zeros((gh, gw, 8), np.float32)
+        coarse = np.zeros((8, gh, gw), np.float32)
     else:
         coarse_size = max(int(size * COARSE), 16)
-        small = fr.shrink_planar(grid_chw, *detail.working_shape(h, w, coarse_size))
+        small = fr.shrink_planar(grid, *detail.working_shape(h, w, coarse_size))
         mr, hi, m, raw = _change(session, small, light, plan)
-        coarse = detail.resize(np.concatenate([mr, hi, m[None], raw[None]], 0).transpose(1, 2, 0),
-                               gh, gw)
+        coarse = detail.enlarge_planar(np.concatenate([mr, hi, m[None], raw[None]], 0), gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
     crop, valid = crop_planar(x_full, box, size)
     units: list[float] = []
@@ -206,35 +212,37 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     gbox = framing.Box(box.cx * k, box.cy * k, box.size * k)
     fine = framing.uncrop(np.concatenate([mr_f, hi_f, m_f[None], raw_f[None], fw[None]],
                                          0).transpose(1, 2, 0), gbox, (gh, gw), 0.0)
-    wf = fine[..., 8:9]
+    fine = np.ascontiguousarray(fine.transpose(2, 0, 1))
+    wf = fine[8]
     # The two passes fit the footage's light separately: match the coarse change's level to the
     # face's where both see the subject, so the seam does not show.
     lum = np.asarray(intrinsic.LUMA, np.float32)
-    both = (wf[..., 0] > 0.5) & (fine[..., 6] > 0.5) & (coarse[..., 6] > 0.5)
+    both = (wf > 0.5) & (fine[6] > 0.5) & (coarse[6] > 0.5)
     if int(both.sum()) > 16:
-        num = float(np.mean(fine[both][:, 0:3] @ lum))
-        den = float(np.mean(coarse[both][:, 0:3] @ lum))
+        num = float(np.tensordot(lum, fine[0:3, both], axes=(0, 0)).mean())
+        den = float(np.tensordot(lum, coarse[0:3, both], axes=(0, 0)).mean())
         g = num / den if den > 0 and num > 0 else 1.0
-        coarse[..., 0:6] *= g
-    mix = (1.0 - wf) * coarse + wf * fine[..., :8]
+        coarse[0:6] *= np.float32(g)
+    # mix = (1 - wf) coarse + wf fine, in place
+    mix = coarse
+    mix += wf * (fine[:8] - coarse)
     # The portrait is the matte's region that holds the face crop; anything else a matte marks
     # (a bright door, a lamp in the room) keeps the footage as it was.
-    keep = framing.component_at(mix[..., 7] > 0.5, wf[..., 0] * fine[..., 7])
+    keep = framing.component_at(mix[7] > 0.5, wf * fine[7])
     if keep.any():
-        mix *= np.clip(detail.box_mean(keep.astype(np.float32), 2) * 2.0, 0.0, 1.0)[..., None]
-    mr, b, matte = mix[..., 0:3], mix[..., 3:6], np.clip(mix[..., 6:7], 0.0, 1.0)
+        mix *= np.clip(detail.box_mean(keep.astype(np.float32), 2) * 2.0, 0.0, 1.0)
+    mr, b, matte = mix[0:3], mix[3:6], np.clip(mix[6], 0.0, 1.0)
     # The subject's luminance in the footage and relit (before any gain): the exposure gain
     # solves sum lum(x a + b) m = sum lum(x) m with a = g m ratio + (1 - m), b = g b.
-    xl = grid @ lum
-    lum_in = float((xl * matte[..., 0]).sum() - (xl * (1.0 - matte[..., 0]) * matte[..., 0]).sum())
-    lum_out = float((((grid * mr + b) @ lum) * matte[..., 0]).sum())
+    xl = np.tensordot(lum, grid, axes=(0, 0))
+    lum_in = float((xl * matte).sum() - (xl * (1.0 - matte) * matte).sum())
+    lum_out = float((np.tensordot(lum, grid * mr + b, axes=(0, 0)) * matte).sum())
     unit = units[0] if units else 0.0
     stats = FrameResult(None, None, None, True, plan, lum_in, lum_out, unit)
     g = clip_gain([stats], exposure, scale) if isinstance(exposure, str) else float(exposure)
-    a = g * mr + (1.0 - matte)
-    b = g * b
-    matte = np.clip(mix[..., 7], 0.0, 1.0)  # the portrait's matte, for the matte strip
-    return FrameResult(np.ascontiguousarray(a.transpose(2, 0, 1), np.float32),
-                       np.ascontiguousarray(b.transpose(2, 0, 1), np.float32),
+    a = np.float32(g) * mr + (1.0 - matte)
+    b = np.float32(g) * b
+    matte = np.clip(mix[7], 0.0, 1.0)  # the portrait's matte, for the matte strip
+    return FrameResult(np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32),
                        np.ascontiguousarray(matte, np.float32), True, plan, lum_in, lum_out,
                        unit)

@@ -108,3 +108,39 @@ def test_area_resize_keeps_means_exact():
                                            (4320, 7680, 384, (216, 384))])
 def test_working_shape(h, w, size, want):
     assert detail.working_shape(h, w, size) == want
+
+
+@pytest.mark.parametrize("shape,big", [((3, 7, 9), (20, 31)), ((8, 72, 128), (198, 352)),
+                                       ((2, 5, 5), (5, 12))])
+def test_enlarge_planar_is_resize_channels_first(shape, big):
+    x = np.random.default_rng(1).random(shape).astype(np.float32)
+    want = detail.resize(x.transpose(1, 2, 0), *big).transpose(2, 0, 1)
+    got = detail.enlarge_planar(x, *big)
+    assert got.shape == (shape[0],) + big and got.flags.c_contiguous
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    with pytest.raises(ValueError):
+        detail.enlarge_planar(x, shape[1] - 1, big[1])
+
+
+@pytest.mark.parametrize("hw", [(1080, 1920), (720, 1280), (512, 512), (2160, 3840), (192, 168)])
+@pytest.mark.parametrize("f", [0.188, 0.3, 0.58, 0.9])
+def test_block_scale_gives_whole_grids_with_block_paths(hw, f):
+    got = detail.block_scale(*hw, f)
+    if got is None:  # only where no ratio of small blocks lies near f
+        candidates = [(q, p) for p in range(5, detail.MAX_BLOCK + 1) if not (hw[0] % p or hw[1] % p)
+                      for q in range(4, p) if abs(np.log(q / (p * f))) <= np.log1p(0.1)]
+        assert not candidates
+        return
+    q, p = got
+    assert 4 <= q < p <= detail.MAX_BLOCK and abs(q / p / f - 1) <= 0.1
+    gh, gw = hw[0] * q // p, hw[1] * q // p
+    assert (gh * p, gw * p) == (hw[0] * q, hw[1] * q)  # whole numbers of pixels
+    assert detail.area_blocks(hw[0], gh) is not None and detail.area_blocks(hw[1], gw) is not None
+    assert (detail.upsample_blocks(gh, hw[0]) is not None
+            and detail.upsample_blocks(gw, hw[1]) is not None)
+
+
+def test_block_scale_is_the_nearest_and_none_without_one():
+    assert detail.block_scale(1080, 1920, 0.188) == (11, 60)  # 0.1833: 2.5% under
+    assert detail.block_scale(1081, 1919, 0.3) is None  # coprime sides
+    assert detail.block_scale(1080, 1920, 1.0) is None and detail.block_scale(1080, 1920, 0.0) is None

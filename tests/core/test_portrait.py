@@ -238,6 +238,16 @@ def test_relight_frame_changes_the_portrait_and_keeps_the_background(session):
     assert gain[left].mean() > 1.5 * gain[right].mean()
 
 
+def test_grid_shape_snaps_to_block_ratios_near_the_box_scale():
+    """The grid puts the box at about the working size; where the frame allows, at a ratio the
+    full-resolution stages shrink and enlarge by exact blocks; never above the frame's size."""
+    box = framing.Box(1400.0, 430.0, 680.0)  # 128 / 680 = 0.188
+    assert portrait.grid_shape(1080, 1920, box, 128) == (198, 352)  # 11/60
+    assert detail.upsample_blocks(198, 1080) is not None
+    assert portrait.grid_shape(1081, 1919, box, 128) == (203, 361)  # no ratio: the plain scale
+    assert portrait.grid_shape(90, 160, framing.Box(45.0, 45.0, 60.0), 128) == (90, 160)
+
+
 # ---- addon.api.relight_image -----------------------------------------------------------------
 
 @pytest.mark.parametrize("h, w", [(37, 53), (53, 37), (1, 1), (2, 1), (1, 7)])
