@@ -382,24 +382,26 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
         return vis
     ux, uy = dx / lat, -dy / lat         # image x right, image y down
     rise = dz / lat                       # height gained per pixel travelled toward the light
-    hh = np.where(matte > 0.5, height, -1e6).astype(np.float32)
+    # Heights on a canvas padded past the march's reach: the pad (and everything off the
+    # subject) is far below any ray, so it never occludes, and a step is one flat offset.
+    pad = steps + 1
+    hh = np.full((h + 2 * pad, w + 2 * pad), -1e6, np.float32)
+    hh[pad:pad + h, pad:pad + w] = np.where(matte > 0.5, height, -1e6)
     yy, xx = np.nonzero(matte > 0.5)  # only the subject receives shadows here
     if lit is not None:
         keep = lit[yy, xx] > 0
         yy, xx = yy[keep], xx[keep]
-    h0 = hh[yy, xx]
-    xx, yy = xx.astype(np.float32), yy.astype(np.float32)
-    occl = np.zeros(len(h0), np.float32)
+    flat = hh.reshape(-1)
+    base = (yy + pad) * hh.shape[1] + (xx + pad)
+    ray0 = flat[base] + np.float32(SHADOW_BIAS[0])
+    occl = np.zeros(len(base), np.float32)
     for t in range(2, steps + 1):
-        x = xx + ux * t
-        y = yy + uy * t
-        inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-        xi = np.clip(np.rint(x).astype(np.int32), 0, w - 1)
-        yi = np.clip(np.rint(y).astype(np.int32), 0, h - 1)
-        ray = h0 + rise * t + SHADOW_BIAS[0] + SHADOW_BIAS[1] * t
-        above = (hh[yi, xi] - ray) * (inside / SHADOW_SOFTNESS)
+        # pixels are whole numbers, so rounding the step (half up) rounds the sample's position
+        off = math.floor(uy * t + 0.5) * hh.shape[1] + math.floor(ux * t + 0.5)
+        above = flat[base + off] - ray0
+        above -= np.float32(rise * t + SHADOW_BIAS[1] * t)
         np.maximum(occl, above, out=occl)
-    vis[yy.astype(np.int64), xx.astype(np.int64)] = 1.0 - np.clip(occl, 0.0, 1.0)
+    vis[yy, xx] = 1.0 - np.clip(occl / np.float32(SHADOW_SOFTNESS), 0.0, 1.0)
     return vis
 
 

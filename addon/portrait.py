@@ -201,7 +201,10 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     else:
         coarse_size = max(int(size * COARSE), 16)
         small = fr.shrink_planar(grid, *detail.working_shape(h, w, coarse_size))
-        mr, hi, m, raw = _change(session, small, light, plan)
+        # Diffuse only: at this scale (a 1080p frame's 15 pixels a sample) cast shadows are
+        # blocks, and highlights fall on face skin, which the face crop covers.
+        mr, hi, m, raw = _change(session, small, light,
+                                 intrinsic.Plan(plan.components, False, False))
         coarse = detail.enlarge_planar(np.concatenate([mr, hi, m[None], raw[None]], 0), gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
     crop, valid = crop_planar(x_full, box, size)
