@@ -546,14 +546,16 @@ def portrait_boxes(clip: ClipSpec, plan: Plan, session, out_dir: str, identity: 
     # Every FRAMING_STEP-th frame (and the last) is framed; smoothing interpolates the others.
     probe = sorted(set(range(0, clip.count, FRAMING_STEP)) | {clip.count - 1})
     raw: list = [None] * clip.count
+    prior = None
     for d in frames.iter_frames(clip.kind, clip.path, clip.files,
                                 [clip.first + i for i in probe], plan.size, planar=True,
                                 name=source_frame_name(clip)):
         if should_cancel and should_cancel():
             raise Cancelled("Cancelled while framing the portrait; nothing was written, run "
                             "again to start.")
-        raw[d.index - clip.first] = portrait.find_box(session, linearise(d.pixels, plan)[0],
-                                                      fullres)
+        # the portrait is followed from the last framed frame's box, when it had one
+        prior = raw[d.index - clip.first] = portrait.find_box(
+            session, linearise(d.pixels, plan)[0], fullres, prior)
     boxes = framing.smooth_boxes(raw)
     missing = [i for i in probe if raw[i] is None]
     _write_text(path, json.dumps(

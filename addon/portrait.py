@@ -109,10 +109,46 @@ def fit_in_frame(box: framing.Box, frame_hw: tuple[int, int]) -> framing.Box:
     return framing.Box(centre(box.cx, w), centre(box.cy, h), box.size)
 
 
+# A box found from a nearby frame's (find_box's ``prior``) is kept when the portrait moved by at
+# most this share of the box's side and its size changed by at most this factor.
+TRACK_SHIFT = 0.25
+TRACK_SCALE = 1.25
+
+
+def _refine(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box) -> framing.Box | None:
+    """The portrait's box found on the crop around ``box``, where the face has most of the
+    working size; None when the crop shows none."""
+    size = session.card.working_size
+    fine = buffers(session, *crop_planar(x_full, box, size))
+    inner = framing.find_portrait(fine.face, fine.matte, (size, size), MARGIN)
+    if inner is None:
+        return None
+    k = box.size / size
+    return fit_in_frame(framing.Box(box.cx - box.size / 2 + inner.cx * k,
+                                    box.cy - box.size / 2 + inner.cy * k, inner.size * k),
+                        x_full.shape[1:])
+
+
+def _follows(prior: framing.Box, box: framing.Box) -> bool:
+    return (math.hypot(box.cx - prior.cx, box.cy - prior.cy) <= TRACK_SHIFT * prior.size
+            and 1.0 / TRACK_SCALE <= box.size / prior.size <= TRACK_SCALE)
+
+
 def find_box(session: IntrinsicSession, x_full: np.ndarray,
-             fullres: detail.FullRes | None = None) -> framing.Box | None:
-    """The portrait's square box in a (3, H, W) frame, or None when there is none."""
+             fullres: detail.FullRes | None = None,
+             prior: framing.Box | None = None) -> framing.Box | None:
+    """The portrait's square box in a (3, H, W) frame, or None when there is none: a coarse pass
+    over the whole frame places a box, refined on that box's crop. ``prior``: the box found in
+    a nearby frame (a run frames its frames in order): the crop around it is searched first,
+    without the coarse pass, and its portrait kept when it moved and grew little (TRACK_SHIFT,
+    TRACK_SCALE); so the portrait a run follows stays its subject while it is in view, even if
+    a larger face comes in. Otherwise, or when it is gone, the whole frame is searched."""
     h, w = x_full.shape[1:]
+    if prior is not None:
+        prior = fit_in_frame(prior, (h, w))
+        box = _refine(session, x_full, prior)
+        if box is not None and _follows(prior, box):
+            return box
     size = session.card.working_size
     small = shared_fullres(fullres).shrink_planar(x_full, *detail.working_shape(h, w, size))
     coarse = buffers(session, small)
@@ -120,14 +156,8 @@ def find_box(session: IntrinsicSession, x_full: np.ndarray,
     if box is None:
         return None
     box = fit_in_frame(box, (h, w))
-    # Refine on the box itself, where the face has most of the working size.
-    fine = buffers(session, *crop_planar(x_full, box, size))
-    inner = framing.find_portrait(fine.face, fine.matte, (size, size), MARGIN)
-    if inner is None:
-        return box
-    k = box.size / size
-    return fit_in_frame(framing.Box(box.cx - box.size / 2 + inner.cx * k,
-                                    box.cy - box.size / 2 + inner.cy * k, inner.size * k), (h, w))
+    refined = _refine(session, x_full, box)
+    return box if refined is None else refined
 
 
 def grid_shape(height: int, width: int, box: framing.Box, size: int) -> tuple[int, int]:

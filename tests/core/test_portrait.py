@@ -202,6 +202,59 @@ def test_find_box_finds_the_disc(session, h, w, centre, radius):
     assert box.size == pytest.approx(portrait.MARGIN * 2 * radius, rel=0.15)
 
 
+class Counting:
+    """A session that counts its network passes."""
+
+    def __init__(self, session):
+        self.inner, self.calls, self.card = session, 0, session.card
+
+    def run_planar(self, x):
+        self.calls += 1
+        return self.inner.run_planar(x)
+
+
+def test_find_box_follows_a_prior_box_with_one_network_pass(session):
+    """From a nearby frame's box the crop around it is searched directly (one network pass, no
+    coarse pass) and gives the box a search of the whole frame gives."""
+    h, w, centre, radius = 180, 320, (210.0, 80.0), 25.0
+    x = chw(frame(h, w, centre, radius))
+    counting = Counting(session)
+    full = portrait.find_box(counting, x)
+    assert counting.calls == 2
+    moved = framing.Box(full.cx - 6.0, full.cy + 4.0, full.size * 1.1)  # a few frames before
+    counting.calls = 0
+    tracked = portrait.find_box(counting, x, prior=moved)
+    assert counting.calls == 1
+    assert abs(tracked.cx - full.cx) < 0.03 * full.size
+    assert abs(tracked.cy - full.cy) < 0.03 * full.size
+    assert tracked.size == pytest.approx(full.size, rel=0.1)
+
+
+def test_a_prior_box_without_the_portrait_falls_back_to_the_whole_frame(session):
+    """A prior box where the portrait no longer is (it moved away, or left the frame) is not
+    followed: the whole frame is searched; with no portrait anywhere the answer is None."""
+    h, w, centre, radius = 180, 320, (240.0, 90.0), 25.0
+    x = chw(frame(h, w, centre, radius))
+    stale = framing.Box(60.0, 80.0, 110.0)  # the left of the frame, grey background only
+    got = portrait.find_box(session, x, prior=stale)
+    want = portrait.find_box(session, x)
+    assert got == want and abs(got.cx - centre[0]) < 0.03 * got.size
+    assert portrait.find_box(session, chw(frame(h, w)), prior=want) is None
+
+
+def test_the_followed_portrait_stays_the_subject_when_a_larger_one_comes_in(session):
+    """Two faces: a search of the whole frame picks the larger; a run that has been following
+    the smaller keeps it (the subject does not jump to whoever comes nearer the camera)."""
+    h, w = 180, 320
+    img = frame(h, w, (80.0, 90.0), 20.0)
+    big = frame(h, w, (240.0, 90.0), 32.0, seed=1)
+    img[:, 160:] = big[:, 160:]
+    x = chw(img)
+    assert portrait.find_box(session, x).cx > 160
+    small = portrait.find_box(session, chw(frame(h, w, (80.0, 90.0), 20.0)))
+    assert portrait.find_box(session, x, prior=small).cx < 160
+
+
 @pytest.mark.parametrize("kind", ["black", "grey"])
 def test_no_portrait_gives_none_and_an_unchanged_frame(session, kind):
     """A black (or grey, skinless) frame has no box; relight_frame(..., None) returns the frame
