@@ -83,6 +83,13 @@ SSS_SIGMA_CM = (0.30, 0.14, 0.07)
 SSS_FACE_CM = 6.0
 
 
+# The footage light's colour as it varies over the subject (source_tint): nine SH coefficients a
+# channel, ridge-regularised (this share of the samples; the constant term is free), and the
+# per-pixel colour factor kept within this range.
+TINT_RIDGE = 1e-3
+TINT_RANGE = (0.5, 2.0)
+
+
 def luminance(chw: np.ndarray) -> np.ndarray:
     return np.tensordot(np.asarray(LUMA, np.float32), chw, axes=(0, 0))
 
@@ -250,6 +257,39 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
         s = 1.4826 * float(np.median(np.abs(r))) + 1e-12
         w = 1.0 / np.maximum(1.0, np.abs(r) / (2.0 * s))  # Huber weights
     return c.astype(np.float32)
+
+
+def source_tint(image_chw: np.ndarray, bufs: Buffers, fg: np.ndarray) -> np.ndarray:
+    """(3, h, w) the colour of the footage's light as it varies over the subject, as factors of
+    unit luminance whose mean over it is one in each channel: each pixel's light per channel
+    (the footage over the albedo's variation about its median, so the albedo's own colour and
+    texture do not count) as a share of its luminance, fitted in nine SH coefficients of the
+    normal. A warm wall on one side and a cool window on the other show here; the light's
+    average colour, which the footage's grade and the skin share, does not (the factors'
+    mean is one), so a white light keeps the skin's colour. Ones where too little is seen."""
+    ones = np.ones_like(image_chw, dtype=np.float32)
+    luma = np.asarray(LUMA, np.float32)
+    alb = np.maximum(bufs.albedo, 1e-4)
+    lum = luminance(image_chw)
+    ok = fg & np.isfinite(lum) & (lum > 0) & (luminance(alb) > 0.02)
+    if int(ok.sum()) < 64:
+        return ones
+    med = np.median(alb[:, ok], axis=1)
+    light = image_chw[:, ok] / np.maximum(alb[:, ok] / med[:, None], 0.05)
+    share = light / np.maximum(luma @ light, 1e-8)
+    basis = sh_basis(bufs.normal[:, ok]).T.astype(np.float64)  # (N, 9)
+    ridge = TINT_RIDGE * len(basis) * np.eye(9)
+    ridge[0, 0] = 0.0
+    coeff = np.linalg.solve(basis.T @ basis + ridge, basis.T @ share.T.astype(np.float64))
+    tint = np.tensordot(coeff.T.astype(np.float32), sh_basis(bufs.normal), axes=(1, 0))
+    tint = np.maximum(tint, 1e-3)
+    tint /= np.maximum(np.tensordot(luma, tint, axes=(0, 0)), 1e-6)[None]
+    w = bufs.matte * fg
+    tint /= ((tint * w).sum((1, 2)) / max(float(w.sum()), 1e-6))[:, None, None]
+    tint /= np.maximum(np.tensordot(luma, tint, axes=(0, 0)), 1e-6)[None]
+    if not np.all(np.isfinite(tint)):
+        return ones
+    return np.clip(tint, *TINT_RANGE).astype(np.float32)
 
 
 def directionality(c: np.ndarray) -> float:
@@ -488,7 +528,10 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     # absolute power (the change stays linear in the light).
     typical = float(np.median(luminance(e_t)[fg])) if fg.any() else 0.0
     norm = float(np.median(e_src[fg])) / typical if typical > 0 else 1.0
-    ratio = np.minimum(e_t * np.float32(norm) / e_src[None], RATIO_MAX) / np.float32(norm)
+    # The footage's light in colour: its luminance shading times its colour's variation over
+    # the subject (source_tint), so that variation is divided out with it.
+    e_src3 = e_src[None] * source_tint(image_chw, bufs, fg)
+    ratio = np.minimum(e_t * np.float32(norm) / e_src3, RATIO_MAX) / np.float32(norm)
     # The highlight in the footage's units: the footage's radiance per unit of irradiance on skin
     # is lum / e_src there (albedo / pi of the skin, in whatever exposure the footage has).
     skin = fg & (bufs.face > 0.5)

@@ -398,6 +398,55 @@ def test_white_light_keeps_skin_colour():
     assert ratio[0][m].mean() > 2.0 * ratio[1][m].mean()
 
 
+def two_coloured_sides():
+    """(image, Buffers, u) of the skin sphere lit by a warm lamp from its left and a cool one
+    from its right, of equal luminance: footage whose light changes colour across the face."""
+    image, bufs = portrait()
+    normal, _, matte, u, _ = sphere()
+    warm, cool = np.array([1.0, 0.8, 0.55], np.float32), np.array([0.6, 0.8, 1.1], np.float32)
+    warm, cool = warm / float(intrinsic.LUMA @ warm), cool / float(intrinsic.LUMA @ cool)
+    src = (lightvec.splat_direction([-1.0, 0.2, 0.6], 3.0) * warm
+           + lightvec.splat_direction([1.0, 0.2, 0.6], 3.0) * cool + lightvec.uniform(0.2))
+    image = (bufs.albedo * exact_irradiance(src, normal) * matte / math.pi).astype(np.float32)
+    return image, bufs, u
+
+
+def test_source_tint_is_one_under_one_colour_and_follows_a_change_of_colour():
+    """A light of one colour gives factors of one (the skin's own colour is the albedo's); a
+    warm left and a cool right give redder factors on the left and bluer on the right, of unit
+    luminance and mean one over the subject."""
+    image, bufs = portrait()
+    fg = bufs.matte > 0.5
+    np.testing.assert_allclose(intrinsic.source_tint(image, bufs, fg)[:, fg], 1.0, atol=2e-3)
+    image, bufs, u = two_coloured_sides()
+    tint = intrinsic.source_tint(image, bufs, fg)
+    left, right = fg & (u < -0.3), fg & (u > 0.3)
+    assert tint[0][left].mean() > 1.1 * tint[0][right].mean()
+    assert tint[2][right].mean() > 1.2 * tint[2][left].mean()
+    np.testing.assert_allclose(intrinsic.luminance(tint)[fg], 1.0, atol=1e-4)
+    np.testing.assert_allclose(tint[:, fg].mean(1), 1.0, atol=0.02)
+    assert not (intrinsic.source_tint(image, bufs, np.zeros_like(fg)) != 1).any()
+
+
+def test_a_white_light_takes_the_footages_colour_change_out(monkeypatch):
+    """Relit by a white lamp from the front, footage with a warm left and a cool right keeps far
+    less of its side-to-side colour change than the ratio of luminance shadings alone left."""
+    image, bufs, u = two_coloured_sides()
+    fg = bufs.matte > 0.5
+    left, right = fg & (u < -0.3), fg & (u > 0.3)
+
+    def colour_change(out):
+        return abs(np.log(skin_chroma(out, left) / skin_chroma(out, right))).sum()
+
+    white = lamp([0.0, 0.2, 1.0])
+    sh = intrinsic.shade(image, bufs, white)
+    with_tint = colour_change(image * sh.ratio + sh.highlight)
+    monkeypatch.setattr(intrinsic, "source_tint", lambda image, bufs, fg: np.ones_like(image))
+    sh = intrinsic.shade(image, bufs, white)
+    without = colour_change(image * sh.ratio + sh.highlight)
+    assert without > 0.3 and with_tint < without / 3
+
+
 def test_light_diffuses_under_skin_red_furthest():
     """subsurface: uniform irradiance stays as it is, nothing changes off the skin, and across a
     white lamp's terminator the dark side gets light back, red the most, blue the least."""
