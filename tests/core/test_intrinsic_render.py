@@ -447,6 +447,77 @@ def test_a_white_light_takes_the_footages_colour_change_out(monkeypatch):
     assert without > 0.3 and with_tint < without / 3
 
 
+def saturated_shadows():
+    """(image, Buffers, u) of the skin sphere lit from its left, the skin redder the darker it
+    is (as real, graded skin is): its chromaticity moves from the albedo's by up to +25% red
+    and -25% blue as its shading falls from the lit side's."""
+    image, bufs = portrait()
+    normal, _, matte, u, _ = sphere()
+    e = exact_irradiance(lamp([-1.0, 0.1, 0.5], fill=0.5), normal).mean(0)
+    rel = np.clip(e / np.percentile(e[matte > 0.5], 90), 0.0, 1.0)
+    cast = 1.0 + 0.25 * (1.0 - rel)[None] * np.array([1.0, 0.0, -1.0], np.float32)[:, None, None]
+    cast /= intrinsic.luminance(cast)[None]
+    image = (bufs.albedo * e[None] * cast * matte / math.pi).astype(np.float32)
+    return image, bufs, u
+
+
+def test_level_colour_needs_a_spread_of_levels_and_enough_skin():
+    image, bufs = portrait(albedo=SKIN)
+    lum = intrinsic.luminance(image)
+    tint = np.ones_like(image)
+    even = np.full(lum.shape, 0.3, np.float32)
+    skin = bufs.matte > 0.5
+    assert intrinsic.level_colour(image, lum, even, tint, skin) is None
+    assert intrinsic.level_colour(image, lum, lum + 1e-3, tint, np.zeros_like(skin)) is None
+    level = intrinsic.level_colour(image, lum, lum + 1e-3, tint, skin)
+    f = intrinsic.level_factor(level, lum + 1e-3, lum + 1e-3)
+    np.testing.assert_allclose(f, 1.0, atol=1e-5)  # the same level: no change
+
+
+def test_level_colour_reads_the_skins_colour_against_its_level():
+    """Skin whose red share rises and blue share falls with its log shading's fall: the fit
+    finds it, and the factor taking a shadowed pixel to a lit one's level gives the lit one's
+    colour (the levels clipped to the range seen, LEVEL_PERCENTILES)."""
+    rng = np.random.default_rng(0)
+    e = np.exp(rng.uniform(-3.0, 0.0, (40, 40))).astype(np.float32)
+    slope = np.array([-0.05, 0.0, 0.08], np.float32)
+    share = 1.0 + slope[:, None, None] * np.log(e)[None]
+    share /= intrinsic.luminance(share)[None]
+    lum = 0.5 * e
+    image = share * lum[None]
+    skin = np.ones(e.shape, bool)
+    coef, lo, hi = intrinsic.level_colour(image, lum, e, np.ones_like(image), skin)
+    assert (lo, hi) == pytest.approx(tuple(np.percentile(np.log(e), intrinsic.LEVEL_PERCENTILES)))
+    dark, bright = np.float32(np.exp(lo)), np.float32(np.exp(hi))
+    f = intrinsic.level_factor((coef, lo, hi), np.full((1, 1), dark), np.full((1, 1), bright * 4))
+    want = (1.0 + slope * hi) / (1.0 + slope * lo)
+    want /= float(intrinsic.LUMA @ want)
+    np.testing.assert_allclose(f[:, 0, 0], want, rtol=0.02)
+    assert float(intrinsic.luminance(f)[0, 0]) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_a_filled_shadow_loses_some_of_its_footage_colour(monkeypatch):
+    """Footage whose shadowed side is redder, relit by a white lamp from that side: the light's
+    colour fits (source_tint, level_colour) take at least a quarter of the way from the
+    shadow's redder colour toward the footage's lit skin's, the luminance within 3%."""
+    image, bufs, u = saturated_shadows()
+    fg = bufs.matte > 0.5
+    lit, shadowed = fg & (u < -0.4), fg & (u > 0.4)
+    light = lamp([1.0, 0.1, 0.5], fill=0.1)
+    target = skin_chroma(image, lit)[0]
+    sh = intrinsic.shade(image, bufs, light)
+    fitted = image * sh.ratio + sh.highlight
+    monkeypatch.setattr(intrinsic, "level_colour", lambda *args: None)
+    monkeypatch.setattr(intrinsic, "source_tint", lambda image, bufs, fg: np.ones_like(image))
+    sh = intrinsic.shade(image, bufs, light)
+    plain = image * sh.ratio + sh.highlight
+    before, after = skin_chroma(plain, shadowed)[0], skin_chroma(fitted, shadowed)[0]
+    assert before > 1.08 * target
+    assert before - after > 0.25 * (before - target)
+    np.testing.assert_allclose(intrinsic.luminance(fitted)[fg], intrinsic.luminance(plain)[fg],
+                               rtol=0.03, atol=1e-4)
+
+
 def test_light_diffuses_under_skin_red_furthest():
     """subsurface: uniform irradiance stays as it is, nothing changes off the skin, and across a
     white lamp's terminator the dark side gets light back, red the most, blue the least."""
