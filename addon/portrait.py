@@ -47,7 +47,8 @@ def crop_planar(x: np.ndarray, box: framing.Box, size: int) -> tuple[np.ndarray,
 # The coarse pass's size as a share of the working size: at 0.5 the wide clip s18 changed 1.69x
 # as much as its input from frame to frame under key-left, at 1.0 1.56x (training.eval.footage_sheet).
 COARSE = 1.0
-MATTE_EDGE = (0.3, 0.9)  # matte values over which the change fades in (smoothstep)
+MATTE_EDGE = (0.3, 0.9)  # matte values over which the change fades in (smoothstep) ...
+MATTE_BLUR = 1.0  # ... of the matte smoothed by this Gaussian sigma, in working-size pixels
 FEATHER = 0.12  # share of the crop's side over which the face crop fades into the coarse pass
 
 
@@ -192,8 +193,11 @@ def _change(session, x: np.ndarray, light, effects, valid=None, unit=None):
     if unit is not None:
         unit.append(sh.unit)
     # The change fades in over the matte's confident core: at the outline the normals graze and
-    # the ratio is least certain, and a soft matte there would carry it onto the background.
-    m = np.clip((bufs.matte - MATTE_EDGE[0]) / (MATTE_EDGE[1] - MATTE_EDGE[0]), 0.0, 1.0)
+    # the ratio is least certain, and a soft matte there would carry it onto the background. The
+    # matte is smoothed first (MATTE_BLUR): the network draws it nearly binary, and its pixel
+    # steps, enlarged to the frame, showed as stair steps along a lit outline.
+    m = intrinsic.gaussian_blur(bufs.matte, MATTE_BLUR)
+    m = np.clip((m - MATTE_EDGE[0]) / (MATTE_EDGE[1] - MATTE_EDGE[0]), 0.0, 1.0)
     m = (m * m * (3.0 - 2.0 * m))[None]
     return m * sh.ratio, m * sh.highlight, m[0], np.clip(bufs.matte, 0.0, 1.0)
 
