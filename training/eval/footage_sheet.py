@@ -8,8 +8,10 @@ Each clip of ``../shared/data/footage/*.mp4`` (first ``--frames`` frames) goes t
 lamp setups, into ``<out>/<clip>/<lighting>/<model>/``. Then:
 
 * the console and ``<out>/sheet.json``: per run, the left/right balance of the middle frame
-  (input and relit) and the share of it the foreground matte covers (a matte that covers the room
-  makes the kept background fall back to the network's);
+  (input and relit), its skin's chroma relit over input (skin_chroma), how much the background
+  just beyond the subject's outline changed (outline_change: a dark halo shows as below 1) and
+  the share of the frame the foreground matte covers (a matte that covers the room makes the kept
+  background fall back to the network's);
 * ``<out>/sheet.png``: one row per clip (and model), columns = the input and each lighting, the
   clip's middle frame; above each lighting column its light vector (16x16 latitude-longitude map:
   top = up, centre = toward the camera, right = the camera's right, both edges = behind).
@@ -120,6 +122,7 @@ class Run:
     balance: tuple[float, float] = (float("nan"), float("nan"))  # (input, relit), see balance()
     matte_cover: float = float("nan")  # share of the middle frame the foreground matte covers
     chroma: tuple[float, float] = (float("nan"), float("nan"))  # skin_chroma (input, relit)
+    outline: tuple[float, float] = (float("nan"), float("nan"))  # outline_change
 
     def fps_text(self) -> str:
         if not self.written:
@@ -193,6 +196,38 @@ def skin_chroma(linear: np.ndarray, matte: np.ndarray, source: np.ndarray) -> fl
     ok = total[:, 0] > 0
     chroma = np.linalg.norm(rgb[ok] / total[ok] - 1.0 / 3.0, axis=1)
     return float(chroma.mean()) if chroma.size else float("nan")
+
+
+def dilate(mask: np.ndarray, r: int) -> np.ndarray:
+    """``mask`` grown by r pixels (a square neighbourhood, separable; nothing wraps around)."""
+    out = np.asarray(mask, bool)
+    for axis in (0, 1):
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (r, r)
+        p = np.pad(out, pad)
+        n = out.shape[axis]
+        grown = np.zeros_like(out)
+        for k in range(2 * r + 1):
+            grown |= np.take(p, np.arange(k, k + n), axis=axis)
+        out = grown
+    return out
+
+
+OUTLINE_BAND = (3, 12)  # pixels beyond the subject's outline where its change should not reach
+
+
+def outline_change(source: np.ndarray, relit: np.ndarray, matte: np.ndarray) -> tuple[float, float]:
+    """(mean, darkest tenth's mean) of the relit luminance over the source's in the band
+    OUTLINE_BAND pixels beyond the outline of the subject's matte (> 0.5): 1 when the change
+    stops at the outline; below 1, a dark halo on the background."""
+    subject = np.asarray(matte) > 0.5
+    band = dilate(subject, OUTLINE_BAND[1]) & ~dilate(subject, OUTLINE_BAND[0])
+    y_src, y_out = normalise.luminance(source), normalise.luminance(relit)
+    band &= y_src > 1e-3
+    if band.sum() < 64:
+        return float("nan"), float("nan")
+    ratio = np.sort(y_out[band] / y_src[band])
+    return float(ratio.mean()), float(ratio[:max(1, ratio.size // 10)].mean())
 
 
 def read_matte(out_dir: pathlib.Path, i: int) -> np.ndarray:
@@ -361,7 +396,8 @@ def run_one(spec, clip_name: str, name: str, light, model: pathlib.Path, out: pa
     y_mid = relit_frame(run_dir, mid)
     return Run(clip_name, name, model.stem, run_dir, spec.count, written, seconds, steady,
                (balance(x_mid, matte), balance(y_mid, matte)), float(np.mean(matte)),
-               (skin_chroma(x_mid, matte, x_mid), skin_chroma(y_mid, matte, x_mid)))
+               (skin_chroma(x_mid, matte, x_mid), skin_chroma(y_mid, matte, x_mid)),
+               outline_change(x_mid, y_mid, matte))
 
 
 def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
@@ -379,7 +415,8 @@ def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
                 print(f"{clip_name:>4} {name:<9} {model.stem}: {run.fps_text()}; left/right "
                       f"balance input {run.balance[0]:.2f} -> relit {run.balance[1]:.2f}; "
                       f"skin chroma relit/input {run.chroma[1] / run.chroma[0]:.2f}; "
-                      f"matte covers {run.matte_cover:.0%}", flush=True)
+                      f"beyond the outline relit/input {run.outline[0]:.2f} (darkest tenth "
+                      f"{run.outline[1]:.2f}); matte covers {run.matte_cover:.0%}", flush=True)
                 row[name] = run
             rows.append((spec, row))
     return rows
@@ -439,7 +476,9 @@ def make_sheets(a) -> dict:
                   "steady_fps": r.steady_fps and round(r.steady_fps, 2),
                   "balance_input": _num(r.balance[0]), "balance_relit": _num(r.balance[1]),
                   "matte_cover": _num(r.matte_cover), "skin_chroma_input": _num(r.chroma[0]),
-                  "skin_chroma_relit": _num(r.chroma[1])}
+                  "skin_chroma_relit": _num(r.chroma[1]),
+                  "outline_relit_over_input": _num(r.outline[0]),
+                  "outline_darkest_tenth": _num(r.outline[1])}
                  for r in runs],
     }
     (out / "sheet.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
