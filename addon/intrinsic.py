@@ -83,19 +83,13 @@ SSS_SIGMA_CM = (0.30, 0.14, 0.07)
 SSS_FACE_CM = 6.0
 
 
-# The footage light's colour as it varies over the subject (source_tint): nine SH coefficients a
-# channel, ridge-regularised (this share of the samples; the constant term is free), and the
-# per-pixel colour factor kept within this range.
-TINT_RIDGE = 1e-3
-TINT_RANGE = (0.5, 2.0)
 # The skin's colour against its light's level (level_colour) is read between these percentiles
 # of the levels the footage shows: above its upper quartile the footage's own tone curve, not
 # the light, desaturates skin, so a brighter target keeps the colour of its well-lit skin. On
-# the dev footage under white lamps (training.eval.footage_sheet, six frames) skin chroma relit
-# over input went from 1.21 (the tint alone) to 1.04 on the clip whose shadowed side is warm,
-# the others staying within 0.90-1.00; at the 95th percentile an evenly lit clip fell to 0.89,
-# at the median the first kept 1.13. The skin's log levels must
-# spread at least LEVEL_MIN_SPREAD for a fit.
+# the dev footage (training.eval.footage_sheet, 24 frames) skin chroma relit over input under
+# the white lamps went from 1.40 to 1.10 on the clip whose shadowed side is warm, the others
+# staying within 0.95-1.02; at the 95th percentile an evenly lit clip fell to 0.89, at the
+# median the first kept 1.13. The skin's log levels must spread at least LEVEL_MIN_SPREAD.
 LEVEL_PERCENTILES = (5, 75)
 LEVEL_MIN_SPREAD = 0.1
 
@@ -269,46 +263,10 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
     return c.astype(np.float32)
 
 
-def source_tint(image_chw: np.ndarray, bufs: Buffers, fg: np.ndarray) -> np.ndarray:
-    """(3, h, w) the colour of the footage's light as it varies over the subject, as factors of
-    unit luminance whose mean over it is one in each channel: each pixel's light per channel
-    (the footage over the albedo's variation about its median, so the albedo's own colour and
-    texture do not count) as a share of its luminance, fitted in nine SH coefficients of the
-    normal. A warm wall on one side and a cool window on the other show here; the light's
-    average colour, which the footage's grade and the skin share, does not (the factors'
-    mean is one), so a white light keeps the skin's colour. Ones where too little is seen."""
-    ones = np.ones_like(image_chw, dtype=np.float32)
-    luma = np.asarray(LUMA, np.float32)
-    alb = np.maximum(bufs.albedo, 1e-4)
-    lum = luminance(image_chw)
-    ok = fg & np.isfinite(lum) & (lum > 0) & (luminance(alb) > 0.02)
-    if int(ok.sum()) < 64:
-        return ones
-    alb_ok = alb[:, ok]
-    med = np.median(alb_ok[:, ::4], axis=1)  # every fourth sample: the median of thousands
-    light = image_chw[:, ok] / np.maximum(alb_ok / med[:, None], 0.05)
-    share = light / np.maximum(luma @ light, 1e-8)
-    full = sh_basis(bufs.normal)  # (9, h, w)
-    basis = full[:, ok].astype(np.float64)  # (9, N)
-    ridge = TINT_RIDGE * basis.shape[1] * np.eye(9)
-    ridge[0, 0] = 0.0
-    coeff = np.linalg.solve(basis @ basis.T + ridge, basis @ share.T.astype(np.float64))
-    tint = np.maximum(np.tensordot(coeff.T.astype(np.float32), full, axes=(1, 0)), 1e-3)
-    tint /= np.maximum(np.tensordot(luma, tint, axes=(0, 0)), 1e-6)[None]
-    w = bufs.matte * fg
-    tint /= ((tint * w).sum((1, 2)) / max(float(w.sum()), 1e-6))[:, None, None]
-    tint /= np.maximum(np.tensordot(luma, tint, axes=(0, 0)), 1e-6)[None]
-    if not np.all(np.isfinite(tint)):
-        return ones
-    return np.clip(tint, *TINT_RANGE).astype(np.float32)
-
-
-def level_colour(image_chw: np.ndarray, lum: np.ndarray, e_src: np.ndarray, tint: np.ndarray,
-                 skin: np.ndarray):
+def level_colour(image_chw: np.ndarray, lum: np.ndarray, e_src: np.ndarray, skin: np.ndarray):
     """The footage's skin colour as a function of its light's level: each channel's share of
-    the luminance (the light's tint divided out) fitted as a + b log(shading) over face skin,
-    and the range of log shadings it holds for (LEVEL_PERCENTILES); None when the skin is
-    small or lit evenly. Real skin is more saturated in shadow (light scattered under it comes
+    the luminance fitted as a + b log(shading) over face skin, and the range of log shadings
+    it holds for (LEVEL_PERCENTILES); None when the skin is small or lit evenly. Real skin is more saturated in shadow (light scattered under it comes
     out redder, and graded footage deepens it), so a shadow the target light fills should take
     the colour the footage's lit skin has, not keep its own."""
     if int(skin.sum()) < 64:
@@ -316,7 +274,7 @@ def level_colour(image_chw: np.ndarray, lum: np.ndarray, e_src: np.ndarray, tint
     x = np.log(np.maximum(e_src[skin], 1e-8)).astype(np.float64)
     if float(x.std()) < LEVEL_MIN_SPREAD:
         return None
-    share = image_chw[:, skin] / np.maximum(lum[skin], 1e-8) / tint[:, skin]
+    share = image_chw[:, skin] / np.maximum(lum[skin], 1e-8)
     design = np.stack([np.ones_like(x), x], 1)
     coef, *_ = np.linalg.lstsq(design, share.T.astype(np.float64), rcond=None)  # (2, 3)
     lo, hi = np.percentile(x, LEVEL_PERCENTILES)
@@ -382,11 +340,18 @@ def unlit_share(rel: np.ndarray, directional: float) -> np.ndarray:
 
 
 def skin_radiance(image_chw: np.ndarray, lum: np.ndarray, bufs: Buffers, skin: np.ndarray,
-                  unit: float) -> np.ndarray:
+                  unit: float, level=None) -> np.ndarray:
     """(3, h, w) the footage's radiance per unit of irradiance from the predicted albedo: the
-    skin's own colour in the footage (its median chromaticity) times ``unit`` (radiance per unit
-    irradiance of the median skin) times the albedo's variation about the skin's median."""
-    chroma = np.median(image_chw[:, skin] / np.maximum(lum[skin], 1e-12), axis=1)
+    skin's own colour in the footage times ``unit`` (radiance per unit irradiance of the median
+    skin) times the albedo's variation about the skin's median. The colour is that of the
+    footage's well-lit skin where level_colour's fit ``level`` says it (its upper level), else
+    the skin's median chromaticity."""
+    if level is not None:
+        coef, _, hi = level
+        chroma = np.maximum(coef[0] + coef[1] * np.float32(hi), 1e-3)
+        chroma = chroma / float(np.asarray(LUMA, np.float32) @ chroma)
+    else:
+        chroma = np.median(image_chw[:, skin] / np.maximum(lum[skin], 1e-12), axis=1)
     ref = np.maximum(np.median(bufs.albedo[:, skin], axis=1), 1e-6)
     return (unit * chroma / ref)[:, None, None] * bufs.albedo
 
@@ -572,21 +537,19 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     # absolute power (the change stays linear in the light).
     typical = float(np.median(luminance(e_t)[fg])) if fg.any() else 0.0
     norm = float(np.median(e_src[fg])) / typical if typical > 0 else 1.0
-    # The footage's light in colour: its luminance shading times its colour's variation over
-    # the subject (source_tint), so that variation is divided out with it.
-    tint = source_tint(image_chw, bufs, fg)
-    ratio = np.minimum(e_t * np.float32(norm) / (e_src[None] * tint), RATIO_MAX) / np.float32(norm)
+    ratio = np.minimum(e_t * np.float32(norm) / e_src[None], RATIO_MAX) / np.float32(norm)
     # The highlight in the footage's units: the footage's radiance per unit of irradiance on skin
     # is lum / e_src there (albedo / pi of the skin, in whatever exposure the footage has).
     skin = fg & (bufs.face > 0.5)
     unit = float(np.median((lum / e_src)[skin])) if skin.sum() > 8 else float(
         np.median((lum / e_src)[fg])) if fg.any() else 1.0
     highlight = spec * (unit * math.pi * SKIN_ALBEDO)  # GGX radiance scaled from skin albedo
+    level = level_colour(image_chw, lum, e_src, skin)
     if unlit is not None and skin.sum() > 8:
         share = (unlit * bufs.face)[None]
         ratio = ratio * (1.0 - share)
-        highlight = highlight + share * skin_radiance(image_chw, lum, bufs, skin, unit) * e_t
-    level = level_colour(image_chw, lum, e_src, tint, skin)
+        highlight = highlight + share * skin_radiance(image_chw, lum, bufs, skin, unit,
+                                                      level) * e_t
     if level is not None and fg.any():
         # the relit level in the footage's units: with its exposure kept, as a clip's is
         w = bufs.matte

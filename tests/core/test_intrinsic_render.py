@@ -398,55 +398,6 @@ def test_white_light_keeps_skin_colour():
     assert ratio[0][m].mean() > 2.0 * ratio[1][m].mean()
 
 
-def two_coloured_sides():
-    """(image, Buffers, u) of the skin sphere lit by a warm lamp from its left and a cool one
-    from its right, of equal luminance: footage whose light changes colour across the face."""
-    image, bufs = portrait()
-    normal, _, matte, u, _ = sphere()
-    warm, cool = np.array([1.0, 0.8, 0.55], np.float32), np.array([0.6, 0.8, 1.1], np.float32)
-    warm, cool = warm / float(intrinsic.LUMA @ warm), cool / float(intrinsic.LUMA @ cool)
-    src = (lightvec.splat_direction([-1.0, 0.2, 0.6], 3.0) * warm
-           + lightvec.splat_direction([1.0, 0.2, 0.6], 3.0) * cool + lightvec.uniform(0.2))
-    image = (bufs.albedo * exact_irradiance(src, normal) * matte / math.pi).astype(np.float32)
-    return image, bufs, u
-
-
-def test_source_tint_is_one_under_one_colour_and_follows_a_change_of_colour():
-    """A light of one colour gives factors of one (the skin's own colour is the albedo's); a
-    warm left and a cool right give redder factors on the left and bluer on the right, of unit
-    luminance and mean one over the subject."""
-    image, bufs = portrait()
-    fg = bufs.matte > 0.5
-    np.testing.assert_allclose(intrinsic.source_tint(image, bufs, fg)[:, fg], 1.0, atol=2e-3)
-    image, bufs, u = two_coloured_sides()
-    tint = intrinsic.source_tint(image, bufs, fg)
-    left, right = fg & (u < -0.3), fg & (u > 0.3)
-    assert tint[0][left].mean() > 1.1 * tint[0][right].mean()
-    assert tint[2][right].mean() > 1.2 * tint[2][left].mean()
-    np.testing.assert_allclose(intrinsic.luminance(tint)[fg], 1.0, atol=1e-4)
-    np.testing.assert_allclose(tint[:, fg].mean(1), 1.0, atol=0.02)
-    assert not (intrinsic.source_tint(image, bufs, np.zeros_like(fg)) != 1).any()
-
-
-def test_a_white_light_takes_the_footages_colour_change_out(monkeypatch):
-    """Relit by a white lamp from the front, footage with a warm left and a cool right keeps far
-    less of its side-to-side colour change than the ratio of luminance shadings alone left."""
-    image, bufs, u = two_coloured_sides()
-    fg = bufs.matte > 0.5
-    left, right = fg & (u < -0.3), fg & (u > 0.3)
-
-    def colour_change(out):
-        return abs(np.log(skin_chroma(out, left) / skin_chroma(out, right))).sum()
-
-    white = lamp([0.0, 0.2, 1.0])
-    sh = intrinsic.shade(image, bufs, white)
-    with_tint = colour_change(image * sh.ratio + sh.highlight)
-    monkeypatch.setattr(intrinsic, "source_tint", lambda image, bufs, fg: np.ones_like(image))
-    sh = intrinsic.shade(image, bufs, white)
-    without = colour_change(image * sh.ratio + sh.highlight)
-    assert without > 0.3 and with_tint < without / 3
-
-
 def saturated_shadows():
     """(image, Buffers, u) of the skin sphere lit from its left, the skin redder the darker it
     is (as real, graded skin is): its chromaticity moves from the albedo's by up to +25% red
@@ -464,12 +415,11 @@ def saturated_shadows():
 def test_level_colour_needs_a_spread_of_levels_and_enough_skin():
     image, bufs = portrait(albedo=SKIN)
     lum = intrinsic.luminance(image)
-    tint = np.ones_like(image)
     even = np.full(lum.shape, 0.3, np.float32)
     skin = bufs.matte > 0.5
-    assert intrinsic.level_colour(image, lum, even, tint, skin) is None
-    assert intrinsic.level_colour(image, lum, lum + 1e-3, tint, np.zeros_like(skin)) is None
-    level = intrinsic.level_colour(image, lum, lum + 1e-3, tint, skin)
+    assert intrinsic.level_colour(image, lum, even, skin) is None
+    assert intrinsic.level_colour(image, lum, lum + 1e-3, np.zeros_like(skin)) is None
+    level = intrinsic.level_colour(image, lum, lum + 1e-3, skin)
     f = intrinsic.level_factor(level, lum + 1e-3, lum + 1e-3)
     np.testing.assert_allclose(f, 1.0, atol=1e-5)  # the same level: no change
 
@@ -486,7 +436,7 @@ def test_level_colour_reads_the_skins_colour_against_its_level():
     lum = 0.5 * e
     image = share * lum[None]
     skin = np.ones(e.shape, bool)
-    coef, lo, hi = intrinsic.level_colour(image, lum, e, np.ones_like(image), skin)
+    coef, lo, hi = intrinsic.level_colour(image, lum, e, skin)
     assert (lo, hi) == pytest.approx(tuple(np.percentile(np.log(e), intrinsic.LEVEL_PERCENTILES)))
     dark, bright = np.float32(np.exp(lo)), np.float32(np.exp(hi))
     f = intrinsic.level_factor((coef, lo, hi), np.full((1, 1), dark), np.full((1, 1), bright * 4))
@@ -496,10 +446,10 @@ def test_level_colour_reads_the_skins_colour_against_its_level():
     assert float(intrinsic.luminance(f)[0, 0]) == pytest.approx(1.0, abs=1e-5)
 
 
-def test_a_filled_shadow_loses_some_of_its_footage_colour(monkeypatch):
-    """Footage whose shadowed side is redder, relit by a white lamp from that side: the light's
-    colour fits (source_tint, level_colour) take at least a quarter of the way from the
-    shadow's redder colour toward the footage's lit skin's, the luminance within 3%."""
+def test_a_filled_shadow_takes_the_colour_of_the_footages_lit_skin(monkeypatch):
+    """Footage whose shadowed side is redder, relit by a white lamp from that side: level_colour
+    takes the side most of the way from the shadow's redder colour to the footage's lit
+    skin's, where the ratio of shadings alone keeps it; the luminance stays within 5%."""
     image, bufs, u = saturated_shadows()
     fg = bufs.matte > 0.5
     lit, shadowed = fg & (u < -0.4), fg & (u > 0.4)
@@ -508,14 +458,13 @@ def test_a_filled_shadow_loses_some_of_its_footage_colour(monkeypatch):
     sh = intrinsic.shade(image, bufs, light)
     fitted = image * sh.ratio + sh.highlight
     monkeypatch.setattr(intrinsic, "level_colour", lambda *args: None)
-    monkeypatch.setattr(intrinsic, "source_tint", lambda image, bufs, fg: np.ones_like(image))
     sh = intrinsic.shade(image, bufs, light)
     plain = image * sh.ratio + sh.highlight
     before, after = skin_chroma(plain, shadowed)[0], skin_chroma(fitted, shadowed)[0]
     assert before > 1.08 * target
-    assert before - after > 0.25 * (before - target)
+    assert before - after > 0.6 * (before - target)
     np.testing.assert_allclose(intrinsic.luminance(fitted)[fg], intrinsic.luminance(plain)[fg],
-                               rtol=0.03, atol=1e-4)
+                               rtol=0.05, atol=1e-4)
 
 
 def test_light_diffuses_under_skin_red_furthest():
