@@ -266,9 +266,10 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
 def level_colour(image_chw: np.ndarray, lum: np.ndarray, e_src: np.ndarray, skin: np.ndarray):
     """The footage's skin colour as a function of its light's level: each channel's share of
     the luminance fitted as a + b log(shading) over face skin, and the range of log shadings
-    it holds for (LEVEL_PERCENTILES); None when the skin is small or lit evenly. Real skin is more saturated in shadow (light scattered under it comes
-    out redder, and graded footage deepens it), so a shadow the target light fills should take
-    the colour the footage's lit skin has, not keep its own."""
+    it holds for (LEVEL_PERCENTILES); None when the skin is small or lit evenly. Real skin is
+    more saturated in shadow (light scattered under it comes out redder, and graded footage
+    deepens it), so a shadow the target light fills should take the colour the footage's lit
+    skin has, not keep its own."""
     if int(skin.sum()) < 64:
         return None
     x = np.log(np.maximum(e_src[skin], 1e-8)).astype(np.float64)

@@ -167,9 +167,9 @@ def main(argv=None):
               f"overlap in other threads): {res['end_to_end_1080p_fps']:.1f} frames/s."]
     if "clip" in res:
         c = res["clip"]
-        lines += ["", f"The product path on a {c['frames']}-frame 1080p clip (relight_clip: framing "
-                  f"pass, exposure, decode, relighting, finish, half-float EXR writing, its threads "
-                  f"overlapping): {c['fps_after_warm_up']:.1f} frames/s after warm-up, "
+        lines += ["", f"The product path on a {c['frames']}-frame 1080p clip (relight_clip: "
+                  f"framing pass, exposure, decode, relighting, finish, half-float EXR writing, "
+                  f"its threads overlapping): {c['fps_after_warm_up']:.1f} frames/s after warm-up, "
                   f"{c['cpu_ms_per_frame']:.0f} ms of CPU a frame over all threads "
                   f"({c['wall_s']:.1f} s in all, with the model's loading)."]
     md = "\n".join(lines) + "\n"

@@ -143,4 +143,5 @@ def test_block_scale_gives_whole_grids_with_block_paths(hw, f):
 def test_block_scale_is_the_nearest_and_none_without_one():
     assert detail.block_scale(1080, 1920, 0.188) == (11, 60)  # 0.1833: 2.5% under
     assert detail.block_scale(1081, 1919, 0.3) is None  # coprime sides
-    assert detail.block_scale(1080, 1920, 1.0) is None and detail.block_scale(1080, 1920, 0.0) is None
+    assert detail.block_scale(1080, 1920, 1.0) is None
+    assert detail.block_scale(1080, 1920, 0.0) is None
