@@ -312,6 +312,24 @@ def test_a_bump_shadows_the_side_away_from_the_light():
     assert np.all(vis_left[BUMP_ROWS, 35:44] < 0.5) and np.all(vis_left[BUMP_ROWS, :29] == 1.0)
 
 
+def test_a_cast_shadow_has_a_penumbra_in_the_relit_frame():
+    """The march decides whole pixels; the shading softens its edge over SHADOW_PENUMBRA: across
+    the bump's shadow the ratio falls over several pixels, no step between neighbours taking
+    more than half of the way (and the umbra stays dark)."""
+    normal = np.zeros((3, S, S), np.float32)
+    normal[2] = 1.0
+    flat = np.ones((S, S), np.float32)
+    alb = np.full((3, S, S), 0.5, np.float32)
+    bufs = intrinsic.Buffers(normal, bump_field(), alb, flat, np.zeros_like(flat))
+    image = np.full((3, S, S), 0.2, np.float32)
+    light = lightvec.splat_direction(RAKING_RIGHT, 10.0)
+    ratio = intrinsic.shade(image, bufs, light, keep_exposure=False).ratio[1]
+    row = ratio[32, 10:32]  # from the open floor, through the bump's shadow, to the bump
+    span = float(row.max() - row.min())
+    assert span > 0.5 * float(row.max())  # there is a shadow
+    assert float(np.abs(np.diff(row)).max()) < 0.5 * span
+
+
 def test_a_light_from_above_shadows_below():
     """Light from +Y (image up): the shadow falls below the bump (image y down)."""
     vis = intrinsic.shadow(bump_field(), np.ones((S, S), np.float32), unit([0.0, 0.94, 0.34]))
