@@ -115,6 +115,13 @@ def run(model: str, threads: int, repeats: int) -> dict:
     crop, _ = portrait.crop_planar(x, box, size)
     bufs = portrait.buffers(sess, crop)
     res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
+    # The same change on the grid the box's scale gives unsnapped (portrait.grid_shape without
+    # detail.block_scale): the finish's slower general path, for comparison in the same run.
+    f = size / box.size
+    lh, lw = max(1, round(x.shape[1] * f)), max(1, round(x.shape[2] * f))
+    loose = tuple(detail.resize(v.transpose(1, 2, 0), lh, lw).transpose(2, 0, 1).copy()
+                  for v in (res.a, res.b))
+    loose_row = f"full-resolution finish at 1080p from an unsnapped {lh}x{lw} grid (comparison)"
     framing_row = (f"framing pass following the last box (a run frames one frame in "
                    f"{pipeline.FRAMING_STEP})")
     search_row = "framing pass searching the whole frame (a run's first frame, a lost portrait)"
@@ -130,6 +137,7 @@ def run(model: str, threads: int, repeats: int) -> dict:
             timed(lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats),
         "full-resolution finish at 1080p":
             timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
+        loose_row: timed(lambda: fullres.finish_planar(x, *loose, float(x.max())), repeats),
         blend_row: timed(lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
                                          mask=res.matte), repeats),
     }
