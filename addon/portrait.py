@@ -6,9 +6,11 @@ calls them on one image.
 Framing: a coarse pass runs the network on the whole frame shrunk to the working size and gives
 face-skin and matte maps; ``addon.framing`` turns them into a square box around the face, which a
 second pass on that box refines (a face of 11 pixels in the coarse pass becomes a face of about
-half the working size). Over a clip the boxes are smoothed (``framing.smooth_boxes``) so the crop
-does not jitter. ``relight_frame`` leaves a frame with no box unchanged; the pipeline gives a
-frame where none was found its neighbours' box and counts it.
+half the working size). A run frames its frames in order and follows the portrait: each search
+starts on the crop around the last box found (``find_box``'s ``prior``), the coarse pass only
+when the portrait is not there. Over a clip the boxes are smoothed (``framing.smooth_boxes``) so
+the crop does not jitter. ``relight_frame`` leaves a frame with no box unchanged; the pipeline
+gives a frame where none was found its neighbours' box and counts it.
 """
 
 from __future__ import annotations
