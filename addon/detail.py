@@ -17,6 +17,7 @@ tests/core/test_onnx_graph.py checks the graphs against it.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -81,11 +82,14 @@ def resize(x: np.ndarray, height: int, width: int) -> np.ndarray:
     return np.ascontiguousarray(x, dtype=np.float32)
 
 
+@functools.lru_cache(maxsize=32)
 def _linear_matrix(n: int, m: int) -> np.ndarray:
-    """(m, n) float32 matrix of _linear_taps (bilinear, pixel centres aligned)."""
+    """(m, n) float32 matrix of _linear_taps (bilinear, pixel centres aligned); read-only,
+    cached (a clip asks for the same few sizes every frame)."""
     idx, w = _linear_taps(n, m)
     mat = np.zeros((m, n), np.float32)
     np.add.at(mat, (np.repeat(np.arange(m), 2), idx.reshape(-1)), w.reshape(-1))
+    mat.flags.writeable = False
     return mat
 
 

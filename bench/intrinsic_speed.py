@@ -45,17 +45,23 @@ def timed(fn, repeats: int) -> float:
     return statistics.median(t) * 1000
 
 
-def frame_1080p() -> np.ndarray:
-    src = read_png(ROOT / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
-    lin = colour.srgb_to_linear(src)
-    face = detail.resize(lin.astype(np.float32), 640, 640)
+def in_canvas(img: np.ndarray) -> np.ndarray:
+    """(1080, 1920, 3): a demo frame (H, W, 3) enlarged to 640x640, off-centre in a canvas of
+    its corner's colour, as a portrait in a wide shot."""
+    face = detail.resize(img.astype(np.float32), 640, 640)
     canvas = np.broadcast_to(face[:8, :8].mean((0, 1)), (1080, 1920, 3)).copy()
     canvas[220:860, 1100:1740] = face
+    return canvas
+
+
+def frame_1080p() -> np.ndarray:
+    src = read_png(ROOT / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
+    canvas = in_canvas(colour.srgb_to_linear(src))
     return np.ascontiguousarray(canvas.transpose(2, 0, 1), np.float32)
 
 
 def write_clip(path: str, n: int) -> str:
-    """An n-frame 1920x1080 H.264 clip: the demo's frames in frame_1080p's canvas, sRGB."""
+    """An n-frame 1920x1080 H.264 clip: the demo's frames in_canvas, sRGB."""
     import av
     files = sorted((ROOT / "demo" / "frames").glob("frame_*.png"))
     with av.open(path, "w") as c:
@@ -64,10 +70,7 @@ def write_clip(path: str, n: int) -> str:
         s.options = {"crf": "18", "preset": "ultrafast"}
         for i in range(n):
             src = read_png(files[i % len(files)]).astype(np.float32) / 255.0
-            face = detail.resize(src, 640, 640)
-            canvas = np.broadcast_to(face[:8, :8].mean((0, 1)), (1080, 1920, 3)).copy()
-            canvas[220:860, 1100:1740] = face
-            img = np.clip(canvas * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            img = np.clip(in_canvas(src) * 255.0 + 0.5, 0, 255).astype(np.uint8)
             for p in s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
                 c.mux(p)
         for p in s.encode():
