@@ -558,16 +558,15 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         ratio = ratio * (1.0 - share)
         highlight = highlight + share * skin_radiance(image_chw, lum, bufs, skin, unit,
                                                       level) * e_t
+    w = bufs.matte
+    before = float((lum * w).sum())  # the subject's luminance in the footage
     if level is not None and fg.any():
         # the relit level in the footage's units: with its exposure kept, as a clip's is
-        w = bufs.matte
         after = float((luminance(ratio * image_chw) * w).sum())
-        k = float((lum * w).sum()) / after if after > 1e-12 else 1.0
+        k = before / after if after > 1e-12 else 1.0
         f = level_factor(level, e_src, e_src * luminance(ratio) * np.float32(k))
         ratio = ratio * (1.0 + bufs.face[None] * (f - 1.0))
     if keep_exposure and fg.any():
-        w = bufs.matte
-        before = float((lum * w).sum())
         # luminance(ratio * image), not luminance(ratio) * lum: they differ when both the
         # light and the footage are coloured.
         after = float(((luminance(ratio * image_chw) + luminance(highlight)) * w).sum())
