@@ -109,6 +109,35 @@ def test_export_matches_torch_and_follows_the_contract(tmp_path):
                                                     contract.OUTPUT_ALBEDO, contract.OUTPUT_PARSING]
 
 
+def test_int8_export_keeps_the_named_layers_float_and_stays_near_the_float_network(frames,
+                                                                                  tmp_path):
+    """--int8: every convolution but INT8_KEEP_FLOAT's reads int8 weights, the file is smaller,
+    its buffers stay near the float network's, and the card's record says how near."""
+    import onnx
+
+    from training.intrinsic.export import INT8_KEEP_FLOAT, conv_nodes, export_onnx, quantise
+    from training.intrinsic.model import IntrinsicNet
+
+    torch.manual_seed(0)
+    net = IntrinsicNet("small").eval()
+    fp, q8 = tmp_path / "m.float.onnx", tmp_path / "m.onnx"
+    export_onnx(net, fp)
+    rec = quantise(fp, q8, frames.batch(range(4)), frames.batch(range(4, 6)), RES)
+    convs = conv_nodes(fp)
+    keep = {convs[i] for i in INT8_KEEP_FLOAT}
+    assert rec["kept_float"] == [convs[i] for i in INT8_KEEP_FLOAT] and len(keep) == 4
+    g = onnx.load(str(q8)).graph
+    from_int8 = {n.output[0] for n in g.node if n.op_type == "DequantizeLinear"}
+    for n in g.node:
+        if n.op_type == "Conv":
+            assert (n.input[1] in from_int8) == (n.name not in keep), n.name
+    assert q8.stat().st_size < 0.5 * fp.stat().st_size
+    near = rec["against_float"]
+    assert 0 < near["normal_angle_deg_mean"] < 5 and near["parsing_abs"] < 0.02
+    assert near["albedo_log_abs"] < 0.1 and near["samples"] == 2
+    assert rec["ms_one_thread"]["int8"] > 0 and rec["ms_one_thread"]["float"] > 0
+
+
 def test_skin_and_hair_constants_are_the_light_stage_s():
     """The renderer diffuses light under skin with the light stage's own shares and widths, and
     wraps it around hair with the light stage's lobe."""

@@ -7,6 +7,7 @@ import shlex
 
 import pytest
 
+from addon import contract
 from training.intrinsic import export as intrinsic_export
 from training.intrinsic import train as intrinsic_train
 from training.model import checkpoint
@@ -37,6 +38,16 @@ def test_a_continued_model_reproduces_its_first_run_then_the_second_then_the_exp
     assert len(reproduce.commands(_card())) == 2
     int8 = reproduce.commands(_card(preset="final-int8", name="relight-final-int8"))
     assert int8[-1].endswith("--name relight-final --threads 1 --eval 64 --int8")
+
+
+def test_an_intrinsic_card_reproduces_its_export_with_the_int8_flag_it_was_made_with():
+    card = {**_card(preset="portrait", name="relight-portrait"),
+            "contract": contract.INTRINSIC_CONTRACT, "recommended": True}
+    plain = reproduce.commands(card)[-1]
+    assert plain.startswith("python -m training.intrinsic.export ") and "--int8" not in plain
+    int8 = reproduce.commands({**card, "quantisation": {"kind": "int8"}})[-1]
+    assert int8 == plain + " --int8"
+    assert intrinsic_export.parser().parse_args(shlex.split(int8)[3:]).int8
 
 
 def test_a_model_trained_further_twice_reproduces_the_whole_chain(tmp_path):

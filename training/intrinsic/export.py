@@ -7,6 +7,13 @@ Writes models/<name>.onnx (opset 17, dynamic N/H/W) and models/<name>.json (cont
 ``relight-intrinsic/1``), after checking onnxruntime against PyTorch on two sizes and measuring
 the per-buffer errors on held-out val identities. Held-out quality on real faces is measured by
 ``python -m training.eval.yale`` through ``addon.relight_image``.
+
+``--int8`` ships the network quantised (static int8, QDQ, per-channel weights, calibrated on
+training frames through the simulated camera), with its first convolution, its full-resolution
+decoder block and its output head kept float (``INT8_KEEP_FLOAT``): quantised, those cost most
+of the error and of the frame-to-frame flicker for little of the time. The card records how far
+the int8 buffers are from the float network's on held-out val identities; every other figure
+on it is the int8 file's.
 """
 
 from __future__ import annotations
@@ -57,12 +64,32 @@ def check_against_torch(net: IntrinsicNet, path: pathlib.Path) -> float:
 
 
 @torch.no_grad()
-def val_metrics(net: IntrinsicNet, n: int = 96, res: int = 128) -> dict:
-    """Per-buffer errors on held-out val identities (through the simulated camera)."""
-    vds = data.IntrinsicFrames("val", res, 4321)
-    b = vds.batch(range(n))
-    x = prepare(b, torch.Generator().manual_seed(7))
-    normal, height, albedo, parsing = net(x)
+def val_inputs(n: int = 96, res: int = 128) -> tuple[dict, torch.Tensor]:
+    """(batch, network inputs) of n held-out val identities through the simulated camera."""
+    b = data.IntrinsicFrames("val", res, 4321).batch(range(n))
+    return b, prepare(b, torch.Generator().manual_seed(7))
+
+
+def onnx_forward(path: pathlib.Path, threads: int = 1):
+    """The ONNX file as a function of a (N, 3, H, W) tensor, one image at a time: its four
+    buffers as tensors, as IntrinsicNet returns them."""
+    from ..run.export import session
+
+    sess = session(path, threads)
+
+    def forward(x: torch.Tensor) -> tuple:
+        outs = [sess.run(None, {contract.INPUT_IMAGE: x[i:i + 1].numpy()}) for i in range(len(x))]
+        return tuple(torch.from_numpy(np.concatenate(k, 0)) for k in zip(*outs))
+
+    return forward
+
+
+@torch.no_grad()
+def val_metrics(forward, n: int = 96, res: int = 128) -> dict:
+    """Per-buffer errors on held-out val identities (through the simulated camera) of the
+    network or of an exported file (onnx_forward)."""
+    b, x = val_inputs(n, res)
+    normal, height, albedo, parsing = forward(x)
     fg = b["fg"] > 0.5
     t = b["target"]
     cos = (normal * t[:, 0:3]).sum(1, keepdim=True).clamp(-1, 1)
@@ -81,6 +108,55 @@ def val_metrics(net: IntrinsicNet, n: int = 96, res: int = 128) -> dict:
             "matte_iou": iou,
             "face_iou": float((pf & tf_).sum() / (pf | tf_).sum().clamp(min=1)),
             "samples": n, "split": "val (held-out identities)", "resolution": res}
+
+
+# Left float in the int8 file (indices into the graph's convolutions, in order): the first (it
+# reads the image's full range), the full-resolution decoder block's two and the output head.
+# In a trial on 16 held-out val frames, quantising every convolution put the buffers 3.9 degrees
+# of normal (albedo 8% in log) from the float network's, the first and the head kept float 0.6
+# degrees; on the dev footage (training.eval.footage_sheet) the latter still raised the relit
+# frame-to-frame change over the input's from 1.00 to 1.07 on the steadiest clip, and with the
+# full-resolution decoder float too, to 1.02, the network 1.3x faster than float instead of 1.6x.
+INT8_KEEP_FLOAT = (0, -3, -2, -1)
+INT8_CALIBRATION = 32  # training frames the activation ranges are calibrated on
+
+
+def conv_nodes(path: pathlib.Path) -> list[str]:
+    import onnx
+
+    return [node.name for node in onnx.load(str(path)).graph.node if node.op_type == "Conv"]
+
+
+def quantise(float_path: pathlib.Path, out_path: pathlib.Path, calibration: dict,
+             check: dict, res: int = 128) -> dict:
+    """Write the int8 network of ``float_path`` to ``out_path`` (INT8_KEEP_FLOAT left float),
+    its activation ranges calibrated on the frames of the batch ``calibration``; returns the
+    card's record of it: how far its buffers are from the float network's over the foreground
+    of the batch ``check`` (held-out frames), and both files' time in the same run."""
+    from ..run.export import quantize_int8
+
+    x = prepare(calibration, torch.Generator().manual_seed(11)).numpy()
+    feeds = [{contract.INPUT_IMAGE: x[i:i + 1]} for i in range(len(x))]
+    convs = conv_nodes(float_path)
+    keep = [convs[i] for i in INT8_KEEP_FLOAT]
+    quantize_int8(float_path, out_path, feeds, keep_float=keep)
+    xv = prepare(check, torch.Generator().manual_seed(7))
+    ref, got = onnx_forward(float_path)(xv), onnx_forward(out_path)(xv)
+    fg = check["fg"][:, 0] > 0.5
+    cos = torch.nn.functional.cosine_similarity(ref[0], got[0], dim=1).clamp(-1, 1)
+    alb = (torch.log(ref[2] + 0.02) - torch.log(got[2] + 0.02)).abs().mean(1)
+    ms = {"float": [], "int8": []}
+    for _ in range(3):  # interleaved: the machine's load falls on both alike
+        ms["float"].append(time_onnx(float_path, 1, res))
+        ms["int8"].append(time_onnx(out_path, 1, res))
+    return {"kind": "int8 static, QDQ, per-channel weights (onnxruntime.quantization)",
+            "kept_float": keep, "calibration": f"{len(x)} training frames",
+            "ms_one_thread": {k: round(float(np.median(v)), 2) for k, v in ms.items()},
+            "against_float": {
+                "normal_angle_deg_mean": float(torch.rad2deg(torch.acos(cos))[fg].mean()),
+                "albedo_log_abs": float(alb[fg].mean()),
+                "parsing_abs": float((ref[3] - got[3]).abs().mean()),
+                "samples": len(xv), "split": "val (held-out identities)"}}
 
 
 def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20) -> float:
@@ -150,6 +226,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--recommended", action="store_true",
                     help="mark the card as the recommended preset (the panel's default)")
+    ap.add_argument("--int8", action="store_true",
+                    help="ship the network quantised to int8 (first and last layers float)")
     return ap
 
 
@@ -163,8 +241,17 @@ def main(argv=None):
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     onnx_path = out / f"{a.name}.onnx"
-    export_onnx(net, onnx_path)
-    worst = check_against_torch(net, onnx_path)
+    float_path = onnx_path.with_suffix(".float.onnx") if a.int8 else onnx_path
+    export_onnx(net, float_path)
+    worst = check_against_torch(net, float_path)
+    quant = None
+    if a.int8:
+        try:
+            calibration = data.IntrinsicFrames("train", 128, 97).batch(range(INT8_CALIBRATION))
+            check = data.IntrinsicFrames("val", 128, 4321).batch(range(32))
+            quant = quantise(float_path, onnx_path, calibration, check, a.working_size)
+        finally:
+            float_path.unlink(missing_ok=True)
     recipe = json.loads((run / "recipe.json").read_text())
     ms = {str(t): time_onnx(onnx_path, t, a.working_size) for t in (1, 2)}
     card_path = out / f"{a.name}.json"
@@ -199,6 +286,8 @@ def main(argv=None):
                          "parameters": sum(p.numel() for p in net.parameters())},
         "onnx_check_max_abs": worst,
     }
+    if quant:
+        card["quantisation"] = quant
     card_path.write_text(json.dumps(card, indent=1) + "\n")  # the product path reads the card
     # Held-out figures: the relit test set through the product's path (as the end-to-end
     # presets' cards), and each buffer against the light stage on val identities.
@@ -206,7 +295,7 @@ def main(argv=None):
 
     metrics = evaluate.card_metrics(predictors.product_predictor(onnx_path, a.threads),
                                     evaluate.heldout_dataset(128), a.eval, 128)
-    metrics["val_buffers"] = val_metrics(net)
+    metrics["val_buffers"] = val_metrics(onnx_forward(onnx_path) if a.int8 else net)
     card["metrics"] = metrics
     assert engine.file_sha256(onnx_path) == onnx_sha
     card_path.write_text(json.dumps(card, indent=1) + "\n")

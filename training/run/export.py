@@ -103,8 +103,9 @@ def calibration_feeds(samples, stride: int) -> list[dict]:
     return feeds
 
 
-def quantize_int8(fp32_path, out_path, feeds: list[dict]) -> pathlib.Path:
-    """Static int8 quantisation, QDQ format, per-channel weights, calibrated on ``feeds``."""
+def quantize_int8(fp32_path, out_path, feeds: list[dict], keep_float=()) -> pathlib.Path:
+    """Static int8 quantisation, QDQ format, per-channel weights, calibrated on ``feeds``;
+    the nodes named in ``keep_float`` stay float."""
     from onnxruntime.quantization import (CalibrationDataReader, QuantFormat, QuantType,
                                           quantize_static)
     from onnxruntime.quantization.shape_inference import quant_pre_process
@@ -124,7 +125,8 @@ def quantize_int8(fp32_path, out_path, feeds: list[dict]) -> pathlib.Path:
         # stage (gain * image + residual) stay float, as they set colour and exposure directly.
         quantize_static(str(pre), str(out_path), Reader(), quant_format=QuantFormat.QDQ,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                        per_channel=True, op_types_to_quantize=["Conv"])
+                        per_channel=True, op_types_to_quantize=["Conv"],
+                        nodes_to_exclude=list(keep_float))
     finally:
         pre.unlink(missing_ok=True)
     return out_path

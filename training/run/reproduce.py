@@ -94,7 +94,8 @@ def commands(card: dict) -> list[str]:
     if card.get("contract") == contract.INTRINSIC_CONTRACT:
         out.append(f"python -m training.intrinsic.export --run {recipe['args']['out']} "
                    f"--checkpoint {checkpoint} --name {name}"
-                   + (" --recommended" if card.get("recommended") is True else ""))
+                   + (" --recommended" if card.get("recommended") is True else "")
+                   + (" --int8" if card.get("quantisation") else ""))
         return out
     out.append(f"python -m training.run.export --run {recipe['args']['out']} --checkpoint "
                f"{checkpoint} --name {name} --threads 1 --eval 64" + (" --int8" if int8 else ""))
