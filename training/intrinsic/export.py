@@ -116,7 +116,8 @@ def val_metrics(forward, n: int = 96, res: int = 128) -> dict:
 # of normal (albedo 8% in log) from the float network's, the first and the head kept float 0.6
 # degrees; on the dev footage (training.eval.footage_sheet) the latter still raised the relit
 # frame-to-frame change over the input's from 1.00 to 1.07 on the steadiest clip, and with the
-# full-resolution decoder float too, to 1.02, the network 1.3x faster than float instead of 1.6x.
+# full-resolution decoder float too, to 1.02, the network 1.3x faster than float instead of 1.6x
+# (two threads).
 INT8_KEEP_FLOAT = (0, -3, -2, -1)
 INT8_CALIBRATION = 32  # training frames the activation ranges are calibrated on
 
@@ -227,7 +228,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--recommended", action="store_true",
                     help="mark the card as the recommended preset (the panel's default)")
     ap.add_argument("--int8", action="store_true",
-                    help="ship the network quantised to int8 (first and last layers float)")
+                    help="ship the network quantised to int8 (INT8_KEEP_FLOAT's layers float)")
     return ap
 
 
