@@ -252,6 +252,31 @@ def test_paired_comparison_takes_its_standard_error_over_subjects():
     assert c["se_subjects"] == pytest.approx(np.std([-0.1, 0.05], ddof=1) / np.sqrt(2))
 
 
+def test_balance_correlation_carries_an_interval_over_resampled_subjects():
+    """Exact balances correlate 1 on every resampling; noisy ones give an interval around the
+    figure that narrows with more subjects."""
+    rng = np.random.default_rng(0)
+
+    def rows(n_subjects, noise):
+        out = []
+        for s in range(n_subjects):
+            for _ in range(6):
+                gt = tuple(rng.normal(0, 0.1, 2))
+                pred = tuple(np.array(gt) + rng.normal(0, noise, 2))
+                out.append(("few", {}, f"s{s}", {"ground_truth": gt, "m": pred}))
+        return out
+
+    exact = ye.balance_correlation(rows(5, 0.0))["m"]
+    assert exact["top_bottom"] == pytest.approx(1.0)
+    assert exact["top_bottom_90"] == pytest.approx([1.0, 1.0])
+    few, many = ye.balance_correlation(rows(8, 0.1))["m"], ye.balance_correlation(rows(80, 0.1))["m"]
+    for c in (few, many):
+        lo, hi = c["left_right_90"]
+        assert lo < c["left_right"] < hi and c["subjects"] in (8, 80)
+    width = lambda c: c["top_bottom_90"][1] - c["top_bottom_90"][0]
+    assert width(many) < 0.6 * width(few)
+
+
 def test_identity_is_exact_when_the_light_does_not_change(toy, b01):
     a = ye.Lighting("few", "same", np.where(np.arange(len(b01.dirs)) % 9 == 0, 0.1, 0.0))
     r = ye.relight_pair(b01, a, a, {"toy": ye.PipelineRelighter(toy)})
