@@ -37,26 +37,30 @@ def find_model(preset: str, models_dir=None) -> pathlib.Path:
                      f"{', '.join(found) or 'none'}.")
 
 
-def session(model_path, threads: int | None = None):
-    """A loaded model, kept for the next call (loading checks the file's checksum)."""
-    key = (str(pathlib.Path(model_path).resolve()), threads)
+def session(model_path, threads: int | None = None, working_size: int | None = None):
+    """A loaded model, kept for the next call (loading checks the file's checksum);
+    ``working_size``: the network's in place of its card's (engine.check_working_size)."""
+    key = (str(pathlib.Path(model_path).resolve()), threads, working_size)
     if key not in _SESSIONS:
         _SESSIONS[key] = engine.new_session(model_path, providers=["CPUExecutionProvider"],
-                                            threads=threads, spin=False)
+                                            threads=threads, spin=False,
+                                            working_size=working_size)
     return _SESSIONS[key]
 
 
 def relight_image(image, light, preset: str = "standard", models_dir=None, *, model=None,
                   threads: int | None = None,
                   background: str = pipeline.DEFAULT_BACKGROUND,
-                  exposure: str = pipeline.DEFAULT_EXPOSURE_MODE) -> np.ndarray:
+                  exposure: str = pipeline.DEFAULT_EXPOSURE_MODE,
+                  working_size: int | None = None) -> np.ndarray:
     """Relight ``image`` ((H, W, 3) float32 scene-linear Rec.709) to ``light`` ((16, 16, 3), the
     light-vector convention) with the preset's model and return (H, W, 3) scene linear.
     ``model``: a path to an .onnx (with its card) instead of a preset; ``background``: the
     pipeline's choice for the end-to-end presets (intrinsic presets always keep the footage's
     background); ``exposure``: the pipeline's exposure mode ("keep": the subject keeps this
-    image's luminance; "physical": absolute units). NaN, infinite and negative pixels are taken
-    as 0, as the pipeline does."""
+    image's luminance; "physical": absolute units); ``working_size``: the network's working
+    size in place of its card's (a multiple of its stride: faster below, finer above). NaN,
+    infinite and negative pixels are taken as 0, as the pipeline does."""
     if exposure not in pipeline.EXPOSURE_MODES:
         raise InputError(f"Unknown exposure mode {exposure!r}; use one of "
                          f"{', '.join(pipeline.EXPOSURE_MODES)}.")
@@ -65,7 +69,7 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
         raise InputError(f"The image must be (H, W, 3), got shape {img.shape}.")
     img = np.where(np.isfinite(img) & (img > 0), img, np.float32(0.0))
     light = lightvec.validate(light)
-    sess = session(model or find_model(preset, models_dir), threads)
+    sess = session(model or find_model(preset, models_dir), threads, working_size)
     x = np.ascontiguousarray(img.transpose(2, 0, 1))
     if isinstance(sess, engine.IntrinsicSession):
         fullres = portrait.shared_fullres()

@@ -11,12 +11,13 @@ from __future__ import annotations
 import hashlib
 import json
 import pathlib
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from . import contract, lightvec
-from .errors import DependencyError, ModelError
+from .errors import DependencyError, InputError, ModelError
 
 # Fastest first. The CPU provider is always last so a machine without a GPU still runs.
 PROVIDER_PREFERENCE = ("CUDAExecutionProvider", "CoreMLExecutionProvider",
@@ -437,12 +438,28 @@ class IntrinsicSession:
         return IntrinsicResult(n, hgt[0], alb, par)
 
 
+def check_working_size(card: ModelCard, working_size) -> int:
+    """The working size a run asks of ``card``'s network (None: the card's own): a positive
+    whole number (the network pads its input to its stride); InputError otherwise."""
+    if working_size is None:
+        return card.working_size
+    if isinstance(working_size, bool) or not isinstance(working_size, (int, np.integer)) \
+            or working_size < 1:
+        raise InputError(f"The working size must be a positive whole number of pixels, got "
+                         f"{working_size!r}; {card.name}'s card says {card.working_size}.")
+    return int(working_size)
+
+
 def new_session(model_path, providers=None, threads: int | None = None, spin: bool = True,
-                verify: bool = True):
+                verify: bool = True, working_size: int | None = None):
     """Load a model after checking its card, its checksum and that it keeps no weights in other
     files (the session is built from the checked bytes): a RelightSession, or an
-    IntrinsicSession for an intrinsic model. Raises ModelError / DependencyError."""
+    IntrinsicSession for an intrinsic model. ``working_size``: the network's working size in
+    place of the card's (check_working_size). Raises ModelError / DependencyError /
+    InputError."""
     card = load_card(model_path)
+    if working_size is not None:
+        card = dataclasses.replace(card, working_size=check_working_size(card, working_size))
     data = read_model(card)
     if verify:
         verify_checksum(card, data)

@@ -671,10 +671,8 @@ def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: Reli
         out.warn("The footage is greyscale; it is relit as grey RGB.")
     # No spinning: idle onnxruntime threads would take the core from the decode/write threads.
     session = engine.new_session(options.model_path, options.providers, options.threads,
-                                 spin=False)
-    working = int(options.working_size or session.card.working_size)
-    if working < 1:
-        raise InputError(f"The working size must be positive, got {working}.")
+                                 spin=False, working_size=options.working_size)
+    working = session.card.working_size
     identity = run_identity(clip, lights, options, session.card, working)
     run = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
     if options.takes:

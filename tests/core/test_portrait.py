@@ -20,7 +20,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from addon import (api, contract, detail, engine, framing, frames, intrinsic, lightvec, pipeline,
                    portrait)
-from addon.errors import ModelError
+from addon.errors import InputError, ModelError
 from tests.clip_fixtures import write_exr_sequence
 
 OPSET = 17
@@ -338,6 +338,43 @@ def test_relight_image_is_the_frame_path(model, session):
     got = api.relight_image(img, RIGHT_LAMP, model=model, threads=1)
     np.testing.assert_array_equal(got, want.transpose(1, 2, 0))
     assert np.abs(got - img).max() > 0.05
+
+
+def test_a_working_size_in_place_of_the_card_s_runs_the_network_on_crops_of_that_size(
+        model, monkeypatch):
+    """relight_image(working_size=...) frames and relights at that size (the crops the network
+    sees), a valid relit frame; a size that is not a positive whole number is refused."""
+    img = frame(60, 90, (40.0, 30.0), 14.0, seed=2)
+    seen = []
+    run = engine.IntrinsicSession.run_planar
+    monkeypatch.setattr(engine.IntrinsicSession, "run_planar",
+                        lambda self, x: seen.append(x.shape[1:]) or run(self, x))
+    card = engine.load_card(model).working_size
+    for size in (card // 2, card + 16):
+        seen.clear()
+        out = api.relight_image(img, RIGHT_LAMP, model=model, threads=1, working_size=size)
+        assert (size, size) in seen and (card, card) not in seen
+        assert np.all(np.isfinite(out)) and np.abs(out - img).max() > 0.05
+    for bad in (0, -32, 12.5, "64", True):
+        with pytest.raises(InputError, match="working size"):
+            api.relight_image(img, RIGHT_LAMP, model=model, threads=1, working_size=bad)
+
+
+def test_a_clip_run_relights_at_the_working_size_its_options_ask_for(model, tmp_path,
+                                                                     monkeypatch):
+    """RelightOptions.working_size reaches Portrait's crops, as it sets the end-to-end presets'
+    working shape, and is part of the run's identity."""
+    seen = []
+    run = engine.IntrinsicSession.run_planar
+    monkeypatch.setattr(engine.IntrinsicSession, "run_planar",
+                        lambda self, x: seen.append(x.shape[1:]) or run(self, x))
+    files = write_exr_sequence(tmp_path / "src", clip_frames())
+    size = engine.load_card(model).working_size + 16
+    res = pipeline.relight_clip(image_clip(files), RIGHT_LAMP[None], tmp_path / "out",
+                                pipeline.RelightOptions(model, threads=1, working_size=size))
+    assert res.written == N and (size, size) in seen
+    stored = json.loads((tmp_path / "out" / pipeline.RUN_FILE).read_text())
+    assert stored["identity"]["settings"]["working_size"] == size
 
 
 @pytest.mark.parametrize("centre", [(8.0, 30.0), (90.0, 4.0), (92.0, 60.0)])
