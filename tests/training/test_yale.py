@@ -3,6 +3,7 @@ HDRI restriction, and the end-to-end evaluation with a tiny ONNX model. Data tes
 ../shared/data; nothing here writes pictures of the data outside tmp_path."""
 
 import json
+import pathlib
 
 import numpy as np
 import pytest
@@ -10,6 +11,8 @@ import pytest
 from addon import lightvec
 from addon.errors import InputError
 from training.eval import yale as ye
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -348,3 +351,25 @@ def test_the_lambertian_ceilings_are_exact_on_a_lambertian_subject():
     for name in (ye.LAMBERT_FIT, ye.LAMBERT_RATIO):
         np.testing.assert_allclose(out[name].reshape(-1)[ok], gt[ok], rtol=1e-4)
     assert {ye.LAMBERT_FIT, ye.LAMBERT_RATIO} <= set(ye.REFERENCES)
+
+
+def test_portrait_frontier_measures_each_working_size_on_real_faces_and_in_time(yale_root,
+                                                                                tmp_path):
+    """bench.intrinsic_frontier --quick: each size is its own run (the crop size reaches the
+    product path), with accuracy, balance intervals and per-stage times; the card's size is
+    marked."""
+    from bench import intrinsic_frontier
+
+    model = str(ROOT / "models" / "relight-portrait.onnx")
+    out = tmp_path / "frontier"
+    assert intrinsic_frontier.main(["--model", model, "--quick", "--sizes", "96", "128",
+                                    "--threads", "1", "--out", str(out)]) == 0
+    res = json.loads(out.with_suffix(".json").read_text())
+    assert res["card_working_size"] == 128 and set(res["sizes"]) == {"96", "128"}
+    small, card = res["sizes"]["96"], res["sizes"]["128"]
+    for r in (small, card):
+        assert r["pairs"] == 6 and 10 < r["psnr_scale_invariant"] < 40
+        assert r["top_bottom_90"][0] <= r["top_bottom_90"][1]
+        assert all(v > 0 for v in r["stages_ms"].values()) and r["end_to_end_1080p_fps"] > 0
+    assert small["psnr_scale_invariant"] != card["psnr_scale_invariant"]
+    assert "| 128 (card) |" in out.with_suffix(".md").read_text()

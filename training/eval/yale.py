@@ -406,19 +406,21 @@ class PipelineRelighter:
     image replicated to three channels; the output goes back to gray by Rec.709 luminance."""
 
     def __init__(self, onnx_path, threads: int = 1, background: str | None = None,
-                 exposure: str | None = None):
+                 exposure: str | None = None, working_size: int | None = None):
         self.onnx_path = onnx_path
         self.threads = threads
         self.background = background or api.pipeline.DEFAULT_BACKGROUND
         self.exposure = exposure or api.pipeline.DEFAULT_EXPOSURE_MODE
-        self.card = api.session(onnx_path, threads).card
+        self.working_size = working_size  # None: the card's
+        self.card = api.session(onnx_path, threads, working_size).card
         self.name = self.card.name
 
     def __call__(self, gray: np.ndarray, light: np.ndarray) -> np.ndarray:
         """(H, W) linear gray under some light -> (H, W) linear gray under ``light``."""
         rgb = np.repeat(np.asarray(gray, np.float32)[..., None], 3, axis=2)
         y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads,
-                              background=self.background, exposure=self.exposure)
+                              background=self.background, exposure=self.exposure,
+                              working_size=self.working_size)
         return normalise.luminance(y.astype(np.float32))
 
 

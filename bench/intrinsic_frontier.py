@@ -1,0 +1,151 @@
+"""Portrait's accuracy/time frontier over its working size: real faces against time.
+
+    .venv/bin/python -m bench.intrinsic_frontier [--sizes 96 128 160 192] [--threads 2]
+
+The working size is the side of the square crop the network and the renderer see around the
+portrait (the card's, or ``RelightOptions.working_size`` / ``relight_image(working_size=...)``).
+For each size: accuracy on real faces, CroppedYale's held-out test subjects relit through
+``addon.relight_image`` on training/eval/yale.py's pairs (the scale-invariant PSNR over all pairs,
+as its table gives it, and the balance correlations with their intervals over resampled
+subjects); and time on this machine: the network plus the renderer (key lamp) at that size, and
+a 1080p frame end to end as bench/intrinsic_speed.py counts it (framing pass, relight_frame,
+blend, finish; decode and write overlap in other threads). Every repeat times every size in
+turn, so the machine's load falls on all of them alike. Writes
+``bench/results/intrinsic_frontier.{md,json}``; ``--quick`` (two subjects, three pairs each,
+two repeats) checks that it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+
+from addon import api, detail, intrinsic, lightvec, pipeline, portrait, temporal
+from training.eval import yale
+
+from .intrinsic_speed import frame_1080p
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SIZES = (96, 128, 160, 192)
+
+
+def real_faces(model: str, size: int, threads: int, quick: bool) -> dict:
+    """CroppedYale test subjects at working size ``size``: mean scale-invariant PSNR over the
+    pairs and the balance correlations (yale.balance_correlation)."""
+    root = yale.default_root()
+    _, subjects = yale.select_subjects(yale.subject_names(root), quick)
+    n_pairs = len(yale.KINDS) if quick else 12
+    bank = yale.HdriBank(root.parents[1])
+    relight = yale.PipelineRelighter(model, threads, working_size=size)
+    psnr, rows = [], []
+    for name in subjects:
+        s = yale.load_subject(root, name)
+        for a, b in yale.draw_pairs(s, n_pairs, 2021, bank):
+            gt = yale.relit_sum(s, b.weights)
+            y = relight(yale.relit_sum(s, a.weights), yale.light_vector(s.dirs, b.weights))
+            mask = yale.face_mask(gt.shape, s, b.weights)
+            psnr.append(yale.metrics(yale.ls_gain(y, gt, mask) * y, gt, mask)["psnr"])
+            rows.append((a.kind, None, name, {"ground_truth": yale.balance(gt, mask),
+                                              "model": yale.balance(y, mask)}))
+    return {"psnr_scale_invariant": float(np.mean(psnr)), "pairs": len(psnr),
+            "subjects": len(subjects), **yale.balance_correlation(rows)["model"]}
+
+
+def timings(model: str, sizes, threads: int, repeats: int) -> dict:
+    """Median milliseconds per stage and size, the sizes timed in turn within each repeat."""
+    x = frame_1080p()
+    lamp = lightvec.splat_direction([0.8, 0.3, 0.5], [3, 3, 3]) + 0.05 * lightvec.uniform()
+    fullres = detail.FullRes(threads=threads)
+    jobs = {}
+    for size in sizes:
+        sess = api.session(model, threads, size)
+        box = portrait.find_box(sess, x, fullres)
+        crop, _ = portrait.crop_planar(x, box, size)
+        bufs = portrait.buffers(sess, crop)
+        res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
+        jobs[size] = {
+            "network": lambda s=sess, c=crop: s.run_planar(c),
+            "renderer": lambda c=crop, b=bufs: intrinsic.shade(c, b, lamp),
+            "framing": lambda s=sess, b=box: portrait.find_box(s, x, fullres, prior=b),
+            "relight_frame": lambda s=sess, b=box: portrait.relight_frame(s, x, lamp, b,
+                                                                          fullres=fullres),
+            "finish": lambda r=res: fullres.finish_planar(x, r.a, r.b, float(x.max())),
+            "blend": lambda r=res: temporal.blend((r.a, r.b), (r.a, r.b), (r.a, r.b),
+                                                  mask=r.matte)}
+    times = {size: {k: [] for k in job} for size, job in jobs.items()}
+    for rep in range(repeats + 1):
+        for size, job in jobs.items():
+            for k, fn in job.items():
+                t0 = time.perf_counter()
+                fn()
+                if rep:  # the first round warms up
+                    times[size][k].append((time.perf_counter() - t0) * 1000)
+    out = {}
+    for size, stages in times.items():
+        ms = {k: statistics.median(v) for k, v in stages.items()}
+        frame = (ms["framing"] / pipeline.FRAMING_STEP + ms["relight_frame"] + ms["finish"]
+                 + ms["blend"])
+        out[size] = {"stages_ms": ms, "network_plus_renderer_fps": 1000 / (ms["network"]
+                                                                         + ms["renderer"]),
+                     "end_to_end_1080p_fps": 1000 / frame}
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", default=str(ROOT / "models" / "relight-portrait.onnx"))
+    ap.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
+    ap.add_argument("--threads", type=int, default=2, help="for the timings (accuracy: one)")
+    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "intrinsic_frontier"))
+    a = ap.parse_args(argv)
+    if not yale.default_root().is_dir():
+        print(f"intrinsic_frontier: no CroppedYale at {yale.default_root()}; the accuracy half "
+              "needs ../shared/data/yale (see ../shared/data/README.md).", file=sys.stderr)
+        return 2
+    card_size = api.session(a.model, 1).card.working_size
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    acc = {size: real_faces(a.model, size, 1, a.quick) for size in a.sizes}
+    speed = timings(a.model, a.sizes, a.threads, 2 if a.quick else a.repeats)
+    machine = (f"{platform.machine()} {os.cpu_count()}-core CPU, {a.threads} thread(s) for the "
+               f"timings, load {load:.1f} before / {os.getloadavg()[0]:.1f} after")
+    cmd = "python -m bench.intrinsic_frontier " + " ".join(argv if argv is not None
+                                                           else sys.argv[1:])
+    rows = {size: {**acc[size], **speed[size]} for size in a.sizes}
+    some = rows[a.sizes[0]]
+    lines = [f"Produced by `{cmd.strip()}` on {machine}; {time.perf_counter() - t0:.0f} s.", "",
+             f"CroppedYale: {some['subjects']} held-out test subjects, {some['pairs']} pairs, "
+             "relit through `addon.relight_image` (scale-invariant PSNR as in "
+             "`bench/results/yale.md`; balance correlations with their 5th-95th percentile over "
+             f"resampled subjects). The card's working size is {card_size}.", "",
+             "| working size | scale-invariant PSNR (dB) | left/right | top/bottom | network + "
+             "renderer (frames/s) | 1080p end to end (frames/s) | relight_frame at 1080p (ms) |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for size, r in rows.items():
+        lr, tb = r["left_right_90"], r["top_bottom_90"]
+        lines.append(f"| {size}{' (card)' if size == card_size else ''} | "
+                     f"{r['psnr_scale_invariant']:.2f} | {r['left_right']:.3f} ({lr[0]:.2f}-"
+                     f"{lr[1]:.2f}) | {r['top_bottom']:.3f} ({tb[0]:.2f}-{tb[1]:.2f}) | "
+                     f"{r['network_plus_renderer_fps']:.1f} | {r['end_to_end_1080p_fps']:.1f} | "
+                     f"{r['stages_ms']['relight_frame']:.1f} |")
+    md = "\n".join(lines) + "\n"
+    print(md)
+    pathlib.Path(a.out + ".md").write_text(md)
+    pathlib.Path(a.out + ".json").write_text(json.dumps(
+        {"command": cmd, "machine": machine, "card_working_size": card_size,
+         "sizes": {str(k): v for k, v in rows.items()}}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
