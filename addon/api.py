@@ -59,7 +59,7 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
     pipeline's choice for the end-to-end presets (intrinsic presets always keep the footage's
     background); ``exposure``: the pipeline's exposure mode ("keep": the subject keeps this
     image's luminance; "physical": absolute units); ``working_size``: the network's working
-    size in place of its card's (a multiple of its stride: faster below, finer above). NaN,
+    size in place of its card's (smaller is faster, larger finer; bench.intrinsic_frontier). NaN,
     infinite and negative pixels are taken as 0, as the pipeline does."""
     if exposure not in pipeline.EXPOSURE_MODES:
         raise InputError(f"Unknown exposure mode {exposure!r}; use one of "

@@ -8,10 +8,10 @@ serve several threads and a resumed run behaves exactly like a fresh one.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import pathlib
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
