@@ -272,7 +272,8 @@ def test_balance_correlation_carries_an_interval_over_resampled_subjects():
     exact = ye.balance_correlation(rows(5, 0.0))["m"]
     assert exact["top_bottom"] == pytest.approx(1.0)
     assert exact["top_bottom_90"] == pytest.approx([1.0, 1.0])
-    few, many = ye.balance_correlation(rows(8, 0.1))["m"], ye.balance_correlation(rows(80, 0.1))["m"]
+    few = ye.balance_correlation(rows(8, 0.1))["m"]
+    many = ye.balance_correlation(rows(80, 0.1))["m"]
     for c in (few, many):
         lo, hi = c["left_right_90"]
         assert lo < c["left_right"] < hi and c["subjects"] in (8, 80)
