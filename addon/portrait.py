@@ -171,6 +171,11 @@ def grid_shape(height: int, width: int, box: framing.Box, size: int) -> tuple[in
     it by exact blocks, the finish's fast path."""
     f = min(1.0, size / max(box.size, 1e-6))
     snapped = detail.block_scale(height, width, f)
+    if snapped is None:
+        # A close-up or a 4K frame (a box over ten times the working size): blocks of fewer
+        # grid samples still beat the general path (1080p finish 16.6 against 25.5 ms at 1/10)
+        # and keep the grid's size steady as the box drifts.
+        snapped = detail.block_scale(height, width, f, min_q=1)
     if snapped is not None:
         q, p = snapped
         return height * q // p, width * q // p
