@@ -299,7 +299,7 @@ def test_grid_shape_snaps_to_block_ratios_near_the_box_scale():
     assert detail.upsample_blocks(198, 1080) is not None
     assert portrait.grid_shape(1081, 1919, box, 128) == (203, 361)  # no ratio: the plain scale
     # A close-up (128 / 1250 = 0.102) and a 4K frame: no ratio of four or more grid samples a
-    # block lies within 10%, so blocks of fewer: 1/10 and 1/16 (3/48), exact blocks both ways.
+    # block lies within 10%, so blocks of fewer: 1/10 and 1/16, exact blocks both ways.
     assert portrait.grid_shape(1080, 1920, framing.Box(960.0, 540.0, 1250.0), 128) == (108, 192)
     assert portrait.grid_shape(2160, 3840, framing.Box(1900.0, 900.0, 2000.0), 128) == (135, 240)
     assert detail.upsample_blocks(108, 1080) is not None
