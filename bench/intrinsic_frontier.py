@@ -28,10 +28,10 @@ import time
 
 import numpy as np
 
-from addon import api, detail, intrinsic, lightvec, pipeline, portrait, temporal
+from addon import api, detail, intrinsic, lightvec, portrait, temporal
 from training.eval import yale
 
-from .intrinsic_speed import frame_1080p
+from .intrinsic_speed import frame_1080p, frame_ms
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SIZES = (96, 128, 160, 192)
@@ -91,8 +91,7 @@ def timings(model: str, sizes, threads: int, repeats: int) -> dict:
     out = {}
     for size, stages in times.items():
         ms = {k: statistics.median(v) for k, v in stages.items()}
-        frame = (ms["framing"] / pipeline.FRAMING_STEP + ms["relight_frame"] + ms["finish"]
-                 + ms["blend"])
+        frame = frame_ms(ms["framing"], ms["relight_frame"], ms["finish"], ms["blend"])
         out[size] = {"stages_ms": ms, "network_plus_renderer_fps": 1000 / (ms["network"]
                                                                          + ms["renderer"]),
                      "end_to_end_1080p_fps": 1000 / frame}

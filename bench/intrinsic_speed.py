@@ -107,6 +107,13 @@ def run_clip(model: str, threads: int, n: int) -> dict:
             "cpu_ms_per_frame": float(1000 * (c1 - c0) / max(d1 - d0, 1))}
 
 
+def frame_ms(framing: float, relight: float, finish: float, blend: float) -> float:
+    """A 1080p frame end to end from its stages' milliseconds: the framing pass a run makes
+    for one frame in pipeline.FRAMING_STEP, relight_frame, the finish and the temporal blend
+    (decode and write overlap in other threads)."""
+    return framing / pipeline.FRAMING_STEP + relight + finish + blend
+
+
 def run(model: str, threads: int, repeats: int) -> dict:
     sess = api.session(model, threads)
     size = sess.card.working_size
@@ -145,9 +152,9 @@ def run(model: str, threads: int, repeats: int) -> dict:
                                          mask=res.matte), repeats),
     }
     net_render = rows[f"network, {size} px crop"] + rows["renderer, key lamp (diffuse + shadow + highlight)"]
-    end_to_end = (rows[framing_row] / pipeline.FRAMING_STEP
-                  + rows["relight_frame at 1080p (coarse + face passes, key lamp)"]
-                  + rows["full-resolution finish at 1080p"] + rows[blend_row])
+    end_to_end = frame_ms(rows[framing_row],
+                          rows["relight_frame at 1080p (coarse + face passes, key lamp)"],
+                          rows["full-resolution finish at 1080p"], rows[blend_row])
     return {"stages_ms": rows, "network_plus_renderer_fps": 1000 / net_render,
             "end_to_end_1080p_fps": 1000 / end_to_end, "threads": threads, "working_size": size,
             "decode_and_write": "not included (the pipeline overlaps them in other threads)"}
