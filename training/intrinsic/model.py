@@ -59,9 +59,42 @@ class IntrinsicNet(nn.Module):
         return normal, height, albedo, parsing
 
 
-def losses(pred, target: torch.Tensor, fg: torch.Tensor) -> dict:
+GRADIENT_SCALES = (2, 4, 8)  # pooling of the normals before their neighbour differences are compared
+
+
+def normal_gradient(normal: torch.Tensor, t_n: torch.Tensor, face: torch.Tensor) -> torch.Tensor:
+    """How far the predicted face's curvature is from the truth's: the normals averaged over the
+    face skin ``face`` (B, 1, H, W) in blocks of GRADIENT_SCALES pixels, and the mean absolute
+    difference of neighbouring blocks' differences (right and down), predicted against true, over
+    blocks wholly on the skin. Pooled, because the light stage's per-pixel normals carry the skin's
+    pores and the mesh's facets (blurring the true normals by 5 px moves them as far as the
+    network's error at one pixel, a third of it at four): the nose, brows and eye sockets are what
+    a relit face shows."""
+    out = normal.new_zeros(())
+    for k in GRADIENT_SCALES:
+        wk = tf.avg_pool2d(face, k)
+        whole = (wk > 0.99).float()
+        p = tf.avg_pool2d(normal * face, k) / wk.clamp(min=1e-6)
+        t = tf.avg_pool2d(t_n * face, k) / wk.clamp(min=1e-6)
+        for dim in (2, 3):
+            n = p.size(dim) - 1
+            if n < 1:
+                continue
+            dp = p.narrow(dim, 1, n) - p.narrow(dim, 0, n)
+            dt = t.narrow(dim, 1, n) - t.narrow(dim, 0, n)
+            pw = whole.narrow(dim, 1, n) * whole.narrow(dim, 0, n)
+            out = out + ((dp - dt).abs() * pw).sum() / pw.sum().clamp(min=1.0)
+    return out
+
+
+def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.0,
+           gradient_weight: float = 0.0) -> dict:
     """Per-buffer losses against the light stage's exact buffers (data.TARGETS order: normal 3,
-    height 1, albedo 3, matte 1, face 1); ``fg`` (B, 1, H, W) where the subject's buffers exist."""
+    height 1, albedo 3, matte 1, face 1); ``fg`` (B, 1, H, W) where the subject's buffers exist.
+    ``face_weight``: the normal losses count face-skin pixels 1 + face_weight times (the face is a
+    third of the subject and carries the shading a relit face shows); ``gradient_weight``: the
+    normals' differences between neighbours on the face skin (normal_gradient) join the normal
+    loss."""
     normal, height, albedo, parsing = pred
     n = fg.sum((2, 3)).clamp(min=1.0)  # (B, 1)
 
@@ -71,7 +104,15 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor) -> dict:
     t_n, t_h, t_a = target[:, 0:3], target[:, 3:4], target[:, 4:7]
     t_m, t_f = target[:, 7:8], target[:, 8:9]
     cos = (normal * t_n).sum(1, keepdim=True)
-    l_normal = mean_fg(1.0 - cos).mean() + 0.5 * mean_fg((normal - t_n).abs()).mean()
+    w = fg * (1.0 + face_weight * t_f)  # fg alone when face_weight is 0
+    nw = w.sum((2, 3)).clamp(min=1.0)
+
+    def mean_w(x):
+        return (x * w).sum((2, 3)) / nw
+
+    l_normal = mean_w(1.0 - cos).mean() + 0.5 * mean_w((normal - t_n).abs()).mean()
+    if gradient_weight:
+        l_normal = l_normal + gradient_weight * normal_gradient(normal, t_n, fg * t_f)
     d = height - t_h
     d = d - mean_fg(d)[..., None, None]
     l_height = mean_fg(d.abs()).mean() / 10.0

@@ -195,7 +195,7 @@ def train(a) -> pathlib.Path:
         inp = prepare(batch, gen)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=a.bf16):
             pred = model(inp)
-        ls = losses(pred, batch["target"], batch["fg"])
+        ls = losses(pred, batch["target"], batch["fg"], a.face_weight, a.gradient_weight)
         opt.zero_grad(set_to_none=True)
         ls["total"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
@@ -242,6 +242,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--zoom", type=float, default=0.5, help="share of samples zoomed in (ZOOM)")
     ap.add_argument("--cut", type=float, default=0.0, help="share of samples cut by the frame's "
                     "edge (frame_cut)")
+    ap.add_argument("--face-weight", type=float, default=0.0, help="face-skin pixels count "
+                    "1 + this in the normal loss (model.losses)")
+    ap.add_argument("--gradient-weight", type=float, default=0.0, help="weight of the normals' "
+                    "neighbour differences in the normal loss (model.normal_gradient)")
     ap.add_argument("--start-step", type=int, default=0, help="batch index to start at (a "
                     "continued run sees new samples)")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false")
