@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import (colour, contract, detail, engine, framing, frames, lightvec, normalise,
+from . import (colour, contract, detail, engine, framing, frames, lightvec, normalise, outline,
                portrait, runlock, takes, temporal)
 from .errors import Cancelled, InputError, LightingError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
@@ -771,8 +771,10 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 item = results.get()
                 if item is _DONE:
                     return
-                i, x_full, x_max, ab, fg, source = item
+                i, x_full, x_max, ab, fg, source, edge = item
                 relit, clamped, lowest = finish_planar(x_full, ab, x_max, fullres)
+                if edge is not None:
+                    relit = outline.apply(edge, x_full, relit, plan.scale)
                 matte = matte_full(fg, plan, fullres) if plan.write_matte else None
                 write_frame(out_dir, i, relit, matte, source, plan)
                 counts["clamped"] += clamped
@@ -792,11 +794,12 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             reported[0] = done
             on_progress(done, total, f"{done} of {total} frames")
 
-    # frame -> (x_full, x_max, ab, fg, source, light's signature): this frame and its neighbours
+    # frame -> (x_full, x_max, ab, fg, source, light's signature, outline fit): this frame and
+    # its neighbours
     window = {}
 
     def emit(i):
-        x_full, x_max, ab, fg, source, sig = window[i]
+        x_full, x_max, ab, fg, source, sig, edge = window[i]
         if steady and ab is not None:
             near = []
             for j in (i - 1, i + 1):
@@ -804,7 +807,7 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 near.append(other[2] if other is not None and other[2] is not None
                             and temporal.alike(sig, other[5]) else None)
             ab = temporal.blend(ab, *near, mask=fg)
-        _put(results, (i, x_full, x_max, ab, fg, source), stop, alive=writer)
+        _put(results, (i, x_full, x_max, ab, fg, source, edge), stop, alive=writer)
         _raise_if_failed(writer)
 
     reader, writer = _Worker(produce, "relight-decode"), _Worker(consume, "relight-write")
@@ -826,15 +829,16 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 res = portrait.relight_frame(session, x_full, light, boxes[i], exposure=gain,
                                              fullres=fullres)
                 s = np.float32(plan.scale)  # x_full is the footage / s
-                ab, fg = (res.a * s, res.b * s), res.matte
+                ab, fg, edge = (res.a * s, res.b * s), res.matte, res.outline
                 source = np.zeros(lightvec.SHAPE, np.float32)
             else:
                 relit_low, source, fg, k = infer_planar(session, x_low, light)
                 ab = coefficients_planar(x_low, relit_low, k, plan, fullres)
                 source = source * np.float32(plan.scale)  # the source light in footage units
                 ab = scaled(with_background(ab, fg, light, source, plan), gain)
+                edge = None
             window[i] = (x_full, x_max, ab, fg, source,
-                         temporal.signature(light) if steady else None)
+                         temporal.signature(light) if steady else None, edge)
             # A frame goes out once its following neighbour is in (or there is none).
             if steady and i - 1 in wanted and i - 1 in window:
                 emit(i - 1)

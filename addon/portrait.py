@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import detail, framing, intrinsic, lightvec
+from . import detail, framing, intrinsic, lightvec, outline
 from .engine import IntrinsicSession
 
 MARGIN = 2.2  # box side over the face's extent: room for hair, chin and a little shoulder
@@ -57,7 +57,8 @@ FEATHER = 0.12  # share of the crop's side over which the face crop fades into t
 @dataclass(frozen=True)
 class FrameResult:
     """out = up(a) * x + up(b), with (a, b) on a grid of the frame (the pipeline's finish applies
-    them at full resolution, as for the end-to-end models)."""
+    them at full resolution, as for the end-to-end models), then ``outline`` stops the change at
+    the subject's outline at full resolution (addon.outline.apply)."""
     a: np.ndarray       # (3, gh, gw) float32
     b: np.ndarray       # (3, gh, gw) float32, in the units of x
     matte: np.ndarray   # (gh, gw) float32 in [0, 1]
@@ -69,6 +70,7 @@ class FrameResult:
     lum_in: float = 0.0
     lum_out: float = 0.0
     unit: float = 0.0
+    outline: outline.Fit | None = None
 
 
 EXPOSURES = ("keep", "physical")
@@ -289,4 +291,4 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     matte = np.clip(mix[7], 0.0, 1.0)  # the portrait's matte, for the matte strip
     return FrameResult(np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32),
                        np.ascontiguousarray(matte, np.float32), True, plan, lum_in, lum_out,
-                       unit)
+                       unit, outline.fit(grid, mix[6]))

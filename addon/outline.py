@@ -1,0 +1,185 @@
+"""The change of light stops at the subject's outline at full resolution.
+
+Portrait builds the change on a grid of about the face crop's resolution and fades it in over
+the matte's core (addon/portrait.py). Enlarged to the frame, that fade spans several pixels, and
+where they show the background (a green screen beside the hair, a wall beside a shoulder) the
+background takes the change: a bright or dark line along the outline. Here the fade's weight is
+refitted to the footage's colours, a colour guided filter (He et al., "Guided Image Filtering",
+2010) of the weight against the grid's footage, evaluated at full resolution where the footage's
+own edges are; each pixel of the fade keeps the share of the change its colour says is subject,
+never more than it had.
+
+Only the fade is touched: the fit runs on the grid samples whose windows meet it, and the
+correction on the full-resolution pixels whose bilinear samples do (a few percent of a frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import detail
+
+RADIUS = 1     # the fit's window: (2 RADIUS + 1)^2 grid samples
+EPS = 1e-3     # the fit's ridge, in units of the guide normalised to its LEVEL percentile
+LEVEL = 99     # the percentile of the fade's guide samples that normalises the guide
+FLOOR = 1e-3   # below this enlarged weight the change is nil and nothing is corrected
+
+
+@dataclass
+class Fit:
+    """The fade's weight refitted to colour, on the grid: at each sample w ~ alpha . x / level
+    + beta (outside the fade alpha = 0 and beta = the weight itself)."""
+    coef: np.ndarray     # (4, gh, gw) float32: alpha (3) and beta
+    weight: np.ndarray   # (gh, gw) float32: the change's weight in [0, 1]
+    cells: np.ndarray    # (gh, gw) bool: grid cells whose bilinear corners meet the fade
+    level: float         # the guide's normalisation, in the units of the footage
+
+
+def _window(shape, flat: np.ndarray, r: int) -> np.ndarray:
+    """((2r+1)^2, N) flat indices of the windows around ``flat`` samples, clamped at the
+    grid's border (the window's offsets first, so sums over a window run along whole rows)."""
+    h, w = shape
+    y, x = np.divmod(flat, w)
+    d = np.arange(-r, r + 1)
+    yy = np.clip(y[None, None, :] + d[:, None, None], 0, h - 1)
+    xx = np.clip(x[None, None, :] + d[None, :, None], 0, w - 1)
+    return (yy * w + xx).reshape(-1, len(flat))
+
+
+def _solve3(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Solutions of N symmetric 3x3 systems: ``m`` (6, N) as (00, 01, 02, 11, 12, 22), ``v``
+    (3, N); by cofactors (the ridge keeps every system well away from singular)."""
+    a, b, c, d, e, f = m
+    c0, c1, c2 = d * f - e * e, c * e - b * f, b * e - c * d
+    c4, c5, c8 = a * f - c * c, b * c - a * e, a * d - b * b
+    inv_det = 1.0 / (a * c0 + b * c1 + c * c2)
+    return np.stack([(c0 * v[0] + c1 * v[1] + c2 * v[2]) * inv_det,
+                     (c1 * v[0] + c4 * v[1] + c5 * v[2]) * inv_det,
+                     (c2 * v[0] + c5 * v[1] + c8 * v[2]) * inv_det])
+
+
+def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
+    out = mask.copy()
+    for axis in (0, 1):
+        grown = out.copy()
+        for k in range(1, r + 1):
+            lo = [slice(None)] * 2
+            hi = [slice(None)] * 2
+            lo[axis], hi[axis] = slice(k, None), slice(None, -k)
+            grown[tuple(lo)] |= out[tuple(hi)]
+            grown[tuple(hi)] |= out[tuple(lo)]
+        out = grown
+    return out
+
+
+def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float = EPS) -> Fit | None:
+    """The colour guided filter of ``weight`` (gh, gw) in [0, 1] against ``grid`` (3, gh, gw),
+    the footage on the grid, on the fade (0 < weight < 1) only; None when there is no fade."""
+    weight = np.clip(np.asarray(weight, np.float32), 0.0, 1.0)
+    fade = (weight > 0.0) & (weight < 1.0)
+    if not fade.any():
+        return None
+    h, w = weight.shape
+    near = _dilate(fade, radius)  # where the coefficients' window means need them
+    src = np.flatnonzero(near)
+    win = _window((h, w), src, radius)  # (K, N)
+    k = np.float32(1.0 / win.shape[0])
+    g = np.asarray(grid, np.float32).reshape(3, -1)[:, win]  # (3, K, N)
+    level = float(np.percentile(g[:, win.shape[0] // 2].mean(0), LEVEL))
+    level = level if level > 1e-12 else 1.0
+    g *= np.float32(1.0 / level)
+    p = weight.reshape(-1)[win]  # (K, N)
+    mg, mp = g.sum(1) * k, p.sum(0) * k
+    cov = (g * p[None]).sum(1) * k - mg * mp
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    sigma = np.stack([(g[i] * g[j]).sum(0) * k - mg[i] * mg[j] + (eps if i == j else 0.0)
+                      for i, j in pairs]).astype(np.float32)
+    alpha = _solve3(sigma, cov)  # (3, N)
+    beta = mp - (alpha * mg).sum(0)
+    coef = np.zeros((4, h * w), np.float32)
+    coef[3] = weight.reshape(-1)
+    coef[:3, src], coef[3, src] = alpha, beta
+    # The filter's second step: the coefficients averaged over each fade sample's window.
+    dst = np.flatnonzero(fade)
+    mean = coef[:, _window((h, w), dst, radius)].sum(1) * k
+    out = np.zeros((4, h * w), np.float32)
+    out[3] = weight.reshape(-1)
+    out[:, dst] = mean
+    # Cells (top-left corners of a bilinear stencil) whose four corners meet the fade.
+    cells = fade.copy()
+    cells[:-1] |= fade[1:]
+    cells[:, :-1] |= fade[:, 1:]
+    cells[:-1, :-1] |= fade[1:, 1:]
+    return Fit(out.reshape(4, h, w), weight, cells, level)
+
+
+def _axis(n: int, big: int):
+    """Per full-resolution index along an axis of ``big`` pixels enlarged from ``n`` samples
+    (detail.enlarge_planar's bilinear taps): the lower sample and the upper one's weight."""
+    idx, wts = detail._linear_taps(n, big)
+    return idx[:, 0], np.ascontiguousarray(wts[:, 1])
+
+
+def pixels(f: Fit, height: int, width: int):
+    """The full-resolution pixels whose bilinear stencil's first sample is a cell of ``f`` (so
+    may lie in the enlarged fade): (flat index into the frame, the cell's number in
+    np.nonzero(f.cells) order, the upper row's and the right column's weight)."""
+    h, w = f.weight.shape
+    (r0, ty), (c0, tx) = _axis(h, height), _axis(w, width)
+    # Each grid row owns a contiguous run of full-resolution rows (the runs' starts and lengths).
+    y_start = np.searchsorted(r0, np.arange(h), side="left")
+    y_len = np.searchsorted(r0, np.arange(h), side="right") - y_start
+    x_start = np.searchsorted(c0, np.arange(w), side="left")
+    x_len = np.searchsorted(c0, np.arange(w), side="right") - x_start
+    cy, cx = np.nonzero(f.cells)
+    n = y_len[cy] * x_len[cx]
+    cell = np.repeat(np.arange(len(cy)), n)
+    off = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    across = np.take(x_len[cx], cell)
+    rows, cols = np.divmod(off, across)
+    rows += np.take(y_start[cy], cell)
+    cols += np.take(x_start[cx], cell)
+    return rows * width + cols, cell, np.take(ty, rows), np.take(tx, cols)
+
+
+def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """``y`` (3, H, W), the relit frame of ``x_full`` (3, H, W) (the footage over ``scale``:
+    ``scale * x_full`` is the frame unchanged), with the change on the fade's pixels scaled by
+    the refitted weight over the enlarged one, clipped to [0, 1]. In place; returns ``y``."""
+    if f is None:
+        return y
+    height, width = y.shape[1:]
+    pix, cell, ty, tx = pixels(f, height, width)
+    h, w = f.weight.shape
+    # Each cell's stencil as a bilinear polynomial in the pixel's (tx, ty), per channel (alpha 3,
+    # beta, the weight): c00 + tx d1 + ty (d2 + tx d3).
+    cy, cx = np.nonzero(f.cells)
+    cy1, cx1 = np.minimum(cy + 1, h - 1), np.minimum(cx + 1, w - 1)
+    stack = np.concatenate([f.coef, f.weight[None]], 0).reshape(5, -1)
+    c00, c01 = np.take(stack, cy * w + cx, axis=1), np.take(stack, cy * w + cx1, axis=1)
+    c10, c11 = np.take(stack, cy1 * w + cx, axis=1), np.take(stack, cy1 * w + cx1, axis=1)
+    poly = np.concatenate([c00, c01 - c00, c10 - c00, c11 - c10 - c01 + c00], 0)  # (20, K)
+    e = np.take(poly, cell, axis=1)  # (20, P); np.take keeps C order (poly[:, cell] would not)
+    e[5:10] *= tx
+    e[0:5] += e[5:10]
+    e[15:20] *= tx
+    e[10:15] += e[15:20]
+    e[10:15] *= ty
+    e[0:5] += e[10:15]  # alpha (3), beta and the enlarged weight at each pixel
+    x = np.take(np.asarray(x_full, np.float32).reshape(3, -1), pix, axis=1)
+    share = (e[0] * x[0] + e[1] * x[1] + e[2] * x[2]) * np.float32(1.0 / f.level) + e[3]
+    share /= np.maximum(e[4], FLOOR)
+    # Only where the refit takes some of the change away (the rest keeps its value exactly).
+    cut = np.flatnonzero((share < 1.0) & (e[4] > FLOOR) & (e[4] < 1.0))
+    pix, share = np.take(pix, cut), np.maximum(np.take(share, cut), 0.0)
+    x = np.take(x, cut, axis=1)
+    x *= np.float32(scale)
+    flat = y.reshape(3, -1)
+    yy = np.take(flat, pix, axis=1).astype(np.float32)
+    yy -= x
+    yy *= share
+    yy += x
+    flat[:, pix] = yy
+    return y

@@ -1,0 +1,146 @@
+"""addon.outline: the change of light stops at the subject's outline at full resolution."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from addon import detail, intrinsic, outline, portrait
+
+GREEN = np.array([0.08, 0.45, 0.12], np.float32)  # a chroma-key screen, linear
+SKIN = np.array([0.55, 0.33, 0.25], np.float32)
+
+
+def scene(h: int, w: int, radius: float, seed: int = 0):
+    """(3, h, w) footage: a textured skin-coloured disc on a noisy green screen, and the disc's
+    exact coverage (4x4 supersampled)."""
+    rng = np.random.default_rng(seed)
+    ss = 4
+    yy, xx = np.mgrid[0:h * ss, 0:w * ss] / ss + 0.5 / ss
+    inside = np.hypot(xx - w / 2, yy - h / 2) < radius
+    cover = inside.reshape(h, ss, w, ss).mean((1, 3)).astype(np.float32)
+    skin = SKIN[:, None, None] * (1 + 0.08 * rng.standard_normal((1, h, w))).astype(np.float32)
+    green = GREEN[:, None, None] * (1 + 0.03 * rng.standard_normal((1, h, w))).astype(np.float32)
+    return (cover * skin + (1 - cover) * green).astype(np.float32), cover
+
+
+def grid_of(x: np.ndarray, k: int) -> np.ndarray:
+    c, h, w = x.shape
+    return x.reshape(c, h // k, k, w // k, k).mean((2, 4))
+
+
+def soft_weight(cover_grid: np.ndarray, sigma: float) -> np.ndarray:
+    """The change's weight as Portrait builds it on its grid (portrait.MATTE_EDGE): the matte
+    blurred by ``sigma`` samples, then faded in over its core; enlarged, its fade reaches a
+    sample or two past the outline."""
+    m = intrinsic.gaussian_blur(cover_grid, sigma)
+    m = np.clip((m - portrait.MATTE_EDGE[0]) / (portrait.MATTE_EDGE[1] - portrait.MATTE_EDGE[0]),
+                0.0, 1.0)
+    return (m * m * (3.0 - 2.0 * m)).astype(np.float32)
+
+
+def finish(x: np.ndarray, weight: np.ndarray, gain: float) -> np.ndarray:
+    """The frame with the change ``gain`` faded in by ``weight`` (a = 1 + weight (gain - 1)),
+    through the product's finish (half float)."""
+    a = np.repeat((1.0 + weight * (gain - 1.0))[None], 3, 0).astype(np.float32)
+    b = np.zeros_like(a)
+    return detail.FullRes(threads=1).finish_planar(x, a, b, float(x.max()))[0]
+
+
+def test_no_fade_no_fit():
+    x, _ = scene(40, 40, 12.0)
+    g = grid_of(x, 4)
+    assert outline.fit(g, np.zeros(g.shape[1:], np.float32)) is None
+    assert outline.fit(g, np.ones(g.shape[1:], np.float32)) is None
+    y = x.astype(np.float16)
+    assert outline.apply(None, x, y) is y
+
+
+def test_the_screen_beside_the_subject_keeps_the_footage():
+    """A change that doubles the subject, faded in over several grid samples past its outline:
+    enlarged, it brightens the green screen beside the disc; refitted to colour, the screen keeps
+    the footage while the disc keeps its change."""
+    h, w, k = 160, 200, 5
+    x, cover = scene(h, w, 45.0)
+    g = grid_of(x, k)
+    weight = soft_weight(grid_of(cover[None], k)[0], 1.2)
+    y = finish(x, weight, 2.0)
+    fit = outline.fit(g, weight)
+    fixed = outline.apply(fit, x, y.copy()).astype(np.float32)
+    before = y.astype(np.float32)
+    screen = cover == 0.0
+    reached = screen & (np.abs(before / np.maximum(x, 1e-6) - 1.0).max(0) > 0.05)
+    assert reached.sum() > 500  # the enlarged fade does spill onto the screen
+    change_before = np.abs(before - x)[:, reached].mean()
+    change_after = np.abs(fixed - x)[:, reached].mean()
+    assert change_after < 0.1 * change_before, (change_before, change_after)
+    core = cover == 1.0
+    faded = core & (np.abs(before - x).max(0) > 1e-3)
+    kept = np.abs(fixed - x)[:, faded].sum() / np.abs(before - x)[:, faded].sum()
+    assert kept > 0.9, kept  # the subject's own pixels keep (nearly all) their change
+
+
+@pytest.mark.parametrize("shape,grid", [((101, 137), (23, 31)), ((120, 160), (24, 32))])
+def test_sparse_correction_equals_the_dense_one(shape, grid):
+    """apply touches only the fade's pixels; the result equals the same correction computed on
+    every pixel from the fit enlarged with detail.enlarge_planar (bilinear taps as the finish's),
+    including on grids that do not divide the frame."""
+    h, w = shape
+    x, cover = scene(h, w, 0.3 * min(h, w), seed=3)
+    g = detail.resize(x.transpose(1, 2, 0), *grid).transpose(2, 0, 1).astype(np.float32)
+    cg = detail.resize(cover[..., None], *grid)[..., 0]
+    weight = soft_weight(cg, 1.0)
+    y = finish(x, weight, 0.4)
+    fit = outline.fit(g, weight)
+    sparse = outline.apply(fit, x, y.copy(), scale=1.0).astype(np.float32)
+    up = detail.enlarge_planar(np.concatenate([fit.coef, fit.weight[None]], 0), h, w)
+    refit = (up[:3] * x).sum(0) / fit.level + up[3]
+    share = np.clip(refit / np.maximum(up[4], outline.FLOOR), 0.0, 1.0)
+    share = np.where((up[4] > outline.FLOOR) & (up[4] < 1.0), share, 1.0)
+    yf = y.astype(np.float32)
+    dense = (x + share * (yf - x)).astype(np.float16).astype(np.float32)
+    np.testing.assert_allclose(sparse, dense, rtol=2e-3, atol=1e-5)
+    assert (share < 0.99).sum() > 50  # the comparison covers pixels the refit does change
+
+
+def test_fit_is_the_guided_filter_where_its_windows_are_whole():
+    """On fade samples away from the grid's border the fit equals He et al.'s colour guided
+    filter written densely with box means."""
+    x, cover = scene(120, 160, 40.0, seed=5)
+    g = grid_of(x, 4)
+    weight = soft_weight(grid_of(cover[None], 4)[0], 1.0)
+    fit = outline.fit(g, weight)
+    r, eps = outline.RADIUS, outline.EPS
+    guide = g / fit.level
+    bm = lambda a: detail.box_mean(a, r)  # noqa: E731
+    mi = np.stack([bm(c) for c in guide])
+    mp = bm(weight)
+    cov = np.stack([bm(c * weight) for c in guide]) - mi * mp
+    sig = np.empty(weight.shape + (3, 3), np.float32)
+    for i in range(3):
+        for j in range(3):
+            sig[..., i, j] = bm(guide[i] * guide[j]) - mi[i] * mi[j]
+    sig += eps * np.eye(3, dtype=np.float32)
+    alpha = np.linalg.solve(sig, cov.transpose(1, 2, 0)[..., None])[..., 0].transpose(2, 0, 1)
+    beta = mp - (alpha * mi).sum(0)
+    dense = np.concatenate([np.stack([bm(c) for c in alpha]), bm(beta)[None]], 0)
+    fade = (weight > 0) & (weight < 1)
+    inner = np.zeros_like(fade)
+    inner[2 * r:-2 * r, 2 * r:-2 * r] = True
+    pick = fade & inner
+    assert pick.sum() > 50
+    np.testing.assert_allclose(fit.coef[:, pick], dense[:, pick], atol=2e-3)
+    # Outside the fade the weight stands as it is.
+    assert np.all(fit.coef[:3, ~fade] == 0) and np.all(fit.coef[3, ~fade] == weight[~fade])
+
+
+def test_a_pixel_stays_between_the_footage_and_its_relit_value():
+    x, cover = scene(90, 120, 28.0, seed=7)
+    g = grid_of(x, 3)
+    weight = soft_weight(grid_of(cover[None], 3)[0], 1.5)
+    for gain in (0.2, 3.0):
+        y = finish(x, weight, gain)
+        fixed = outline.apply(outline.fit(g, weight), x, y.copy()).astype(np.float32)
+        lo = np.minimum(x, y.astype(np.float32)) - 1e-3
+        hi = np.maximum(x, y.astype(np.float32)) + 1e-3
+        assert np.all((fixed >= lo) & (fixed <= hi))
