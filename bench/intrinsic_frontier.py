@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from addon import api, detail, intrinsic, lightvec, portrait, temporal
+from addon import api, detail, intrinsic, lightvec, outline, portrait, temporal
 from training.eval import yale
 
 from .intrinsic_speed import frame_1080p, frame_ms
@@ -77,7 +77,8 @@ def timings(model: str, sizes, threads: int, repeats: int) -> dict:
             "framing": lambda s=sess, b=box: portrait.find_box(s, x, fullres, prior=b),
             "relight_frame": lambda s=sess, b=box: portrait.relight_frame(s, x, lamp, b,
                                                                           fullres=fullres),
-            "finish": lambda r=res: fullres.finish_planar(x, r.a, r.b, float(x.max())),
+            "finish": lambda r=res: outline.apply(
+                r.outline, x, fullres.finish_planar(x, r.a, r.b, float(x.max()))[0]),
             "blend": lambda r=res: temporal.blend((r.a, r.b), (r.a, r.b), (r.a, r.b),
                                                   mask=r.matte)}
     times = {size: {k: [] for k in job} for size, job in jobs.items()}

@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from addon import api, colour, detail, intrinsic, lightvec, pipeline, portrait, temporal
+from addon import api, colour, detail, intrinsic, lightvec, outline, pipeline, portrait, temporal
 from training.lightstage.png import read_png
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -109,8 +109,8 @@ def run_clip(model: str, threads: int, n: int) -> dict:
 
 def frame_ms(framing: float, relight: float, finish: float, blend: float) -> float:
     """A 1080p frame end to end from its stages' milliseconds: the framing pass a run makes
-    for one frame in pipeline.FRAMING_STEP, relight_frame, the finish and the temporal blend
-    (decode and write overlap in other threads)."""
+    for one frame in pipeline.FRAMING_STEP, relight_frame, the finish (with the outline's refit,
+    addon.outline.apply) and the temporal blend (decode and write overlap in other threads)."""
     return framing / pipeline.FRAMING_STEP + relight + finish + blend
 
 
@@ -136,6 +136,8 @@ def run(model: str, threads: int, repeats: int) -> dict:
                    f"{pipeline.FRAMING_STEP})")
     search_row = "framing pass searching the whole frame (a run's first frame, a lost portrait)"
     blend_row = f"temporal blend with two neighbours ({res.a.shape[1]}x{res.a.shape[2]} grid)"
+    outline_row = "outline refit at 1080p (the fade's pixels, after the finish)"
+    y = fullres.finish_planar(x, res.a, res.b, float(x.max()))[0]  # refitted in place, repeatedly
     rows = {
         f"network, {size} px crop": timed(lambda: sess.run_planar(crop), repeats),
         "renderer, key lamp (diffuse + shadow + highlight)":
@@ -147,6 +149,7 @@ def run(model: str, threads: int, repeats: int) -> dict:
             timed(lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats),
         "full-resolution finish at 1080p":
             timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
+        outline_row: timed(lambda: outline.apply(res.outline, x, y), repeats),
         loose_row: timed(lambda: fullres.finish_planar(x, *loose, float(x.max())), repeats),
         blend_row: timed(lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
                                          mask=res.matte), repeats),
@@ -154,7 +157,8 @@ def run(model: str, threads: int, repeats: int) -> dict:
     net_render = rows[f"network, {size} px crop"] + rows["renderer, key lamp (diffuse + shadow + highlight)"]
     end_to_end = frame_ms(rows[framing_row],
                           rows["relight_frame at 1080p (coarse + face passes, key lamp)"],
-                          rows["full-resolution finish at 1080p"], rows[blend_row])
+                          rows["full-resolution finish at 1080p"] + rows[outline_row],
+                          rows[blend_row])
     return {"stages_ms": rows, "network_plus_renderer_fps": 1000 / net_render,
             "end_to_end_1080p_fps": 1000 / end_to_end, "threads": threads, "working_size": size,
             "decode_and_write": "not included (the pipeline overlaps them in other threads)"}
