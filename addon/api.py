@@ -76,7 +76,7 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
         res = portrait.relight_frame(sess, x, light, portrait.find_box(sess, x, fullres),
                                      exposure=exposure, fullres=fullres)
         y = fullres.finish_planar(x, res.a, res.b, float(x.max(initial=0.0)))[0]
-        y = outline.apply(res.outline, x, y)
+        y = outline.apply(res.outline, x, y, fullres=fullres)
         return np.ascontiguousarray(y.astype(np.float32).transpose(1, 2, 0))
     return _network_frame(sess, x, light, background, exposure)
 

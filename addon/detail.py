@@ -386,6 +386,20 @@ def upsample_graph() -> bytes:
         [g.value_info("y", g.FLOAT16, [1, "C", "H", "W"])], name="upsample")
 
 
+def mix_graph() -> bytes:
+    """(3, P) half ``y``, (3, P) ``x``, (P,) ``share``, scalar ``scale`` -> (3, P) half
+    x scale + share (y - x scale): a relit pixel taken part of the way back to its footage
+    (addon.outline), its half-float conversions vectorised."""
+    from . import onnx_graph as g
+    return g.model(
+        [g.node("Cast", ["y"], ["yf"], to=g.FLOAT), g.node("Mul", ["x", "scale"], ["xs"]),
+         g.node("Sub", ["yf", "xs"], ["d"]), g.node("Mul", ["d", "share"], ["ds"]),
+         g.node("Add", ["xs", "ds"], ["m"]), g.node("Cast", ["m"], ["out"], to=g.FLOAT16)],
+        [g.value_info("y", g.FLOAT16, [3, "P"]), g.value_info("x", g.FLOAT, [3, "P"]),
+         g.value_info("share", g.FLOAT, ["P"]), g.value_info("scale", g.FLOAT, [])],
+        [g.value_info("out", g.FLOAT16, [3, "P"])], name="mix")
+
+
 def _finite(x: np.ndarray, big: float) -> np.ndarray:
     """float32 ``x`` with NaN -> 0 and +-Inf -> +-big; no copy when all is finite already (the
     usual case: one cheap check instead of a rewrite)."""
@@ -417,6 +431,7 @@ class FullRes:
         self._upsample = ort.InferenceSession(upsample_graph(), so, providers=cpu)
         self._upsample_blocks = ort.InferenceSession(upsample_blocks_graph(), so,
                                                      providers=cpu)
+        self._mix = ort.InferenceSession(mix_graph(), so, providers=cpu)
 
     def shrink_planar(self, x: np.ndarray, height: int, width: int) -> np.ndarray:
         """(C, H, W) float32 -> (C, height, width): exact area averaging where both axes shrink
@@ -469,6 +484,17 @@ class FullRes:
             outs = self._finish_blocks[clamp].run(None, {**feeds, **blocks})
         lowest = float(outs[1]) if clamp else 0.0
         return outs[0][0], clamp, lowest if lowest < 0 else 0.0
+
+    def mix_half(self, y: np.ndarray, x: np.ndarray, share: np.ndarray,
+                 scale: float) -> np.ndarray:
+        """(3, P) half: x * scale + share * (y - x * scale), for (3, P) half ``y``, (3, P)
+        ``x`` and (P,) ``share`` (mix_graph)."""
+        if not share.size:
+            return np.zeros((3, 0), np.float16)
+        return self._mix.run(None, {"y": np.ascontiguousarray(y, np.float16),
+                                    "x": np.ascontiguousarray(x, np.float32),
+                                    "share": np.ascontiguousarray(share, np.float32),
+                                    "scale": np.array(scale, np.float32)})[0]
 
     def upsample_half_planar(self, low: np.ndarray, height: int, width: int, lo: float,
                              hi: float) -> np.ndarray:

@@ -15,6 +15,7 @@ correction on the full-resolution pixels whose bilinear samples do (a few percen
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,8 +125,9 @@ def _axis(n: int, big: int):
 
 def pixels(f: Fit, height: int, width: int):
     """The full-resolution pixels whose bilinear stencil's first sample is a cell of ``f`` (so
-    may lie in the enlarged fade): (flat index into the frame, the cell's number in
-    np.nonzero(f.cells) order, the upper row's and the right column's weight)."""
+    may lie in the enlarged fade), cell after cell (np.nonzero(f.cells) order): (their flat
+    indices into the frame, how many each cell has, the upper row's and the right column's
+    bilinear weight of each)."""
     h, w = f.weight.shape
     (r0, ty), (c0, tx) = _axis(h, height), _axis(w, width)
     # Each grid row owns a contiguous run of full-resolution rows (the runs' starts and lengths).
@@ -135,23 +137,23 @@ def pixels(f: Fit, height: int, width: int):
     x_len = np.searchsorted(c0, np.arange(w), side="right") - x_start
     cy, cx = np.nonzero(f.cells)
     n = y_len[cy] * x_len[cx]
-    cell = np.repeat(np.arange(len(cy)), n)
     off = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    across = np.take(x_len[cx], cell)
-    rows, cols = np.divmod(off, across)
-    rows += np.take(y_start[cy], cell)
-    cols += np.take(x_start[cx], cell)
-    return rows * width + cols, cell, np.take(ty, rows), np.take(tx, cols)
+    rows, cols = np.divmod(off, np.repeat(x_len[cx], n))
+    rows += np.repeat(y_start[cy], n)
+    cols += np.repeat(x_start[cx], n)
+    return rows * width + cols, n, np.take(ty, rows), np.take(tx, cols)
 
 
-def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """``y`` (3, H, W), the relit frame of ``x_full`` (3, H, W) (the footage over ``scale``:
-    ``scale * x_full`` is the frame unchanged), with the change on the fade's pixels scaled by
-    the refitted weight over the enlarged one, clipped to [0, 1]. In place; returns ``y``."""
+def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
+          fullres: detail.FullRes | None = None) -> np.ndarray:
+    """``y`` (3, H, W) half, the relit frame of ``x_full`` (3, H, W) (the footage over
+    ``scale``: ``scale * x_full`` is the frame unchanged), with the change on the fade's pixels
+    scaled by the refitted weight over the enlarged one, clipped to [0, 1]. In place; returns
+    ``y``. ``fullres``: its graphs do the half-float mixing (built once if not given)."""
     if f is None:
         return y
     height, width = y.shape[1:]
-    pix, cell, ty, tx = pixels(f, height, width)
+    pix, n, ty, tx = pixels(f, height, width)
     h, w = f.weight.shape
     # Each cell's stencil as a bilinear polynomial in the pixel's (tx, ty), per channel (alpha 3,
     # beta, the weight): c00 + tx d1 + ty (d2 + tx d3).
@@ -161,7 +163,7 @@ def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0) 
     c00, c01 = np.take(stack, cy * w + cx, axis=1), np.take(stack, cy * w + cx1, axis=1)
     c10, c11 = np.take(stack, cy1 * w + cx, axis=1), np.take(stack, cy1 * w + cx1, axis=1)
     poly = np.concatenate([c00, c01 - c00, c10 - c00, c11 - c10 - c01 + c00], 0)  # (20, K)
-    e = np.take(poly, cell, axis=1)  # (20, P); np.take keeps C order (poly[:, cell] would not)
+    e = np.repeat(poly, n, axis=1)  # (20, P): the pixels come cell after cell
     e[5:10] *= tx
     e[0:5] += e[5:10]
     e[15:20] *= tx
@@ -173,13 +175,15 @@ def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0) 
     share /= np.maximum(e[4], FLOOR)
     # Only where the refit takes some of the change away (the rest keeps its value exactly).
     cut = np.flatnonzero((share < 1.0) & (e[4] > FLOOR) & (e[4] < 1.0))
-    pix, share = np.take(pix, cut), np.maximum(np.take(share, cut), 0.0)
-    x = np.take(x, cut, axis=1)
-    x *= np.float32(scale)
+    pix = np.take(pix, cut)
     flat = y.reshape(3, -1)
-    yy = np.take(flat, pix, axis=1).astype(np.float32)
-    yy -= x
-    yy *= share
-    yy += x
-    flat[:, pix] = yy
+    mixed = (fullres or _fullres()).mix_half(np.take(flat, pix, axis=1), np.take(x, cut, axis=1),
+                                             np.maximum(np.take(share, cut), 0.0), scale)
+    for c in range(3):
+        flat[c][pix] = mixed[c]
     return y
+
+
+@functools.lru_cache(maxsize=1)
+def _fullres() -> detail.FullRes:
+    return detail.FullRes(threads=1)

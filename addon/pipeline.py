@@ -774,7 +774,7 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                 i, x_full, x_max, ab, fg, source, edge = item
                 relit, clamped, lowest = finish_planar(x_full, ab, x_max, fullres)
                 if edge is not None:
-                    relit = outline.apply(edge, x_full, relit, plan.scale)
+                    relit = outline.apply(edge, x_full, relit, plan.scale, fullres)
                 matte = matte_full(fg, plan, fullres) if plan.write_matte else None
                 write_frame(out_dir, i, relit, matte, source, plan)
                 counts["clamped"] += clamped

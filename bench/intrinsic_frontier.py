@@ -78,7 +78,8 @@ def timings(model: str, sizes, threads: int, repeats: int) -> dict:
             "relight_frame": lambda s=sess, b=box: portrait.relight_frame(s, x, lamp, b,
                                                                           fullres=fullres),
             "finish": lambda r=res: outline.apply(
-                r.outline, x, fullres.finish_planar(x, r.a, r.b, float(x.max()))[0]),
+                r.outline, x, fullres.finish_planar(x, r.a, r.b, float(x.max()))[0],
+                fullres=fullres),
             "blend": lambda r=res: temporal.blend((r.a, r.b), (r.a, r.b), (r.a, r.b),
                                                   mask=r.matte)}
     times = {size: {k: [] for k in job} for size, job in jobs.items()}

@@ -149,7 +149,7 @@ def run(model: str, threads: int, repeats: int) -> dict:
             timed(lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats),
         "full-resolution finish at 1080p":
             timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
-        outline_row: timed(lambda: outline.apply(res.outline, x, y), repeats),
+        outline_row: timed(lambda: outline.apply(res.outline, x, y, fullres=fullres), repeats),
         loose_row: timed(lambda: fullres.finish_planar(x, *loose, float(x.max())), repeats),
         blend_row: timed(lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
                                          mask=res.matte), repeats),

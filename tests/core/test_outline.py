@@ -80,25 +80,27 @@ def test_the_screen_beside_the_subject_keeps_the_footage():
     assert kept > 0.9, kept  # the subject's own pixels keep (nearly all) their change
 
 
-@pytest.mark.parametrize("shape,grid", [((101, 137), (23, 31)), ((120, 160), (24, 32))])
-def test_sparse_correction_equals_the_dense_one(shape, grid):
+@pytest.mark.parametrize("shape,grid,scale", [((101, 137), (23, 31), 1.0),
+                                               ((120, 160), (24, 32), 2.5)])
+def test_sparse_correction_equals_the_dense_one(shape, grid, scale):
     """apply touches only the fade's pixels; the result equals the same correction computed on
     every pixel from the fit enlarged with detail.enlarge_planar (bilinear taps as the finish's),
-    including on grids that do not divide the frame."""
+    including on grids that do not divide the frame, and for footage ``scale`` times x_full (the
+    pipeline's normalisation: the unchanged frame is scale * x_full)."""
     h, w = shape
     x, cover = scene(h, w, 0.3 * min(h, w), seed=3)
     g = detail.resize(x.transpose(1, 2, 0), *grid).transpose(2, 0, 1).astype(np.float32)
     cg = detail.resize(cover[..., None], *grid)[..., 0]
     weight = soft_weight(cg, 1.0)
-    y = finish(x, weight, 0.4)
+    y = (finish(x, weight, 0.4).astype(np.float32) * scale).astype(np.float16)
     fit = outline.fit(g, weight)
-    sparse = outline.apply(fit, x, y.copy(), scale=1.0).astype(np.float32)
+    sparse = outline.apply(fit, x, y.copy(), scale=scale).astype(np.float32)
     up = detail.enlarge_planar(np.concatenate([fit.coef, fit.weight[None]], 0), h, w)
     refit = (up[:3] * x).sum(0) / fit.level + up[3]
     share = np.clip(refit / np.maximum(up[4], outline.FLOOR), 0.0, 1.0)
     share = np.where((up[4] > outline.FLOOR) & (up[4] < 1.0), share, 1.0)
     yf = y.astype(np.float32)
-    dense = (x + share * (yf - x)).astype(np.float16).astype(np.float32)
+    dense = (scale * x + share * (yf - scale * x)).astype(np.float16).astype(np.float32)
     np.testing.assert_allclose(sparse, dense, rtol=2e-3, atol=1e-5)
     assert (share < 0.99).sum() > 50  # the comparison covers pixels the refit does change
 
@@ -144,3 +146,15 @@ def test_a_pixel_stays_between_the_footage_and_its_relit_value():
         lo = np.minimum(x, y.astype(np.float32)) - 1e-3
         hi = np.maximum(x, y.astype(np.float32)) + 1e-3
         assert np.all((fixed >= lo) & (fixed <= hi))
+
+
+def test_half_mixing_graph_matches_numpy():
+    rng = np.random.default_rng(1)
+    y = rng.uniform(0, 8, (3, 1000)).astype(np.float16)
+    x = rng.uniform(0, 4, (3, 1000)).astype(np.float32)
+    share = rng.uniform(0, 1, 1000).astype(np.float32)
+    out = detail.FullRes(threads=1).mix_half(y, x, share, 1.5)
+    want = 1.5 * x + share * (y.astype(np.float32) - 1.5 * x)
+    assert out.dtype == np.float16 and out.shape == (3, 1000)
+    np.testing.assert_allclose(out.astype(np.float32), want, rtol=1e-3, atol=1e-3)
+    assert detail.FullRes(threads=1).mix_half(y[:, :0], x[:, :0], share[:0], 1.0).shape == (3, 0)
