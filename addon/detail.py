@@ -50,7 +50,7 @@ def _area_taps(n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     return np.minimum(idx, n - 1), w.astype(np.float32)
 
 
-def _linear_taps(n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+def linear_taps(n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     """Indices and weights (m, 2) of bilinear resampling with pixel centres aligned."""
     c = np.clip((np.arange(m) + 0.5) * (n / m) - 0.5, 0.0, n - 1)
     i0 = np.floor(c).astype(np.int64)
@@ -77,16 +77,16 @@ def resize(x: np.ndarray, height: int, width: int) -> np.ndarray:
         n = x.shape[axis]
         if n == m:
             continue
-        idx, w = _area_taps(n, m) if m < n else _linear_taps(n, m)
+        idx, w = _area_taps(n, m) if m < n else linear_taps(n, m)
         x = _apply_taps(x, axis, idx, w)
     return np.ascontiguousarray(x, dtype=np.float32)
 
 
 @functools.lru_cache(maxsize=32)
 def _linear_matrix(n: int, m: int) -> np.ndarray:
-    """(m, n) float32 matrix of _linear_taps (bilinear, pixel centres aligned); read-only,
+    """(m, n) float32 matrix of linear_taps (bilinear, pixel centres aligned); read-only,
     cached (a clip asks for the same few sizes every frame)."""
-    idx, w = _linear_taps(n, m)
+    idx, w = linear_taps(n, m)
     mat = np.zeros((m, n), np.float32)
     np.add.at(mat, (np.repeat(np.arange(m), 2), idx.reshape(-1)), w.reshape(-1))
     mat.flags.writeable = False

@@ -119,7 +119,7 @@ def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float =
 def _axis(n: int, big: int):
     """Per full-resolution index along an axis of ``big`` pixels enlarged from ``n`` samples
     (detail.enlarge_planar's bilinear taps): the lower sample and the upper one's weight."""
-    idx, wts = detail._linear_taps(n, big)
+    idx, wts = detail.linear_taps(n, big)
     return idx[:, 0], np.ascontiguousarray(wts[:, 1])
 
 
