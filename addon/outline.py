@@ -75,11 +75,13 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
     return out
 
 
-def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float = EPS) -> Fit | None:
+def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float = EPS,
+        tol: float = 0.0) -> Fit | None:
     """The colour guided filter of ``weight`` (gh, gw) in [0, 1] against ``grid`` (3, gh, gw),
-    the footage on the grid, on the fade (0 < weight < 1) only; None when there is no fade."""
+    the footage on the grid, on the fade (tol < weight < 1 - tol) only; None when there is no
+    fade."""
     weight = np.clip(np.asarray(weight, np.float32), 0.0, 1.0)
-    fade = (weight > 0.0) & (weight < 1.0)
+    fade = (weight > tol) & (weight < 1.0 - tol)
     if not fade.any():
         return None
     h, w = weight.shape
@@ -144,15 +146,9 @@ def pixels(f: Fit, height: int, width: int):
     return rows * width + cols, n, np.take(ty, rows), np.take(tx, cols)
 
 
-def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
-          fullres: detail.FullRes | None = None) -> np.ndarray:
-    """``y`` (3, H, W) half, the relit frame of ``x_full`` (3, H, W) (the footage over
-    ``scale``: ``scale * x_full`` is the frame unchanged), with the change on the fade's pixels
-    scaled by the refitted weight over the enlarged one, clipped to [0, 1]. In place; returns
-    ``y``. ``fullres``: its graphs do the half-float mixing (built once if not given)."""
-    if f is None:
-        return y
-    height, width = y.shape[1:]
+def _at_pixels(f: Fit, x_full: np.ndarray, height: int, width: int):
+    """At the fit's full-resolution pixels (``pixels``): their flat indices, (5, P) alpha (3),
+    beta and the enlarged weight there (bilinear, as the finish enlarges), and (3, P) x_full."""
     pix, n, ty, tx = pixels(f, height, width)
     h, w = f.weight.shape
     # Each cell's stencil as a bilinear polynomial in the pixel's (tx, ty), per channel (alpha 3,
@@ -169,9 +165,25 @@ def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
     e[15:20] *= tx
     e[10:15] += e[15:20]
     e[10:15] *= ty
-    e[0:5] += e[10:15]  # alpha (3), beta and the enlarged weight at each pixel
+    e[0:5] += e[10:15]
     x = np.take(np.asarray(x_full, np.float32).reshape(3, -1), pix, axis=1)
-    share = (e[0] * x[0] + e[1] * x[1] + e[2] * x[2]) * np.float32(1.0 / f.level) + e[3]
+    return pix, e[:5], x
+
+
+def _refit(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
+    return (e[0] * x[0] + e[1] * x[1] + e[2] * x[2]) * np.float32(1.0 / level) + e[3]
+
+
+def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
+          fullres: detail.FullRes | None = None) -> np.ndarray:
+    """``y`` (3, H, W) half, the relit frame of ``x_full`` (3, H, W) (the footage over
+    ``scale``: ``scale * x_full`` is the frame unchanged), with the change on the fade's pixels
+    scaled by the refitted weight over the enlarged one, clipped to [0, 1]. In place; returns
+    ``y``. ``fullres``: its graphs do the half-float mixing (built once if not given)."""
+    if f is None:
+        return y
+    pix, e, x = _at_pixels(f, x_full, *y.shape[1:])
+    share = _refit(e, x, f.level)
     share /= np.maximum(e[4], FLOOR)
     # Only where the refit takes some of the change away (the rest keeps its value exactly).
     cut = np.flatnonzero((share < 1.0) & (e[4] > FLOOR) & (e[4] < 1.0))
@@ -182,6 +194,23 @@ def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
     for c in range(3):
         flat[c][pix] = mixed[c]
     return y
+
+
+MATTE_TOL = 0.02  # the network's matte is a sigmoid: its fade is where it lies within this of 0, 1
+
+
+def refine_matte(f: Fit | None, x_full: np.ndarray, matte: np.ndarray) -> np.ndarray:
+    """``matte`` (H, W), the enlargement of the grid matte ``f`` was fitted to (fit(grid,
+    matte, tol=MATTE_TOL)), with its fade's pixels taken from the colour refit, clipped to
+    [0, 1]: the matte strip follows the footage's own edges (a hair's outline against a screen)
+    instead of the grid's. In place; returns ``matte``."""
+    if f is None:
+        return matte
+    pix, e, x = _at_pixels(f, x_full, *matte.shape)
+    inside = np.flatnonzero((e[4] > MATTE_TOL) & (e[4] < 1.0 - MATTE_TOL))
+    refit = _refit(np.take(e, inside, axis=1), np.take(x, inside, axis=1), f.level)
+    matte.reshape(-1)[np.take(pix, inside)] = np.clip(refit, 0.0, 1.0)
+    return matte
 
 
 @functools.lru_cache(maxsize=1)

@@ -773,9 +773,11 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
                     return
                 i, x_full, x_max, ab, fg, source, edge = item
                 relit, clamped, lowest = finish_planar(x_full, ab, x_max, fullres)
-                if edge is not None:
-                    relit = outline.apply(edge, x_full, relit, plan.scale, fullres)
                 matte = matte_full(fg, plan, fullres) if plan.write_matte else None
+                if edge is not None:
+                    relit = outline.apply(edge[0], x_full, relit, plan.scale, fullres)
+                    if matte is not None:
+                        matte = outline.refine_matte(edge[1], x_full, matte)
                 write_frame(out_dir, i, relit, matte, source, plan)
                 counts["clamped"] += clamped
                 if lowest < 0:
@@ -794,8 +796,8 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             reported[0] = done
             on_progress(done, total, f"{done} of {total} frames")
 
-    # frame -> (x_full, x_max, ab, fg, source, light's signature, outline fit): this frame and
-    # its neighbours
+    # frame -> (x_full, x_max, ab, fg, source, light's signature, the outline's fits of the
+    # change and the matte): this frame and its neighbours
     window = {}
 
     def emit(i):
@@ -827,9 +829,9 @@ def _run_frames(clip, lights, out_dir, plan, session, fullres, todo, resumed, to
             light = lights[min(i, len(lights) - 1)]
             if boxes is not None:  # intrinsic: framing, buffers, renderer (addon/portrait.py)
                 res = portrait.relight_frame(session, x_full, light, boxes[i], exposure=gain,
-                                             fullres=fullres)
+                                             fullres=fullres, matte_fit=plan.write_matte)
                 s = np.float32(plan.scale)  # x_full is the footage / s
-                ab, fg, edge = (res.a * s, res.b * s), res.matte, res.outline
+                ab, fg, edge = (res.a * s, res.b * s), res.matte, (res.outline, res.matte_outline)
                 source = np.zeros(lightvec.SHAPE, np.float32)
             else:
                 relit_low, source, fg, k = infer_planar(session, x_low, light)
