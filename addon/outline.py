@@ -7,7 +7,8 @@ background takes the change: a bright or dark line along the outline. Here the f
 refitted to the footage's colours, a colour guided filter (He et al., "Guided Image Filtering",
 2010) of the weight against the grid's footage, evaluated at full resolution where the footage's
 own edges are; each pixel of the fade keeps the share of the change its colour says is subject,
-never more than it had.
+never more than it had. A run that writes a matte strip refits the matte the same way, both ways
+(``refine_matte``), so the strip follows the footage's edges too.
 
 Only the fade is touched: the fit runs on the grid samples whose windows meet it, and the
 correction on the full-resolution pixels whose bilinear samples do (a few percent of a frame).
@@ -33,7 +34,7 @@ class Fit:
     """The fade's weight refitted to colour, on the grid: at each sample w ~ alpha . x / level
     + beta (outside the fade alpha = 0 and beta = the weight itself)."""
     coef: np.ndarray     # (4, gh, gw) float32: alpha (3) and beta
-    weight: np.ndarray   # (gh, gw) float32: the change's weight in [0, 1]
+    weight: np.ndarray   # (gh, gw) float32 in [0, 1]: what was fitted (a weight, a matte)
     cells: np.ndarray    # (gh, gw) bool: grid cells whose bilinear corners meet the fade
     level: float         # the guide's normalisation, in the units of the footage
 
@@ -62,6 +63,7 @@ def _solve3(m: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
+    """``mask`` grown by ``r`` samples (a square)."""
     out = mask.copy()
     for axis in (0, 1):
         grown = out.copy()
@@ -196,7 +198,7 @@ def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
     return y
 
 
-MATTE_TOL = 0.02  # the network's matte is a sigmoid: its fade is where it lies within this of 0, 1
+MATTE_TOL = 0.02  # the network's matte is a sigmoid: its fade lies this far inside (0, 1)
 
 
 def refine_matte(f: Fit | None, x_full: np.ndarray, matte: np.ndarray) -> np.ndarray:

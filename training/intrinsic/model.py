@@ -59,7 +59,7 @@ class IntrinsicNet(nn.Module):
         return normal, height, albedo, parsing
 
 
-GRADIENT_SCALES = (2, 4, 8)  # pooling of the normals before their neighbour differences are compared
+GRADIENT_SCALES = (2, 4, 8)  # block sizes the normals are pooled over before their differences
 
 
 def normal_gradient(normal: torch.Tensor, t_n: torch.Tensor, face: torch.Tensor) -> torch.Tensor:
