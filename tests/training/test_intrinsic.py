@@ -92,6 +92,33 @@ def test_losses_vanish_for_the_truth_and_the_network_gives_unit_normals(frames):
     assert float(losses((normal, height, albedo, parsing), t, b["fg"])["normal"]) > 0.05
 
 
+def test_face_weight_and_curvature_terms_of_the_normal_loss(frames):
+    """face_weight counts the face skin's normal error more; the curvature term (the normals'
+    pooled neighbour differences on face skin) is nil for the truth and grows when the face is
+    flattened (its normals blurred), which the plain angle barely tells from noise."""
+    from training.intrinsic.model import losses, normal_gradient
+
+    b = frames.batch(range(3))
+    t, fg = b["target"], b["fg"]
+    face = fg * t[:, 8:9]
+    assert float(face.sum()) > 100
+    truth = (t[:, 0:3], t[:, 3:4], t[:, 4:7], t[:, 7:9])
+    assert float(normal_gradient(t[:, 0:3], t[:, 0:3], face)) == 0.0
+    assert float(losses(truth, t, fg, face_weight=2.0, gradient_weight=0.1)["normal"]) < 1e-4
+    flat = torch.nn.functional.normalize(torch.nn.functional.avg_pool2d(
+        t[:, 0:3], 9, 1, 4, count_include_pad=False), dim=1)
+    assert float(normal_gradient(flat, t[:, 0:3], face)) > 0.05
+    # Error on the face only: counted 1 + face_weight times as much against the same error's
+    # share of the whole subject.
+    on_face = torch.where(t[:, 8:9] > 0.5, flat, t[:, 0:3])
+    plain = float(losses((on_face, *truth[1:]), t, fg)["normal"])
+    weighted = float(losses((on_face, *truth[1:]), t, fg, face_weight=2.0)["normal"])
+    assert weighted > 1.5 * plain
+    curved = float(losses((on_face, *truth[1:]), t, fg, face_weight=2.0,
+                          gradient_weight=0.1)["normal"])
+    assert curved > weighted
+
+
 def test_export_matches_torch_and_follows_the_contract(tmp_path):
     import onnxruntime as ort
 
