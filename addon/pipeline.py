@@ -584,7 +584,8 @@ def exposure_gain(clip: ClipSpec, lights: np.ndarray, plan: Plan, session, fullr
         light = lights[min(i, len(lights) - 1)]
         if boxes is not None:
             stats.append(portrait.relight_frame(session, x_full, light, boxes[i], exposure=1.0,
-                                                fullres=fullres, scale=plan.scale))
+                                                fullres=fullres, scale=plan.scale,
+                                                outline_fit=False))
             continue
         x_low = shrink_planar(x_full, plan, fullres)
         relit_low, source, fg, k = infer_planar(session, x_low, light)

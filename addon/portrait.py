@@ -215,14 +215,16 @@ def _change(session, x: np.ndarray, light, effects, valid=None, unit=None):
 def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarray,
                   box: framing.Box | None, effects: intrinsic.Plan | None = None,
                   exposure: str | float = "keep", fullres: detail.FullRes | None = None,
-                  scale: float = 1.0, matte_fit: bool = False) -> FrameResult:
+                  scale: float = 1.0, outline_fit: bool = True,
+                  matte_fit: bool = False) -> FrameResult:
     """Relight a (3, H, W) linear frame to ``light``: a coarse pass over the whole frame lights
     the whole person, the crop around ``box`` gives the face its working size, and the crop
     fades into the coarse pass over its outer edge. ``box`` None (no portrait found): the frame
     is unchanged. ``exposure``: "keep" (the subject keeps this frame's luminance), "physical"
     (absolute units, clip_gain; ``scale``: the footage is x_full times this) or the gain itself
-    (a clip's, from clip_gain over some of its frames). ``matte_fit``: the matte's colour refit
-    too (a run that writes a matte strip)."""
+    (a clip's, from clip_gain over some of its frames). ``outline_fit``: the change's colour
+    refit at the outline (addon.outline; not needed for the exposure's statistics alone);
+    ``matte_fit``: the matte's too (a run that writes a matte strip)."""
     h, w = x_full.shape[1:]
     size = session.card.working_size
     if not float(np.max(lightvec.total_power(light))) > 0:
@@ -293,5 +295,5 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     matte = np.clip(mix[7], 0.0, 1.0)  # the portrait's matte, for the matte strip
     return FrameResult(np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32),
                        np.ascontiguousarray(matte, np.float32), True, plan, lum_in, lum_out,
-                       unit, outline.fit(grid, mix[6]),
+                       unit, outline.fit(grid, mix[6]) if outline_fit else None,
                        outline.fit(grid, matte, tol=outline.MATTE_TOL) if matte_fit else None)
