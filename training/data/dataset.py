@@ -108,7 +108,7 @@ class LightStageDataset:
     def __init__(self, split: str = "train", resolution: int = 128, seed: int = 0,
                  length: int = 100_000, data_root=None, cache_dir=None,
                  sampling: bool = True, identities: int | None = None, pool: int | None = None,
-                 transport: bool = False, backdrops: str = "wall"):
+                 transport: bool = False, backdrops: str = "wall", long_hair: float = 0.0):
         if split not in SPLITS:
             raise InputError(f"Unknown split {split!r}; use one of {sorted(SPLITS)}.")
         if int(resolution) < 16:
@@ -121,6 +121,12 @@ class LightStageDataset:
         self.backdrops = backdrops
         self.sampling = bool(sampling)
         self.transport = bool(transport)  # add the SH transport targets (lightstage/pairs.py)
+        # Fraction of the identities with hair that wear it long (subject.sample_identity); 0 is
+        # the light stage as its render version and the caches know it.
+        self.long_hair = float(long_hair)
+        if self.long_hair and cache_dir is not None:
+            raise InputError("A light-stage cache holds the light stage's own identities; long "
+                             "hair (long_hair > 0) renders on the fly, without cache_dir.")
         n_ids = identities or {"train": 448, "val": 32, "test": 32}[split]
         self.ids = identity_ids(split, n_ids)
         self.model = assets.load_head(self.data_root)
@@ -172,7 +178,8 @@ class LightStageDataset:
         cam = sample_camera(rng, self.resolution)
         backdrop = int(rng.integers(2 ** 31))
         perf = Performance(ident_id * CLIPS_PER_IDENTITY + clip, self.model.expression_names)
-        return Scene(sample_identity(ident_id), perf, cam, self.data_root, backdrop), t
+        ident = sample_identity(ident_id, long_hair=self.long_hair)
+        return Scene(ident, perf, cam, self.data_root, backdrop), t
 
     def pair_scene(self, p: int):
         """(scene, t) of pool pair ``p``: independent of the seed, so one cache serves all seeds."""

@@ -9,8 +9,10 @@ the frame's 114 one-light-at-a-time transfers, so one rendered frame serves ever
     .venv/bin/python -m training.intrinsic.data --res 128 --frames 1024 --jobs 2
 
 writes ``cache/intrinsic/<split>_<res>/frame_NNNNNN.bin`` (git-ignored). A frame is a pure
-function of (split, resolution, index): frames are the light stage's pool pairs' first frames
-(``LightStageDataset.pair_scene``), so the build resumes and can be deleted at any time.
+function of (split, resolution, index, long hair): frames are the light stage's pool pairs' first
+frames (``LightStageDataset.pair_scene``), so the build resumes and can be deleted at any time.
+``--long-hair 0.5 --out cache/intrinsic-long`` gives half the identities with hair long hair
+(``lightstage.assets.Curtain``), which the light stage's own identities lack.
 """
 
 from __future__ import annotations
@@ -183,10 +185,10 @@ class IntrinsicFrames:
 _ds = None
 
 
-def _init(split, res, data_root):
+def _init(split, res, data_root, long_hair=0.0):
     global _ds
     torch.set_num_threads(1)
-    _ds = LightStageDataset(split, res, data_root=data_root)
+    _ds = LightStageDataset(split, res, data_root=data_root, long_hair=long_hair)
 
 
 def _render(job):
@@ -197,28 +199,33 @@ def _render(job):
     return path.stat().st_size
 
 
-def build(split: str, res: int, n: int, out=None, jobs: int = 1, data_root=None, progress=print):
+def build(split: str, res: int, n: int, out=None, jobs: int = 1, data_root=None, progress=print,
+          long_hair: float = 0.0):
     folder = folder_for(out, split, res)
     folder.mkdir(parents=True, exist_ok=True)
+    cmd = f"python -m training.intrinsic.data --split {split} --res {res} --frames {n}"
+    if long_hair:
+        cmd += f" --long-hair {long_hair:g}" + (f" --out {out}" if out else "")
     info = {"format": MAGIC_FORMAT, "split": split, "resolution": int(res), "frames": int(n),
-            "renderer": renderer_version(),
-            "command": f"python -m training.intrinsic.data --split {split} --res {res} --frames {n}"}
+            "renderer": renderer_version(), "long_hair": float(long_hair), "command": cmd}
     old = folder / "manifest.json"
     if old.is_file():
         prev = json.loads(old.read_text())
-        if prev.get("renderer") != info["renderer"] or prev.get("format") != MAGIC_FORMAT:
+        if (prev.get("renderer") != info["renderer"] or prev.get("format") != MAGIC_FORMAT
+                or float(prev.get("long_hair", 0.0)) != info["long_hair"]):
             for p in folder.glob("frame_*.bin"):  # another renderer's frames: render them again
                 p.unlink()
     t0, total = time.perf_counter(), 0
     work = [(i, folder) for i in range(n)]
     if jobs > 1:
-        with multiprocessing.get_context("fork").Pool(jobs, _init, (split, res, data_root)) as pool:
+        with multiprocessing.get_context("fork").Pool(jobs, _init,
+                                                      (split, res, data_root, long_hair)) as pool:
             for k, size in enumerate(pool.imap(_render, work, chunksize=4), 1):
                 total += size
                 if progress and (k % 32 == 0 or k == n):
                     progress(f"{k}/{n} frames, {total / 1e9:.2f} GB, {time.perf_counter() - t0:.0f} s")
     else:
-        _init(split, res, data_root)
+        _init(split, res, data_root, long_hair)
         for k, job in enumerate(work, 1):
             total += _render(job)
             if progress and (k % 32 == 0 or k == n):
@@ -237,8 +244,12 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--out", help=f"cache root (default {DEFAULT_OUT})")
     ap.add_argument("--data-root")
+    ap.add_argument("--long-hair", type=float, default=0.0,
+                    help="fraction of the identities with hair that wear it long (a curtain over "
+                         "the ears to the shoulders; the light stage's own identities have none); "
+                         "give such frames their own --out")
     a = ap.parse_args(argv)
-    print(build(a.split, a.res, a.frames, a.out, a.jobs, a.data_root))
+    print(build(a.split, a.res, a.frames, a.out, a.jobs, a.data_root, long_hair=a.long_hair))
 
 
 if __name__ == "__main__":

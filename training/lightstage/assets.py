@@ -4,6 +4,10 @@
 bust already holds neck and upper chest. Around it this module builds, once per hair style:
 * a hair shell: the scalp's triangles duplicated and pushed out along the normals by the style's
   volume, tapering to zero at the hairline (so the shell meets the skin);
+* for long hair, a curtain: a sheet that follows the skull's sides and back and falls straight
+  from their widest point, over the ears, past the jaw to the shoulders, with a ragged lower
+  edge (``HairStyle.hang``; each side's front edge at its own angle, so hair can frame the face
+  or sit behind an ear);
 * a torso: the bust's bottom boundary loop extruded down and out into shoulders and chest;
 * per-triangle material and parsing labels. The labels come from the neutral mesh (lips from the
   68 landmarks, brows around the brow landmarks, neck under the jaw line, clothes below the
@@ -216,11 +220,26 @@ class HairStyle:
     nape: float = -7.0      # at the back
     volume: float = 1.2     # shell thickness (cm) on the crown
     bald: bool = False
+    hang: float = 0.0       # long hair: how far (cm, neutral) below the chin it falls; 0 = none
+    reach: tuple = (75.0, 75.0)  # the curtain's front edge on each side (+X, -X): degrees
+                                 # round from the face's front (90 = at the ear)
+
+
+@dataclass(frozen=True)
+class Curtain:
+    """Long hair's sheet, a grid of ``rows x cols`` vertices: column azimuths round the head's
+    vertical axis (radians, 0 = the face's front, as ``_hair_weight``), each vertex's height in
+    the neutral frame (cm) and its radial clump factor. Where it sits depends on the head's shape
+    (``curtain_vertices``), so it is placed per frame."""
+    phi: torch.Tensor            # (C,)
+    y: torch.Tensor              # (R, C)
+    clump: torch.Tensor          # (R, C)
 
 
 @dataclass
 class Rig:
-    """Topology of one scene (head + hair shell + torso) with per-triangle labels."""
+    """Topology of one scene (head + hair shell + long hair's curtain + torso) with per-triangle
+    labels; vertices in that order."""
     n_head: int
     faces: torch.Tensor          # (F, 3) int64
     material: torch.Tensor       # (F,) int64
@@ -231,6 +250,7 @@ class Rig:
     head_weight: torch.Tensor    # (V_head,) how much of the head's rotation each vertex follows
     uv: torch.Tensor             # (V_total, 2) texture coordinates (hair/torso: procedural)
     regions: dict                # per-vertex region weights (head vertices), torch float32
+    curtain: Curtain | None = None  # long hair; its vertices follow the shell's
 
     @property
     def n_vertices(self) -> int:
@@ -305,6 +325,21 @@ def build_rig(style: HairStyle, neckline: float, data_root=None) -> Rig:
         uv.append(np.stack([np.arctan2(c[:, 0], c[:, 2]) / (2 * np.pi) + 0.5,
                             c[:, 1] / 30.0], 1).astype(np.float32))
         offset += len(scalp)
+    curtain = None
+    if not style.bald and style.hang > 0:
+        curtain = _curtain_grid(style)
+        rows, cols = curtain.y.shape
+        ids = offset + np.arange(rows * cols).reshape(rows, cols)
+        a, b, c, d = ids[:-1, :-1], ids[:-1, 1:], ids[1:, :-1], ids[1:, 1:]
+        cf = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3),
+                             np.stack([b, c, d], -1).reshape(-1, 3)])
+        all_faces.append(cf)
+        all_mat.append(np.full(len(cf), HAIR, np.int64))
+        all_label.append(np.full(len(cf), LABEL["hair"], np.int64))
+        phi = np.broadcast_to(curtain.phi.numpy(), (rows, cols))
+        uv.append(np.stack([phi / (2 * np.pi) + 0.5, (curtain.y.numpy() - 4.0) / 30.0],
+                           -1).reshape(-1, 2).astype(np.float32))
+        offset += rows * cols
     # Torso: rings extruded from the bust's bottom loop.
     loop = bottom_loop(data_root)
     n = len(loop)
@@ -332,7 +367,7 @@ def build_rig(style: HairStyle, neckline: float, data_root=None) -> Rig:
     uv.append(np.stack([t_uv, np.repeat(np.arange(1, len(_TORSO_RINGS) + 1) / 8.0, n)],
                        1).astype(np.float32))
     # Head rotation: full above the jaw, fading out down the neck; the torso follows the body.
-    head_w = _smoothstep((v[:, 1] + 15.0) / 8.0).astype(np.float32)
+    head_w = neck_weight(v[:, 1]).astype(np.float32)
     t = lambda a, dt=torch.float32: torch.as_tensor(np.ascontiguousarray(a), dtype=dt)  # noqa: E731
     return Rig(n_head=nv, faces=t(np.concatenate(all_faces), torch.int64),
                material=t(np.concatenate(all_mat), torch.int64),
@@ -340,7 +375,87 @@ def build_rig(style: HairStyle, neckline: float, data_root=None) -> Rig:
                scalp=t(scalp, torch.int64), scalp_weight=t(sw), loop=t(loop, torch.int64),
                head_weight=t(head_w), uv=t(np.concatenate(uv)),
                regions={k: t(val.astype(np.float32))
-                        for k, val in {**reg, "neckline": neck_s}.items()})
+                        for k, val in {**reg, "neckline": neck_s}.items()}, curtain=curtain)
+
+
+CURTAIN_TOP = 12.0     # cm (neutral): where the curtain starts, under the shell near the crown
+CURTAIN_FROM = -11.0   # cm: head vertices above this (not the bust) shape it
+CURTAIN_STEP = 1.0     # cm between its rows
+CURTAIN_COLS = 64
+_CHIN = -7.5           # cm: the chin's height on the neutral mesh
+
+
+def _curtain_grid(style: HairStyle) -> Curtain:
+    """The curtain's grid: columns from the +X side's front edge round the back to the -X side's,
+    rows from ``CURTAIN_TOP`` down to ``hang`` below the chin, the lower edge ragged (a few cm,
+    smooth along the edge) and the clump factor varying like the shell's."""
+    right, left = (float(r) for r in style.reach)
+    phi = np.radians(np.linspace(right, 360.0 - left, CURTAIN_COLS))
+    phi = np.where(phi > np.pi, phi - 2 * np.pi, phi)
+    bottom = _CHIN - style.hang
+    rows = int(np.ceil((CURTAIN_TOP - bottom) / CURTAIN_STEP)) + 1
+    rng = np.random.default_rng([0xC0A7, int(style.hang * 100), int(right), int(left)])
+    k = rng.uniform(2.0, 7.0, 3)
+    ph = rng.uniform(0, 2 * np.pi, 3)
+    t = np.linspace(0.0, 1.0, CURTAIN_COLS)
+    ragged = 1.2 * np.sin(2 * np.pi * k[:, None] * t + ph[:, None]).sum(0) / np.sqrt(3)
+    low = bottom + ragged - 0.8 * np.abs(ragged)  # strands reach down more than they stop short
+    frac = np.linspace(0.0, 1.0, rows)[:, None]
+    y = CURTAIN_TOP + (low[None] - CURTAIN_TOP) * frac  # (R, C): each column ends at its own
+    # Clumps vary round the head and only slowly down it: hair hangs in smooth locks.
+    pos = np.stack([np.sin(phi)[None].repeat(rows, 0) * 9.0, 0.2 * y,
+                    np.cos(phi)[None].repeat(rows, 0) * 9.0], -1).reshape(-1, 3)
+    clump = _clumps(pos).reshape(rows, CURTAIN_COLS)
+    f = torch.float32
+    return Curtain(torch.tensor(phi, dtype=f), torch.tensor(y, dtype=f),
+                   torch.tensor(clump, dtype=f))
+
+
+CURTAIN_BIN = (np.radians(4.0), 1.0)  # azimuth (radians) and height (cm) of the skull's bins
+
+
+def curtain_vertices(head: torch.Tensor, curtain: Curtain, volume: float) -> torch.Tensor:
+    """(R * C, 3) the curtain's vertices for the head's vertices ``head`` (neutral frame, before
+    the head turns): each column at its azimuth, as far out as the head (ears included) is at
+    that height or anywhere above it, so the hair falls straight from the skull's widest point,
+    plus a clearance that grows with the style's volume and varies in clumps."""
+    x, y, z = head[:, 0], head[:, 1], head[:, 2] - 1.0
+    az = torch.atan2(x, z)
+    r = torch.hypot(x, z)
+    da, dy = CURTAIN_BIN
+    na = int(round(2 * np.pi / da))
+    ny = int(np.ceil((CURTAIN_TOP + 4.0 - CURTAIN_FROM) / dy))
+    keep = (y > CURTAIN_FROM) & (y < CURTAIN_TOP + 4.0)
+    ia = ((az[keep] + np.pi) / da).long().clamp(0, na - 1)
+    iy = ((y[keep] - CURTAIN_FROM) / dy).long().clamp(0, ny - 1)
+    grid = torch.zeros(ny * na, dtype=head.dtype)
+    grid = grid.scatter_reduce(0, iy * na + ia, r[keep], "amax", include_self=True)
+    grid = grid.view(ny, na)
+    # Widest at or above each height (hair falls straight), then over neighbouring azimuths.
+    grid = torch.flip(torch.cummax(torch.flip(grid, [0]), 0).values, [0])
+    fn = torch.nn.functional
+    wrap = torch.cat([grid[:, -4:], grid, grid[:, :4]], 1)[:, None]
+    grid = fn.max_pool1d(wrap, 5, 1)[:, 0]  # (ny, na + 4): azimuth bins -2 .. na + 1
+    # Smoothed, then read bilinearly: the bins' steps would show as ridges across the hair.
+    grid = fn.avg_pool2d(fn.pad(grid[None, None], (0, 0, 1, 1), mode="replicate"), 3, 1)[0, 0]
+    # (ny, na + 2): azimuth bins -1 .. na
+    cy = curtain.y.to(head.dtype)
+    phi = curtain.phi.to(head.dtype)[None].expand_as(cy)
+    u = ((phi + np.pi) / da - 0.5 + 1.0) / (na + 2 - 1) * 2 - 1    # columns -1 .. na
+    v = ((cy - CURTAIN_FROM) / dy - 0.5) / (ny - 1) * 2 - 1
+    at = torch.stack([u, v], -1)[None]
+    widest = fn.grid_sample(grid[None, None], at, mode="bilinear", padding_mode="border",
+                            align_corners=True)[0, 0]
+    rad = widest + (0.25 + 0.5 * volume) * curtain.clump.to(head.dtype)
+    out = torch.stack([torch.sin(phi) * rad, cy, 1.0 + torch.cos(phi) * rad], -1)
+    return out.reshape(-1, 3)
+
+
+def neck_weight(y):
+    """How much of the head's rotation a point at height ``y`` (cm, neutral) follows: all of it
+    above the jaw, fading out down the neck (numpy or torch)."""
+    x = ((y + 15.0) / 8.0).clip(0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
 
 
 def torso_vertices(loop_pts: torch.Tensor) -> torch.Tensor:

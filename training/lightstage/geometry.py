@@ -54,6 +54,11 @@ def pose(model: assets.HeadModel, rig: assets.Rig, base: np.ndarray, expression:
     if rig.scalp.numel():
         parts.append(head[rig.scalp] + n_head[rig.scalp] * (hair_volume * rig.scalp_weight
                                                              + 0.08)[:, None])
+    if rig.curtain is not None:  # long hair turns with the head at its top, less lower down
+        c = assets.curtain_vertices(local, rig.curtain, hair_volume)
+        wc = assets.neck_weight(c[:, 1]).to(local.dtype)
+        rc = _euler(wc * ang[0], wc * ang[1], wc * ang[2])
+        parts.append(torch.einsum("vij,vj->vi", rc, c - pivot) + pivot)
     parts.append(torso)
     verts = torch.cat(parts, 0)
     body = _euler(*[torch.tensor(a, dtype=local.dtype) for a in (math.radians(body_yaw_deg), 0.0, 0.0)])

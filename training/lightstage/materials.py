@@ -51,15 +51,19 @@ def skin_albedo(melanin, haemoglobin) -> np.ndarray:
 
 def vertex_attributes(rig: assets.Rig, data_root=None) -> torch.Tensor:
     """(V_total, len(ATTRS)) float32: region weights on head vertices, zero elsewhere; on the
-    hair shell, how far it is from the hairline (0 at the hairline, 1 on the crown)."""
+    hair shell, how far it is from the hairline (0 at the hairline, 1 on the crown); long hair's
+    curtain is all hair."""
     m = assets.load_head(data_root)
     out = torch.zeros(rig.n_vertices, len(ATTRS))
     for k in _REGIONS:
         out[: rig.n_head, ATTRS.index(k)] = rig.regions[k]
     shell = slice(rig.n_head, rig.n_head + rig.scalp.numel())
     out[shell, ATTRS.index("hair_cover")] = rig.scalp_weight
-    out[shell, ATTRS.index("neckline")] = -NECKLINE_FAR
-    out[shell.stop:, ATTRS.index("neckline")] = NECKLINE_FAR
+    n_curtain = rig.curtain.y.numel() if rig.curtain is not None else 0
+    hair = slice(rig.n_head, shell.stop + n_curtain)
+    out[shell.stop:hair.stop, ATTRS.index("hair_cover")] = 1.0
+    out[hair, ATTRS.index("neckline")] = -NECKLINE_FAR
+    out[hair.stop:, ATTRS.index("neckline")] = NECKLINE_FAR
     # Where a point sits on the body at rest (cm), for the solid skin detail: the head's neutral
     # shape (so detail moves with the skin and the flow stays exact); hair shell and torso from
     # their texture coordinates, away from the head.

@@ -10,7 +10,7 @@ gives two adjacent 25 fps frames without simulating the frames before them.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -18,6 +18,7 @@ from .assets import HairStyle
 
 FPS = 25.0
 IDENTITY_SALT = 0x1D3E7
+LONG_HAIR_SALT = 0x10A6
 HAIR_COLOURS = np.array([  # linear albedo of hair: black, dark brown, brown, auburn, blonde, grey
     [0.012, 0.010, 0.009], [0.035, 0.020, 0.012], [0.09, 0.05, 0.025], [0.16, 0.055, 0.02],
     [0.38, 0.26, 0.13], [0.35, 0.34, 0.33]])
@@ -42,7 +43,28 @@ class Identity:
     texture_seed: int = 0
 
 
-def sample_identity(identity_id: int, shape_scale: float = 1.0) -> Identity:
+def sample_identity(identity_id: int, shape_scale: float = 1.0,
+                    long_hair: float = 0.0) -> Identity:
+    """The identity ``identity_id``. With ``long_hair`` > 0 that fraction of the identities with
+    hair wear it long (``HairStyle.hang``), drawn from a stream of its own, so everything else
+    about an identity is the same whatever ``long_hair`` is."""
+    ident = _draw_identity(identity_id, shape_scale)
+    if long_hair <= 0 or ident.hair.bald:
+        return ident
+    rng = np.random.default_rng([IDENTITY_SALT, int(identity_id), LONG_HAIR_SALT])
+    if rng.random() >= long_hair:
+        return ident
+    # From chin length to past the shoulders; each side's front edge from framing the cheek to
+    # behind the ear, and one side in four tucked back behind the shoulder.
+    hang = float(rng.uniform(3.0, 18.0))
+    reach = rng.uniform(55.0, 100.0, 2)
+    reach = np.where(rng.random(2) < 0.25, rng.uniform(130.0, 160.0, 2), reach)
+    style = replace(ident.hair, hang=round(hang, 1),
+                    reach=tuple(round(float(r), 1) for r in reach))
+    return replace(ident, hair=style)
+
+
+def _draw_identity(identity_id: int, shape_scale: float) -> Identity:
     rng = np.random.default_rng([IDENTITY_SALT, int(identity_id)])
     shape = rng.standard_normal(100).astype(np.float32) * shape_scale
     melanin = float(np.exp(rng.uniform(np.log(0.05), np.log(4.0))))
