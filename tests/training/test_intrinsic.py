@@ -196,3 +196,22 @@ def test_the_frame_cut_blacks_out_beyond_the_edge_and_drops_the_losses_there(fra
     assert ((batch["target"][:, 8:9] > 0.5) & out).any()
     none = frame_cut(batch, torch.Generator().manual_seed(0), p=0.0)
     assert (none["inside"] == 1).all() and torch.equal(none["fg"], batch["fg"])
+
+
+def test_a_long_hair_build_is_its_own_cache_and_the_card_says_so(shared_data, tmp_path, frames):
+    from training.intrinsic import data, export
+
+    torch.set_num_threads(1)
+    data.build("val", RES, 2, tmp_path, data_root=shared_data, progress=None, long_hair=1.0)
+    long = data.IntrinsicFrames("val", RES, 0, tmp_path, shared_data)
+    assert long.long_hair == 1.0 and frames.long_hair == 0.0
+    # Built again without long hair, the frames are rendered again, not taken from the cache.
+    before = data.frame_path(long.folder, 0).stat().st_mtime_ns
+    data.build("val", RES, 2, tmp_path, data_root=shared_data, progress=None)
+    assert data.frame_path(long.folder, 0).stat().st_mtime_ns != before
+    assert data.IntrinsicFrames("val", RES, 0, tmp_path, shared_data).long_hair == 0.0
+    recipe = {"width": "small", "res": 128, "cache": "cache/intrinsic-long", "steps": 10,
+              "long_hair": 0.5, "out": "runs/x"}
+    assert "--cache cache/intrinsic-long" in export.train_command(recipe)
+    assert "50% of the identities with hair long hair" in export.training_data(recipe)
+    assert "long hair" not in export.training_data({**recipe, "long_hair": 0.0})

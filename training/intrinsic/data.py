@@ -150,6 +150,7 @@ class IntrinsicFrames:
                                     f"`python -m training.intrinsic.data --split {split} --res {res}`.")
         info = json.loads(man.read_text())
         self.n = int(info["frames"])
+        self.long_hair = float(info.get("long_hair", 0.0))  # share of identities with long hair
         self.split, self.seed, self.length = split, int(seed), int(length)
         root = pathlib.Path(data_root) if data_root else None
         from ..lightstage import assets

@@ -64,9 +64,9 @@ def check_against_torch(net: IntrinsicNet, path: pathlib.Path) -> float:
 
 
 @torch.no_grad()
-def val_inputs(n: int = 96, res: int = 128) -> tuple[dict, torch.Tensor]:
+def val_inputs(n: int = 96, res: int = 128, cache_dir=None) -> tuple[dict, torch.Tensor]:
     """(batch, network inputs) of n held-out val identities through the simulated camera."""
-    b = data.IntrinsicFrames("val", res, 4321).batch(range(n))
+    b = data.IntrinsicFrames("val", res, 4321, cache_dir).batch(range(n))
     return b, prepare(b, torch.Generator().manual_seed(7))
 
 
@@ -85,10 +85,11 @@ def onnx_forward(path: pathlib.Path, threads: int = 1):
 
 
 @torch.no_grad()
-def val_metrics(forward, n: int = 96, res: int = 128) -> dict:
+def val_metrics(forward, n: int = 96, res: int = 128, cache_dir=None) -> dict:
     """Per-buffer errors on held-out val identities (through the simulated camera) of the
-    network or of an exported file (onnx_forward)."""
-    b, x = val_inputs(n, res)
+    network or of an exported file (onnx_forward); ``cache_dir``: another frame cache's val
+    frames (long hair: training.intrinsic.data --long-hair)."""
+    b, x = val_inputs(n, res, cache_dir)
     normal, height, albedo, parsing = forward(x)
     fg = b["fg"] > 0.5
     t = b["target"]
@@ -175,7 +176,7 @@ def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20)
     return float(np.median(t) * 1000)
 
 
-TRAIN_ARGS = ("width", "res", "minutes", "steps", "batch", "lr", "ema", "seed", "threads",
+TRAIN_ARGS = ("width", "res", "cache", "minutes", "steps", "batch", "lr", "ema", "seed", "threads",
               "val_n", "val_every", "zoom", "cut", "face_weight", "gradient_weight", "start_step",
               "init", "out")
 
@@ -193,6 +194,18 @@ def train_command(recipe: dict) -> str:
     if not recipe.get("bf16", True):
         args.append("--no-bf16")
     return "python -m training.intrinsic.train " + " ".join(args)
+
+
+def training_data(recipe: dict) -> str:
+    """What the run's samples were, for the card."""
+    text = ("synthetic light stage frames (training.intrinsic.data: ICT-FaceKit heads, CC0 HDRIs "
+            "and backdrops) through a simulated camera (training.intrinsic.camera); exact "
+            "per-pixel buffers as targets")
+    share = float(recipe.get("long_hair") or 0.0)
+    if share:
+        text += (f"; the last run's frames gave {share:.0%} of the identities with hair long "
+                 "hair (--long-hair), the runs before it none")
+    return text
 
 
 def lineage(run: pathlib.Path, checkpoint: str) -> dict:
@@ -228,6 +241,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--recommended", action="store_true",
                     help="mark the card as the recommended preset (the panel's default)")
+    ap.add_argument("--long-hair-val", metavar="CACHE",
+                    help="also measure the buffers on this frame cache's val frames (built with "
+                         "training.intrinsic.data --split val --long-hair 1 --out CACHE)")
     ap.add_argument("--int8", action="store_true",
                     help="ship the network quantised to int8 (INT8_KEEP_FLOAT's layers float)")
     return ap
@@ -271,9 +287,7 @@ def main(argv=None):
                    "image": "a square crop around the portrait (addon.framing), scaled so its 90th "
                             "luminance percentile is 0.6 (addon.intrinsic.exposure_scale)"},
         "classes": list(CLASSES),
-        "training": {"data": "synthetic light stage frames (training.intrinsic.data: ICT-FaceKit "
-                             "heads, CC0 HDRIs and backdrops) through a simulated camera "
-                             "(training.intrinsic.camera); exact per-pixel buffers as targets",
+        "training": {"data": training_data(recipe),
                      "render_version": recipe.get("render_version"),
                      "recipe": lineage(run, a.checkpoint)},
         "metrics": {},
@@ -297,7 +311,15 @@ def main(argv=None):
 
     metrics = evaluate.card_metrics(predictors.product_predictor(onnx_path, a.threads),
                                     evaluate.heldout_dataset(128), a.eval, 128)
-    metrics["val_buffers"] = val_metrics(onnx_forward(onnx_path) if a.int8 else net)
+    forward = onnx_forward(onnx_path) if a.int8 else net
+    metrics["val_buffers"] = val_metrics(forward)
+    if a.long_hair_val:
+        long_hair = data.IntrinsicFrames("val", 128, 0, a.long_hair_val)
+        metrics["val_buffers_long_hair"] = {
+            **val_metrics(forward, min(64, long_hair.n), 128, a.long_hair_val),
+            "split": "val (held-out identities), every one with hair wearing it long",
+            "command": f"python -m training.intrinsic.data --split val --res 128 --frames "
+                       f"{long_hair.n} --long-hair {long_hair.long_hair:g} --out {a.long_hair_val}"}
     card["metrics"] = metrics
     assert engine.file_sha256(onnx_path) == onnx_sha
     card_path.write_text(json.dumps(card, indent=1) + "\n")

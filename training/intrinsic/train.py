@@ -21,7 +21,6 @@ import platform
 import subprocess
 import time
 
-import numpy as np
 import torch
 
 from addon import intrinsic as renderer
@@ -163,8 +162,9 @@ def train(a) -> pathlib.Path:
     out.mkdir(parents=True, exist_ok=True)
     recipe = {**vars(a), "git_commit": git_commit(), "machine": platform.processor() or platform.machine(),
               "cpus": os.cpu_count(), "render_version": data.renderer_version()}
-    (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
     ds = data.IntrinsicFrames("train", a.res, a.seed, a.cache)
+    recipe["long_hair"] = ds.long_hair
+    (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
     vds = data.IntrinsicFrames("val", a.res, 1234, a.cache)
     val = vds.batch(range(a.val_n))
     vgen = torch.Generator().manual_seed(99)
