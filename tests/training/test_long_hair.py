@@ -1,6 +1,7 @@
 """Long hair in the light stage (lightstage/assets.py ``Curtain``): it is opt-in and changes
-nothing else about an identity, it never passes through the head, and a frame that has it shows hair
-beside the jaw and over the ears, in the matte and the parsing, with finite images and flows."""
+nothing else about an identity, it never passes through the head, and a frame that has it shows
+hair beside the jaw and over the ears, in the matte and the parsing, with finite images and
+flows."""
 
 import dataclasses
 
@@ -102,3 +103,12 @@ def test_a_frame_with_long_hair_has_hair_beside_the_jaw_in_its_matte_and_labels(
     assert float(valid.mean()) > 0.5
     on_hair = f0.gb.label == hair
     assert float(img[0][:, on_hair].mean()) > 0.0  # lit, not a black hole
+
+
+def test_long_hair_cannot_come_from_a_light_stage_cache(shared_data):
+    from addon.errors import InputError
+    from training.data.dataset import LightStageDataset
+
+    with pytest.raises(InputError, match="renders on the fly"):
+        LightStageDataset("train", 32, data_root=shared_data, cache_dir="cache/lightstage",
+                          long_hair=0.5)
