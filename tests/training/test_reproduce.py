@@ -48,6 +48,12 @@ def test_an_intrinsic_card_reproduces_its_export_with_the_int8_flag_it_was_made_
     int8 = reproduce.commands({**card, "quantisation": {"kind": "int8"}})[-1]
     assert int8 == plain + " --int8"
     assert intrinsic_export.parser().parse_args(shlex.split(int8)[3:]).int8
+    # A card that measured long-haired identities measures them again, from the same frames.
+    cmd = ("python -m training.intrinsic.data --split val --res 128 --frames 64 --long-hair 1 "
+           "--out cache/intrinsic-longval")
+    hair = reproduce.commands({**card, "metrics": {"val_buffers_long_hair": {"command": cmd}}})
+    args = intrinsic_export.parser().parse_args(shlex.split(hair[-1])[3:])
+    assert args.long_hair_val == "cache/intrinsic-longval" and not args.int8
 
 
 def test_a_model_trained_further_twice_reproduces_the_whole_chain(tmp_path):
