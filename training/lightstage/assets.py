@@ -119,7 +119,8 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 
 def _smoothstep(x):
-    x = np.clip(x, 0.0, 1.0)
+    """Smooth 0 -> 1 over x in [0, 1] (a numpy array or a torch tensor)."""
+    x = x.clip(0.0, 1.0)
     return x * x * (3.0 - 2.0 * x)
 
 
@@ -454,8 +455,7 @@ def curtain_vertices(head: torch.Tensor, curtain: Curtain, volume: float) -> tor
 def neck_weight(y):
     """How much of the head's rotation a point at height ``y`` (cm, neutral) follows: all of it
     above the jaw, fading out down the neck (numpy or torch)."""
-    x = ((y + 15.0) / 8.0).clip(0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
+    return _smoothstep((y + 15.0) / 8.0)
 
 
 def torso_vertices(loop_pts: torch.Tensor) -> torch.Tensor:
