@@ -174,13 +174,46 @@ def plan(light: np.ndarray, shadows: bool = True, specular: bool = True,
 SH_BAND = np.array([math.pi] + [2 * math.pi / 3] * 3 + [math.pi / 4] * 5, np.float32)
 
 
-def sh_basis(normal: np.ndarray) -> np.ndarray:
-    """(9, ...) real order-2 spherical harmonics of unit normals (3, ...)."""
+def sh_basis(normal, order: int = 2, stack=None):
+    """((order + 1) ** 2, ...) real orthonormal spherical harmonics of unit vectors (3, ...), in
+    the usual order (band by band, m from -l to l); ``order`` 2 (nine) or 3 (sixteen).
+    ``stack``: how to join the terms (default: a float32 numpy array on a new first axis), so
+    the training's tensors use the same polynomials."""
     x, y, z = normal
-    one = np.ones_like(x)
-    return np.stack([0.282095 * one, 0.488603 * y, 0.488603 * z, 0.488603 * x,
-                     1.092548 * x * y, 1.092548 * y * z, 0.315392 * (3 * z * z - 1),
-                     1.092548 * x * z, 0.546274 * (x * x - y * y)]).astype(np.float32)
+    one = x * 0 + 1
+    out = [0.282095 * one, 0.488603 * y, 0.488603 * z, 0.488603 * x,
+           1.092548 * x * y, 1.092548 * y * z, 0.315392 * (3 * z * z - 1),
+           1.092548 * x * z, 0.546274 * (x * x - y * y)]
+    if order >= 3:
+        zz = 5 * z * z
+        out += [0.590044 * y * (3 * x * x - y * y), 2.890611 * x * y * z,
+                0.457046 * y * (zz - 1), 0.373176 * z * (zz - 3), 0.457046 * x * (zz - 1),
+                1.445306 * z * (x * x - y * y), 0.590044 * x * (x * x - 3 * y * y)]
+    if stack is not None:
+        return stack(out)
+    return np.stack(out).astype(np.float32)
+
+
+# Light transport: the network's ``transfer`` buffer holds, per pixel, the order-3 SH projection
+# of the light that reaches it (the light stage's visibility times the cosine, so occlusion by
+# the nose, brows, jaw and hair is in it): the diffuse irradiance under a light with SH
+# coefficients L is transfer . L (light_sh). Its coefficients odd in x change sign when the
+# picture is mirrored left to right.
+TRANSFER_ORDER = 3
+TRANSFER_CHANNELS = (TRANSFER_ORDER + 1) ** 2
+TRANSFER_X_ODD = (3, 4, 7, 10, 13, 15)
+# An unoccluded pixel's transfer: Lambert's cosine lobe in SH (SH_BAND; its band 3 is zero)
+# times the SH of its normal. The network predicts the difference occlusion makes.
+TRANSFER_BAND = np.concatenate([SH_BAND, np.zeros(7, np.float32)])
+
+
+def light_sh(light: np.ndarray, order: int = TRANSFER_ORDER) -> np.ndarray:
+    """((order + 1) ** 2, 3) SH coefficients of a (16, 16, 3) light vector's radiance: each
+    cell's power (radiance times its solid angle) at its direction."""
+    d = lightvec.directions().reshape(-1, 3).astype(np.float64)
+    lw = (np.asarray(light, np.float64).reshape(-1, 3)
+          * lightvec.solid_angles().reshape(-1, 1))
+    return (sh_basis(d.T, order).astype(np.float64) @ lw).astype(np.float32)
 
 
 EXACT_CELLS = 24     # at most this many of the brightest cells are summed exactly ...

@@ -3,8 +3,10 @@
 The intrinsic model is supervised by what the light stage knows exactly per pixel: the surface
 normal (camera frame: +X right, +Y up, +Z toward the camera, as the light vector), the height
 toward the camera in pixels (relative to the subject's median), the albedo, the subject's matte
-(sub-pixel coverage) and the face-skin label. The picture itself is any light's weighted sum of
-the frame's 114 one-light-at-a-time transfers, so one rendered frame serves every lighting.
+(sub-pixel coverage), the face-skin label and the light transport (``transfer``: visibility
+times cosine toward each of the stage's 114 lights, projected on order-3 spherical harmonics; see
+``transfer_matrix``). The picture itself is any light's weighted sum of the frame's 114
+one-light-at-a-time transfers, so one rendered frame serves every lighting.
 
     .venv/bin/python -m training.intrinsic.data --res 128 --frames 1024 --jobs 2
 
@@ -26,6 +28,8 @@ import time
 import numpy as np
 import torch
 
+from addon import intrinsic as render
+from addon import lightvec
 from addon.contract import PARSING_CLASSES
 
 from ..data import lighting_sampling
@@ -39,7 +43,30 @@ DEFAULT_OUT = ROOT / "cache" / "intrinsic"
 MAGIC_FORMAT = 1
 SKIN = PARSING_CLASSES.index("skin")
 # Buffers in the order the network predicts them (channels of the target tensor).
-TARGETS = ("normal", "height", "albedo", "matte", "face")
+TARGETS = ("normal", "height", "albedo", "matte", "face", "transfer")
+TRANSFER = slice(9, 9 + render.TRANSFER_CHANNELS)  # the transfer's channels in the target
+
+
+def transfer_matrix() -> np.ndarray:
+    """(114, 16) float32: a pixel's transfer (addon.intrinsic's ``transfer`` buffer) is its 114
+    stage lights' visibility x cosine times this. The light vector reaches the stage through
+    ``layout.projection``; the transfer is that per-cell transport's least-squares fit on order-3
+    SH (weighted by the cells' solid angles), so that transfer . light_sh(light) is the
+    irradiance the stage gives for the light vector, to the fit's order."""
+    yc = render.sh_basis(lightvec.directions().reshape(-1, 3).T.astype(np.float64),
+                         render.TRANSFER_ORDER).T.astype(np.float64)  # (256, 16)
+    om = lightvec.solid_angles().reshape(-1, 1).astype(np.float64)
+    return (layout.projection() @ (om * yc) @ np.linalg.inv(yc.T @ (om * yc))).astype(np.float32)
+
+
+_TRANSFER_MATRIX: list = []
+
+
+def transfer(a: dict) -> np.ndarray:
+    """(16, H, W) the frame's transfer (0 off the subject)."""
+    if not _TRANSFER_MATRIX:
+        _TRANSFER_MATRIX.append(transfer_matrix())
+    return dense(a, a["diffuse"].astype(np.float32) @ _TRANSFER_MATRIX[0])
 
 
 def folder_for(out, split: str, res: int) -> pathlib.Path:
@@ -113,8 +140,9 @@ def dense(a: dict, values: np.ndarray, fill=0.0) -> np.ndarray:
 
 def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo_pool=None) -> dict:
     """``image`` (3, H, W) linear radiance and ``target`` (len(TARGETS) buffers stacked: 3 normal,
-    1 height, 3 albedo, 1 matte, 1 face = 9 channels), ``fg`` (1, H, W) where normal/height/albedo
-    are defined. A random horizontal flip (normal x negated) doubles the poses."""
+    1 height, 3 albedo, 1 matte, 1 face, 16 transfer = 25 channels), ``fg`` (1, H, W) where the
+    normal, height, albedo and transfer are defined. A random horizontal flip (normal x and the
+    transfer's x-odd coefficients negated) doubles the poses."""
     h, w = a["mask"].shape
     backdrop = None
     if photo_bank is not None:
@@ -129,10 +157,11 @@ def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo
     fg = a["mask"].astype(np.float32)[None]
     matte = a["cover"].astype(np.float32)[None]
     face = (a["label"] == SKIN).astype(np.float32)[None]
-    target = np.concatenate([normal, height, albedo, matte, face], 0)
+    target = np.concatenate([normal, height, albedo, matte, face, transfer(a)], 0)
     if rng.random() < 0.5:
         img, target, fg = img[..., ::-1], target[..., ::-1].copy(), fg[..., ::-1]
         target[0] *= -1.0
+        target[[TRANSFER.start + k for k in render.TRANSFER_X_ODD]] *= -1.0
     return {"image": np.ascontiguousarray(img, np.float32), "target": np.ascontiguousarray(target),
             "fg": np.ascontiguousarray(fg), "light": light}
 

@@ -9,7 +9,10 @@ camera data it must generalise to is distributed. Outputs, all at the input's si
 * ``height`` (1): height toward the camera in pixels, up to a constant (only differences matter);
 * ``albedo`` (3): reflectance in (0, 1), up to a per-channel gain (one image cannot tell albedo
   from light power; the renderer only uses its variations);
-* ``parsing`` (2): sigmoid probabilities of the portrait foreground (the matte) and face skin.
+* ``parsing`` (2): sigmoid probabilities of the portrait foreground (the matte) and face skin;
+* ``transfer`` (16): the light that reaches each pixel as order-3 SH coefficients (visibility
+  times cosine: addon.intrinsic's light transport; data.transfer_matrix), so occlusion by the
+  nose, brows, jaw and hair is learnt from the light stage rather than guessed from the height.
 """
 
 from __future__ import annotations
@@ -18,9 +21,12 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as tf
 
+from addon.intrinsic import TRANSFER_BAND, TRANSFER_CHANNELS, TRANSFER_ORDER, sh_basis
+
 WIDTHS = {"small": (16, 32, 64, 96, 128), "standard": (24, 48, 96, 128, 192)}
 STRIDE = 16
-OUTPUTS = ("normal", "height", "albedo", "parsing")
+OUTPUTS = ("normal", "height", "albedo", "parsing", "transfer")
+HEAD = 3 + 1 + 3 + 2 + TRANSFER_CHANNELS
 CLASSES = ("foreground", "skin")
 
 
@@ -38,7 +44,7 @@ class IntrinsicNet(nn.Module):
         self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i - 1], w[i], 2)
                                                      for i in range(1, len(w))])
         self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in range(len(w) - 1)])
-        self.head = nn.Conv2d(w[0], 3 + 1 + 3 + 2, 1)
+        self.head = nn.Conv2d(w[0], HEAD, 1)
 
     def forward(self, image: torch.Tensor):
         x = image.clamp(0.0, 1.0).clamp(min=1e-6) ** (1 / 2.2) - 0.5
@@ -56,9 +62,32 @@ class IntrinsicNet(nn.Module):
         height = out[:, 3:4] * 10.0
         albedo = torch.sigmoid(out[:, 4:7])
         parsing = torch.sigmoid(out[:, 7:9])
-        return normal, height, albedo, parsing
+        return normal, height, albedo, parsing, unoccluded(normal.detach()) + out[:, 9:HEAD]
 
 
+def unoccluded(normal: torch.Tensor) -> torch.Tensor:
+    """(B, 16, H, W) the transfer of unoccluded Lambertian pixels with these normals: the
+    network's transfer is this plus what it predicts occlusion takes away (at initialisation,
+    nothing: the renderer's plain Lambert shading)."""
+    band = torch.as_tensor(TRANSFER_BAND, dtype=normal.dtype).view(1, -1, 1, 1)
+    return band * sh_basis(normal.unbind(1), TRANSFER_ORDER, stack=lambda v: torch.stack(v, 1))
+
+
+def load_weights(net: IntrinsicNet, state_dict: dict) -> None:
+    """Load a state dict into ``net``; one saved before the network predicted the transfer (a
+    head of 9 channels) keeps its buffers' weights, and the transfer's channels start at zero
+    (the unoccluded transfer of the predicted normals)."""
+    head = state_dict.get("head.weight")
+    if head is not None and head.shape[0] < HEAD:
+        state_dict = dict(state_dict)
+        for name in ("head.weight", "head.bias"):
+            full = torch.zeros_like(net.state_dict()[name])
+            full[:state_dict[name].shape[0]] = state_dict[name]
+            state_dict[name] = full
+    net.load_state_dict(state_dict)
+
+
+TRANSFER_WEIGHT = 2.0  # the transfer's L1 (its coefficients are about 0.1-1) in the total
 GRADIENT_SCALES = (2, 4, 8)  # block sizes the normals are pooled over before their differences
 
 
@@ -90,12 +119,13 @@ def normal_gradient(normal: torch.Tensor, t_n: torch.Tensor, face: torch.Tensor)
 def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.0,
            gradient_weight: float = 0.0) -> dict:
     """Per-buffer losses against the light stage's exact buffers (data.TARGETS order: normal 3,
-    height 1, albedo 3, matte 1, face 1); ``fg`` (B, 1, H, W) where the subject's buffers exist.
+    height 1, albedo 3, matte 1, face 1, transfer 16); ``fg`` (B, 1, H, W) where the subject's
+    buffers exist.
     ``face_weight``: the normal losses count face-skin pixels 1 + face_weight times (the face is a
     third of the subject and carries the shading a relit face shows); ``gradient_weight``: the
     normals' differences between neighbours on the face skin (normal_gradient) join the normal
     loss."""
-    normal, height, albedo, parsing = pred
+    normal, height, albedo, parsing, transfer = pred
     n = fg.sum((2, 3)).clamp(min=1.0)  # (B, 1)
 
     def mean_fg(x):  # (B, C, H, W) -> (B, C) mean over the foreground
@@ -122,9 +152,11 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
     p = parsing.clamp(1e-5, 1 - 1e-5)
     l_matte = tf.binary_cross_entropy(p[:, 0:1], t_m)
     l_face = tf.binary_cross_entropy(p[:, 1:2], t_f)
-    total = l_normal + l_height + 0.5 * l_albedo + 0.5 * l_matte + 0.5 * l_face
+    l_transfer = mean_fg((transfer - target[:, 9:9 + TRANSFER_CHANNELS]).abs()).mean()
+    total = (l_normal + l_height + 0.5 * l_albedo + 0.5 * l_matte + 0.5 * l_face
+             + TRANSFER_WEIGHT * l_transfer)
     with torch.no_grad():
         ang = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
         angle = mean_fg(ang).mean()
     return {"total": total, "normal": l_normal, "height": l_height, "albedo": l_albedo,
-            "matte": l_matte, "face": l_face, "normal_deg": angle}
+            "matte": l_matte, "face": l_face, "transfer": l_transfer, "normal_deg": angle}

@@ -26,7 +26,7 @@ import torch
 from addon import intrinsic as renderer
 
 from . import camera, data
-from .model import IntrinsicNet, losses
+from .model import IntrinsicNet, load_weights, losses
 
 
 def normalise_batch(img: torch.Tensor) -> torch.Tensor:
@@ -171,7 +171,7 @@ def train(a) -> pathlib.Path:
     val_in = prepare(val, vgen)
     model = IntrinsicNet(a.width)
     if a.init:
-        model.load_state_dict(torch.load(a.init, map_location="cpu")["state_dict"])
+        load_weights(model, torch.load(a.init, map_location="cpu")["state_dict"])
     opt = torch.optim.AdamW(model.parameters(), lr=a.lr, weight_decay=1e-4)
     ema = EMA(model, a.ema)
     gen = torch.Generator().manual_seed(a.seed)
@@ -209,7 +209,7 @@ def train(a) -> pathlib.Path:
             live = {k: v.clone() for k, v in model.state_dict().items()}
             model.load_state_dict(ema.shadow)
             v = validate(model, val, val_in)
-            score = v["normal_deg"] + 10 * v["albedo"] + 10 * v["height"]
+            score = v["normal_deg"] + 10 * v["albedo"] + 10 * v["height"] + 10 * v["transfer"]
             log.append({"step": step, "seconds": round(time.time() - t0), **v, "score": score})
             print("val", json.dumps(log[-1]), flush=True)
             state = {"state_dict": ema.shadow, "width": a.width, "step": step, "val": v}
