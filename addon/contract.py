@@ -18,6 +18,10 @@ OUTPUT_PARSING = "parsing"       # float32 [N, K, H, W] in [0, 1], one sigmoid p
 OUTPUT_NORMAL = "normal"         # intrinsic: float32 [N, 3, H, W] unit normals, camera frame
 OUTPUT_HEIGHT = "height"         # intrinsic: float32 [N, 1, H, W] pixels toward the camera
 OUTPUT_ALBEDO = "albedo"         # intrinsic: float32 [N, 3, H, W] albedo up to a gain per channel
+# Optional for intrinsic models (a card lists it in "outputs" when its network has it): float32
+# [N, 16, H, W], the light transport as order-3 SH (addon.intrinsic.TRANSFER_ORDER).
+OUTPUT_TRANSFER = "transfer"
+TRANSFER_CHANNELS = 16
 INTRINSIC_CLASSES = ("foreground", "skin")
 
 # Parsing classes, in channel order. Channel 0 is the portrait foreground (the matte); the others
@@ -35,6 +39,8 @@ REQUIRED_CARD_KEYS = ("contract", "name", "preset", "onnx", "sha256", "inputs", 
 INPUTS = {CONTRACT_VERSION: (INPUT_IMAGE, INPUT_LIGHT), INTRINSIC_CONTRACT: (INPUT_IMAGE,)}
 OUTPUTS = {CONTRACT_VERSION: (OUTPUT_RELIT, OUTPUT_SOURCE_LIGHT, OUTPUT_PARSING),
            INTRINSIC_CONTRACT: (OUTPUT_NORMAL, OUTPUT_HEIGHT, OUTPUT_ALBEDO, OUTPUT_PARSING)}
+# Outputs a model may list after those, in this order.
+OPTIONAL_OUTPUTS = {CONTRACT_VERSION: (), INTRINSIC_CONTRACT: (OUTPUT_TRANSFER,)}
 
 # CONTRACT_VERSION cards say how the relit output comes back to scene-linear radiance: by the
 # target light's mean radiance k alone (addon/normalise.py), as "relit_scale": "k".

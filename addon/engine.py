@@ -138,9 +138,11 @@ def layout_problems(data: dict) -> list[str]:
     name = data["contract"]
     problems = [f"'{k}' is not a string" for k in ("name", "preset", "onnx", "sha256")
                 if not isinstance(data[k], str)]
-    for key, want in (("inputs", contract.INPUTS[name]), ("outputs", contract.OUTPUTS[name])):
-        if _tensor_names(data[key]) != want:
-            problems.append(f"'{key}' is not the list of {', '.join(want)}")
+    for key, want, extra in (("inputs", contract.INPUTS[name], ()),
+                             ("outputs", contract.OUTPUTS[name], contract.OPTIONAL_OUTPUTS[name])):
+        if _tensor_names(data[key]) not in (want, want + extra):
+            more = f" (then optionally {', '.join(extra)})" if extra else ""
+            problems.append(f"'{key}' is not the list of {', '.join(want)}{more}")
     problems += [f"'{k}' is not a whole number" for k in ("stride", "working_size")
                  if not isinstance(data[k], int) or isinstance(data[k], bool)]
     if not (isinstance(data["classes"], list)
@@ -404,6 +406,7 @@ class IntrinsicResult:
     height: np.ndarray   # (H, W)
     albedo: np.ndarray   # (3, H, W)
     parsing: np.ndarray  # (K, H, W), channel order = card.classes
+    transfer: np.ndarray | None = None  # (16, H, W) when the model has contract.OUTPUT_TRANSFER
 
 
 class IntrinsicSession:
@@ -424,18 +427,24 @@ class IntrinsicSession:
                 f"The model {card.onnx_path.name} does not follow contract {card.contract}: it "
                 f"needs input {contract.INPUT_IMAGE!r} and outputs {sorted(self.OUTPUTS)}, it has "
                 f"{sorted(ins)} and {sorted(outs)}. Reinstall it.")
+        self.outputs = self.OUTPUTS + ((contract.OUTPUT_TRANSFER,)
+                                       if contract.OUTPUT_TRANSFER in outs else ())
 
     def run_planar(self, image: np.ndarray) -> IntrinsicResult:
         """(3, H, W) normalised linear image (addon.intrinsic.exposure_scale) -> buffers; the
         image is reflect-padded to the model's stride and the buffers cropped back."""
         img, h, w = pad_to_stride(image, self.card.stride)
-        outs = self.session.run(list(self.OUTPUTS), {contract.INPUT_IMAGE: np.ascontiguousarray(img[None])})
-        n, hgt, alb, par = (np.ascontiguousarray(o[0, :, :h, :w], dtype=np.float32) for o in outs)
+        outs = self.session.run(list(self.outputs),
+                                {contract.INPUT_IMAGE: np.ascontiguousarray(img[None])})
+        n, hgt, alb, par, *rest = (np.ascontiguousarray(o[0, :, :h, :w], dtype=np.float32)
+                                   for o in outs)
+        tr = rest[0] if rest else None
         k = len(self.card.classes)
-        if n.shape[0] != 3 or hgt.shape[0] != 1 or alb.shape[0] != 3 or par.shape[0] != k:
+        if (n.shape[0] != 3 or hgt.shape[0] != 1 or alb.shape[0] != 3 or par.shape[0] != k
+                or (tr is not None and tr.shape[0] != contract.TRANSFER_CHANNELS)):
             raise ModelError(f"The model {self.card.onnx_path.name} returned buffers of the wrong "
                              "shape for its card; reinstall it.")
-        return IntrinsicResult(n, hgt[0], alb, par)
+        return IntrinsicResult(n, hgt[0], alb, par, tr)
 
 
 def check_working_size(card: ModelCard, working_size) -> int:

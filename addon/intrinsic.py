@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import colour, lightvec
+from . import colour, contract, lightvec
 
 LUMA = tuple(float(x) for x in colour.REC709_LUMA)
 # A crop is scaled so its 90th luminance percentile sits at this level before the network (the
@@ -120,6 +120,7 @@ class Buffers:
     albedo: np.ndarray   # (3, h, w) up to a gain per channel
     matte: np.ndarray    # (h, w) portrait foreground in [0, 1]
     face: np.ndarray     # (h, w) face skin in [0, 1]
+    transfer: np.ndarray | None = None  # (16, h, w) light transport (TRANSFER_ORDER), if predicted
 
 
 @dataclass(frozen=True)
@@ -200,7 +201,7 @@ def sh_basis(normal, order: int = 2, stack=None):
 # coefficients L is transfer . L (light_sh). Its coefficients odd in x change sign when the
 # picture is mirrored left to right.
 TRANSFER_ORDER = 3
-TRANSFER_CHANNELS = (TRANSFER_ORDER + 1) ** 2
+TRANSFER_CHANNELS = contract.TRANSFER_CHANNELS  # (TRANSFER_ORDER + 1) ** 2
 TRANSFER_X_ODD = (3, 4, 7, 10, 13, 15)
 # An unoccluded pixel's transfer: Lambert's cosine lobe in SH (SH_BAND; its band 3 is zero)
 # times the SH of its normal. The network predicts the difference occlusion makes.
@@ -216,6 +217,27 @@ def light_sh(light: np.ndarray, order: int = TRANSFER_ORDER) -> np.ndarray:
     return (sh_basis(d.T, order).astype(np.float64) @ lw).astype(np.float32)
 
 
+def transfer_irradiance(light: np.ndarray, transfer: np.ndarray) -> np.ndarray:
+    """(3, h, w) diffuse irradiance under a (16, 16, 3) light from the transfer buffer (16, h, w),
+    occlusion included (to the transfer's order: soft)."""
+    return np.tensordot(light_sh(light).T, transfer, axes=(1, 0))
+
+
+def occlusion(sh: np.ndarray, bufs: Buffers) -> np.ndarray:
+    """(h, w) in [0, 1]: the share of a light's diffuse irradiance (its luminance SH
+    coefficients ``sh`` (16,)) that the transfer lets through, against the unoccluded transfer of
+    the same normals (TRANSFER_BAND) at the same order. 1 without a transfer buffer."""
+    if bufs.transfer is None:
+        return np.ones(bufs.matte.shape, np.float32)
+    sh = np.asarray(sh, np.float32)
+    occluded = np.tensordot(sh, bufs.transfer, axes=(0, 0))
+    free = np.tensordot(sh * TRANSFER_BAND, sh_basis(bufs.normal, TRANSFER_ORDER), axes=(0, 0))
+    floor = OCCLUSION_FLOOR * max(float(np.percentile(free, 90)), 1e-12)
+    return np.clip((occluded + floor) / (np.maximum(free, 0.0) + floor), 0.0, 1.0).astype(
+        np.float32)
+
+
+OCCLUSION_FLOOR = 0.05  # occlusion's ratio is steadied where the light barely reaches a pixel
 EXACT_CELLS = 24     # at most this many of the brightest cells are summed exactly ...
 EXACT_SHARE = 0.01   # ... those with at least this share of the power; the rest through SH
 
@@ -279,20 +301,28 @@ def irradiance(light: np.ndarray, normal: np.ndarray, exact_cells: int = EXACT_C
 
 
 def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
-    """Nine SH coefficients of the footage's shading, luminance only: least squares of
-    lum / albedo_variation ~ SH(n) . c over the confident foreground, robustly reweighted
-    twice (specular highlights and cast shadows are outliers to a smooth irradiance)."""
+    """The footage's shading, luminance only, as coefficients: nine SH irradiance coefficients
+    on the normals (shading SH(n) . c), or with a transfer buffer sixteen SH radiance
+    coefficients of the light (shading transfer . c). Least squares of lum /
+    albedo_variation over the confident foreground, robustly reweighted twice (specular
+    highlights and cast shadows are outliers to a smooth irradiance)."""
+    k = 9 if bufs.transfer is None else TRANSFER_CHANNELS
     alb = luminance(bufs.albedo)
     fg = (bufs.matte > 0.5) & (alb > 0.02) & np.isfinite(image_lum) & (image_lum > 0)
     if int(fg.sum()) < 16:
-        return np.array([1.0] + [0.0] * 8, np.float32)
+        c = np.zeros(k, np.float32)
+        c[0] = 1.0 if bufs.transfer is None else 1.0 / TRANSFER_BAND[0]
+        return c
     a_med = float(np.median(alb[fg]))
     y = image_lum[fg] / (alb[fg] / a_med)
-    basis = sh_basis(bufs.normal[:, fg]).T.astype(np.float64)  # (N, 9)
+    if bufs.transfer is None:
+        basis = sh_basis(bufs.normal[:, fg]).T.astype(np.float64)  # (N, 9)
+    else:
+        basis = bufs.transfer[:, fg].T.astype(np.float64)  # (N, 16)
     w = np.ones(len(y))
-    ridge = 1e-3 * np.eye(9)
+    ridge = 1e-3 * np.eye(k)
     ridge[0, 0] = 0.0
-    c = np.zeros(9)
+    c = np.zeros(k)
     for _ in range(3):
         bw = basis * w[:, None]
         c = np.linalg.solve(basis.T @ bw + ridge * float(w.sum()), bw.T @ y)
@@ -300,6 +330,13 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
         s = 1.4826 * float(np.median(np.abs(r))) + 1e-12
         w = 1.0 / np.maximum(1.0, np.abs(r) / (2.0 * s))  # Huber weights
     return c.astype(np.float32)
+
+
+def fitted_shading(c: np.ndarray, bufs: Buffers) -> np.ndarray:
+    """(h, w) the shading fit_source's coefficients give."""
+    if len(c) == 9:
+        return np.tensordot(c, sh_basis(bufs.normal), axes=(0, 0))
+    return np.tensordot(c, bufs.transfer, axes=(0, 0))
 
 
 def level_colour(image_chw: np.ndarray, lum: np.ndarray, e_src: np.ndarray, skin: np.ndarray):
@@ -335,10 +372,13 @@ def level_factor(level, e_src: np.ndarray, e_new: np.ndarray) -> np.ndarray:
 
 
 def directionality(c: np.ndarray) -> float:
-    """How directional a fitted irradiance is: |band 1| / band 0 of its nine coefficients. The
+    """How directional a fitted irradiance is: |band 1| / band 0 of its nine coefficients (a
+    transfer fit's radiance coefficients count as the irradiance they give). The
     full sphere's irradiance of one distant light gives 1.15 and a uniform world 0; fitted over
     the visible half of a head (the robust fit down-weights the lamp's dark side), one lamp gives
     about 0.6-0.7, an overcast sky 0.33, a broad glow over an ambient 0.16."""
+    if len(c) != 9:
+        c = np.asarray(c[:4], np.float32) * TRANSFER_BAND[:4]
     return float(np.linalg.norm(c[1:4])) / max(abs(float(c[0])), 1e-8)
 
 
@@ -353,7 +393,12 @@ def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
     over albedo leaves is shading; hair, eyes and clothes keep the fit. ``weight`` defaults to
     PIXEL_SOURCE_WEIGHT (0: the fit alone)."""
     weight = PIXEL_SOURCE_WEIGHT if weight is None else weight
-    e_fit = np.tensordot(c, sh_basis(bufs.normal), axes=(0, 0))
+    e_fit = fitted_shading(c, bufs)
+    if bufs.transfer is not None:
+        # The transfer's shading is irradiance, dark to the bottom of a nostril; the footage
+        # shows it diffused under the skin (as the target's, in shade).
+        e_fit = luminance(subsurface(np.repeat(np.maximum(e_fit, 0.0)[None], 3, 0),
+                                     bufs.face * bufs.matte))
     fg = bufs.matte > 0.5
     t = weight * min(directionality(c) / PIXEL_SOURCE_DIRECTIONAL, 1.0)
     if t <= 0 or not fg.any():
@@ -560,6 +605,12 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     e_src = np.maximum(e_src, max(SOURCE_FLOOR * p90, 1e-8))
     wrap = hair_share(bufs)
     e_t = irradiance(light, bufs.normal, wrap=wrap)  # (3, h, w)
+    # The transfer's occlusion (soft: its SH order) darkens what the light cannot reach through
+    # the subject; a compact component's hard cast shadow is still screen-space (shadow).
+    occl = None
+    if bufs.transfer is not None:
+        occl = occlusion(light_sh(light) @ np.asarray(LUMA, np.float32), bufs)
+        e_t = e_t * occl[None]
     spec = np.zeros_like(e_t)
     height = bufs.height / height_scale(bufs) if effects.shadows and effects.components else None
     for comp in effects.components:
@@ -569,7 +620,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         if effects.shadows:
             vis = gaussian_blur(shadow(height, bufs.matte, comp.direction, lit=lam),
                                 SHADOW_PENUMBRA)
-            e_t = e_t - (1.0 - vis)[None] * e_c
+            e_t = e_t - (1.0 - vis)[None] * e_c * (1.0 if occl is None else occl[None])
         if effects.specular:
             s = specular(bufs.normal, comp.direction) * (vis if vis is not None else 1.0)
             spec += comp.irradiance[:, None, None] * (s * bufs.face)[None]

@@ -101,7 +101,7 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
     face = res.parsing[names.index("skin")] if "skin" in names else np.zeros_like(matte)
     if valid is not None:  # the dark backdrop beyond the frame is not the subject
         matte, face = matte * valid, face * valid
-    return intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face)
+    return intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face, res.transfer)
 
 
 def fit_in_frame(box: framing.Box, frame_hw: tuple[int, int]) -> framing.Box:

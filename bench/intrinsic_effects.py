@@ -70,10 +70,11 @@ def render(a: dict, light: np.ndarray) -> np.ndarray:
     return shading.relight(data.shade_inputs(a), w, stage_dirs())[0].numpy()
 
 
-def exact_buffers(a: dict) -> intrinsic.Buffers:
+def exact_buffers(a: dict, transfer: bool = True) -> intrinsic.Buffers:
     return intrinsic.Buffers(data.dense(a, a["normal"]), data.dense(a, a["height"][:, None])[0],
                              data.dense(a, a["albedo"]), a["cover"].astype(np.float32),
-                             (a["label"] == data.SKIN).astype(np.float32))
+                             (a["label"] == data.SKIN).astype(np.float32),
+                             data.transfer(a) if transfer else None)
 
 
 def predicted_buffers(session, img: np.ndarray) -> intrinsic.Buffers:

@@ -595,3 +595,84 @@ def test_exposure_scale_puts_the_90th_percentile_at_the_input_level():
     q = float(np.quantile(intrinsic.luminance(x * s), intrinsic.INPUT_QUANTILE))
     assert q == pytest.approx(intrinsic.INPUT_LEVEL, rel=1e-4)
     assert intrinsic.exposure_scale(np.zeros((3, 4, 4), np.float32)) == 1.0
+
+
+# ----------------------------------------------------------------------------- light transport
+
+def unoccluded_transfer(normal):
+    return intrinsic.TRANSFER_BAND[:, None, None] * intrinsic.sh_basis(normal, 3)
+
+
+def test_order_3_sh_are_orthonormal_and_extend_order_2():
+    d = lightvec.directions().reshape(-1, 3).T
+    om = lightvec.solid_angles().reshape(-1)
+    y = intrinsic.sh_basis(d, 3).astype(np.float64)
+    assert y.shape == (16, d.shape[1])
+    np.testing.assert_allclose((y * om) @ y.T, np.eye(16), atol=0.02)
+    np.testing.assert_array_equal(y[:9], intrinsic.sh_basis(d).astype(np.float64))
+
+
+def test_transfer_irradiance_of_an_unoccluded_transfer_is_lamberts():
+    """transfer . light_sh with the unoccluded transfer is Lambert's irradiance to the SH order:
+    for a uniform world within the reference's own cell sum (1%), close for a smooth sky."""
+    normal = random_normals(3)
+    t = unoccluded_transfer(normal)
+    for light, tol in ((lightvec.uniform(0.7), 0.015), (smooth_sky(), 0.04)):
+        ref = exact_irradiance(light, normal)
+        got = intrinsic.transfer_irradiance(light, t)
+        assert np.abs(got - ref).max() < tol * ref.max()
+    sh = intrinsic.light_sh(lightvec.uniform(2.0))
+    np.testing.assert_allclose(sh[0], 2.0 * math.sqrt(4 * math.pi), rtol=1e-3)
+    assert np.abs(sh[1:]).max() < 0.005 * sh[0, 0]  # the cells sum the sphere to 0.5%
+
+
+def occluded_sphere(share=0.4):
+    """A sphere whose transfer lets ``share`` of the light through on a patch left of centre (a
+    crease, an eye socket), the rest unoccluded; the patch's mask."""
+    normal, height, matte, u, v = sphere()
+    t = unoccluded_transfer(normal)
+    patch = ((u + 0.35) ** 2 + (v - 0.1) ** 2 < 0.2 ** 2) & (matte > 0)
+    t[:, patch] *= share
+    return normal, height, matte, t, patch
+
+
+def test_occlusion_is_the_share_the_transfer_lets_through():
+    normal, height, matte, t, patch = occluded_sphere(0.4)
+    bufs = intrinsic.Buffers(normal, height, np.ones((3, S, S), np.float32), matte, matte, t)
+    for light in (lightvec.uniform(), smooth_sky(), lamp(unit([0.3, 0.4, 0.87]))):
+        sh = intrinsic.light_sh(light) @ np.asarray(intrinsic.LUMA, np.float32)
+        occ = intrinsic.occlusion(sh, bufs)
+        lit = (matte > 0) & (normal[2] > 0.5)
+        np.testing.assert_allclose(occ[lit & ~patch], 1.0, atol=0.02)
+        assert abs(float(np.median(occ[lit & patch])) - 0.4) < 0.05
+    no_transfer = intrinsic.Buffers(normal, height, np.ones((3, S, S), np.float32), matte, matte)
+    assert (intrinsic.occlusion(sh, no_transfer) == 1.0).all()
+
+
+def test_a_patch_shadowed_from_one_side_goes_dark_when_the_light_comes_from_that_side():
+    """A patch that sees no light from the camera's left (a cheek beside the nose): footage lit
+    from the right shows it lit; relit from the left, the transfer knows it is in shadow, while
+    Lambert's shading on its normals lights it."""
+    normal, height, matte, u, v = sphere()
+    t = unoccluded_transfer(normal)
+    patch = ((u + 0.1) ** 2 + (v - 0.1) ** 2 < 0.25 ** 2) & (matte > 0)
+    d = lightvec.directions().reshape(-1, 3)
+    om = lightvec.solid_angles().reshape(-1)
+    seen = (d[:, 0] > -0.1) * om  # the left of the sky is hidden
+    n = normal[:, patch].T
+    t[:, patch] = (intrinsic.sh_basis(d.T, 3) * seen) @ np.maximum(d @ n.T, 0.0)
+    alb = np.ones((3, S, S), np.float32) * SKIN[:, None, None]
+    src_light = lamp(unit([0.6, 0.3, 0.75]), fill=0.2)
+    light = lamp(unit([-0.6, 0.3, 0.75]), fill=0.2)
+    image = alb / math.pi * intrinsic.transfer_irradiance(src_light, t) * matte
+    truth = alb / math.pi * intrinsic.transfer_irradiance(light, t) * matte
+    errors, level = {}, {}
+    for name, tr in (("with", t), ("without", None)):
+        bufs = intrinsic.Buffers(normal, height, alb, matte, np.zeros_like(matte), tr)
+        sh = intrinsic.shade(image, bufs, light, intrinsic.Plan((), False, False))
+        out = image * sh.ratio + sh.highlight
+        errors[name] = gain_error(out[:, matte > 0], truth[:, matte > 0])
+        level[name] = float(out[1, patch].mean() / out[1, (matte > 0) & ~patch].mean())
+    assert errors["with"] < 0.5 * errors["without"], errors
+    want = float(truth[1, patch].mean() / truth[1, (matte > 0) & ~patch].mean())
+    assert abs(level["with"] - want) < 0.5 * abs(level["without"] - want), (level, want)

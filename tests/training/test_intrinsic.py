@@ -25,7 +25,7 @@ def test_samples_hold_the_exact_buffers(frames):
     from training.intrinsic import data
 
     s = frames[0]
-    assert s["image"].shape == (3, RES, RES) and s["target"].shape == (9, RES, RES)
+    assert s["image"].shape == (3, RES, RES) and s["target"].shape == (25, RES, RES)
     assert np.isfinite(s["image"]).all() and (s["image"] >= 0).all()
     fg = s["fg"][0] > 0
     assert fg.mean() > 0.1
@@ -37,7 +37,59 @@ def test_samples_hold_the_exact_buffers(frames):
     # Deterministic per index, different across indices.
     np.testing.assert_array_equal(frames[5]["image"], frames[5]["image"])
     assert not np.array_equal(frames[5]["image"], frames[6]["image"])
-    assert data.TARGETS == ("normal", "height", "albedo", "matte", "face")
+    assert data.TARGETS == ("normal", "height", "albedo", "matte", "face", "transfer")
+    assert (s["target"][data.TRANSFER][:, ~fg] == 0).all()
+
+
+def test_the_transfer_is_the_light_stages_irradiance_to_its_order(frames):
+    """transfer . light_sh(light) gives the irradiance the light stage's own transport gives
+    (its 114 lights' visibility x cosine) within the SH order's error; a uniform world exactly
+    (order 0). It carries occlusion: under a uniform world a skin pixel's irradiance is its
+    sky's visible share, below the unoccluded pi in a crease and never above it (hair's wrapped
+    lobe takes more)."""
+    from bench.intrinsic_effects import lamp
+    from training.intrinsic import data
+    from training.lightstage import layout
+
+    a = frames.frame(0)
+    m = a["mask"]
+    t = data.transfer(a)
+    for light, tol in ((lightvec.uniform(), 1e-3), (lamp([-1, 0.3, 0.5]), 0.12)):
+        truth = data.dense(a, a["diffuse"].astype(np.float32) @ layout.weights(light).astype(
+            np.float32))
+        got = intrinsic.transfer_irradiance(light.astype(np.float32), t)
+        rel = np.sqrt(((got - truth)[:, m] ** 2).mean() / (truth[:, m] ** 2).mean())
+        assert rel < tol, rel
+    skin = m & (a["label"] == data.SKIN)
+    e = intrinsic.transfer_irradiance(lightvec.uniform().astype(np.float32), t)[1][skin]
+    assert e.max() <= np.pi * 1.01 and np.percentile(e, 5) < 0.8 * np.pi
+
+
+def test_the_flip_mirrors_the_transfer(frames):
+    """A sample's transfer is its frame's, or, where the sample is mirrored, the mirrored
+    subject's (x-odd coefficients negated): lit by a lamp from the left it shades as the
+    frame does under the same lamp from the right."""
+    from bench.intrinsic_effects import lamp
+    from training.intrinsic import data
+
+    plain = [data.transfer(frames.frame(j)) for j in range(frames.n)]
+    mirrored = []
+    for t in plain:
+        tf = t[..., ::-1].copy()
+        tf[list(intrinsic.TRANSFER_X_ODD)] *= -1.0
+        mirrored.append(tf)
+    seen = set()
+    for i in range(24):
+        got = frames[i]["target"][data.TRANSFER]
+        kinds = {k for k, ts in (("plain", plain), ("mirrored", mirrored))
+                 if any(np.allclose(got, t, atol=1e-5) for t in ts)}
+        assert kinds, i
+        seen |= kinds
+    assert seen == {"plain", "mirrored"}
+    left, right = lamp([-1, 0.3, 0.5]), lamp([1, 0.3, 0.5])
+    np.testing.assert_allclose(intrinsic.transfer_irradiance(left, mirrored[0]),
+                               intrinsic.transfer_irradiance(right, plain[0])[..., ::-1],
+                               rtol=1e-3, atol=1e-3)
 
 
 def test_the_flip_mirrors_normals(frames):
@@ -77,19 +129,52 @@ def test_losses_vanish_for_the_truth_and_the_network_gives_unit_normals(frames):
 
     b = frames.batch(range(3))
     t = b["target"]
-    truth = (t[:, 0:3], t[:, 3:4] + 5.0, t[:, 4:7], t[:, 7:9])
+    truth = (t[:, 0:3], t[:, 3:4] + 5.0, t[:, 4:7], t[:, 7:9], t[:, 9:25])
     ls = losses(truth, t, b["fg"])
     assert float(ls["normal"]) < 1e-4 and float(ls["height"]) < 1e-4  # height up to a constant
-    assert float(ls["albedo"]) < 1e-5
+    assert float(ls["albedo"]) < 1e-5 and float(ls["transfer"]) < 1e-6
     # Albedo counts up to a gain (nearly: log(a + 0.02) keeps dark texels from dominating).
-    gained = losses((truth[0], truth[1], t[:, 4:7] * 1.7, truth[3]), t, b["fg"])["albedo"]
-    shuffled = losses((truth[0], truth[1], t[:, 4:7].flip(2), truth[3]), t, b["fg"])["albedo"]
+    gained = losses((truth[0], truth[1], t[:, 4:7] * 1.7, *truth[3:]), t, b["fg"])["albedo"]
+    shuffled = losses((truth[0], truth[1], t[:, 4:7].flip(2), *truth[3:]), t, b["fg"])["albedo"]
     assert float(gained) < 0.3 * float(shuffled)
     net = IntrinsicNet("small")
-    normal, height, albedo, parsing = net(b["image"] / b["image"].amax())
+    normal, height, albedo, parsing, transfer = net(b["image"] / b["image"].amax())
     assert normal.shape == (3, 3, RES, RES) and parsing.shape == (3, 2, RES, RES)
+    assert transfer.shape == (3, 16, RES, RES)
     np.testing.assert_allclose(normal.norm(dim=1).detach().numpy(), 1.0, atol=1e-4)
-    assert float(losses((normal, height, albedo, parsing), t, b["fg"])["normal"]) > 0.05
+    assert float(losses((normal, height, albedo, parsing, transfer), t, b["fg"])["normal"]) > 0.05
+
+
+def test_the_network_transfer_starts_from_its_normals_unoccluded_one(frames):
+    """The transfer head predicts what occlusion changes: a network loaded from one saved
+    before the transfer existed (a head of nine channels) keeps those nine and gives the
+    unoccluded transfer of its own normals, which under any light is Lambert's shading on them
+    (the renderer's shading without occlusion), while the truth's unoccluded transfer is
+    farther from the light stage's than the truth."""
+    from training.intrinsic import data
+    from training.intrinsic.model import IntrinsicNet, has_transfer, load_weights, unoccluded
+
+    torch.manual_seed(0)
+    old = IntrinsicNet("small", transfer=False).eval()
+    assert not has_transfer(old.state_dict())
+    net = IntrinsicNet("small").eval()
+    load_weights(net, old.state_dict())
+    assert has_transfer(net.state_dict())
+    b = frames.batch(range(2))
+    x = b["image"] / b["image"].amax()
+    with torch.no_grad():
+        ref, got = old(x), net(x)
+    for r, g in zip(ref, got[:4]):
+        torch.testing.assert_close(r, g)
+    light = lightvec.uniform() * 0.3 + lightvec.splat_direction([0.5, 0.4, 0.77], [2.0] * 3)
+    n = got[0][0].numpy()
+    lam = intrinsic.irradiance(light.astype(np.float32), n, exact_cells=0)
+    tr = intrinsic.transfer_irradiance(light.astype(np.float32), got[4][0].numpy())
+    np.testing.assert_allclose(tr, lam, rtol=0.05, atol=0.05 * float(lam.max()))
+    t = b["target"]
+    fg = b["fg"][:, 0] > 0
+    free = (unoccluded(t[:, 0:3]) - t[:, data.TRANSFER]).abs().mean(1)[fg].mean()
+    assert float(free) > 0.01
 
 
 def test_face_weight_and_curvature_terms_of_the_normal_loss(frames):
@@ -102,7 +187,7 @@ def test_face_weight_and_curvature_terms_of_the_normal_loss(frames):
     t, fg = b["target"], b["fg"]
     face = fg * t[:, 8:9]
     assert float(face.sum()) > 100
-    truth = (t[:, 0:3], t[:, 3:4], t[:, 4:7], t[:, 7:9])
+    truth = (t[:, 0:3], t[:, 3:4], t[:, 4:7], t[:, 7:9], t[:, 9:25])
     assert float(normal_gradient(t[:, 0:3], t[:, 0:3], face)) == 0.0
     assert float(losses(truth, t, fg, face_weight=2.0, gradient_weight=0.1)["normal"]) < 1e-4
     flat = torch.nn.functional.normalize(torch.nn.functional.avg_pool2d(
@@ -133,7 +218,13 @@ def test_export_matches_torch_and_follows_the_contract(tmp_path):
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     assert [i.name for i in sess.get_inputs()] == [contract.INPUT_IMAGE]
     assert [o.name for o in sess.get_outputs()] == [contract.OUTPUT_NORMAL, contract.OUTPUT_HEIGHT,
-                                                    contract.OUTPUT_ALBEDO, contract.OUTPUT_PARSING]
+                                                    contract.OUTPUT_ALBEDO, contract.OUTPUT_PARSING,
+                                                    contract.OUTPUT_TRANSFER]
+    # A network without the transfer (one trained before it) exports its four buffers.
+    old = IntrinsicNet("small", transfer=False).eval()
+    export_onnx(old, tmp_path / "old.onnx")
+    sess = ort.InferenceSession(str(tmp_path / "old.onnx"), providers=["CPUExecutionProvider"])
+    assert contract.OUTPUT_TRANSFER not in [o.name for o in sess.get_outputs()]
 
 
 def test_int8_export_keeps_the_named_layers_float_and_stays_near_the_float_network(frames,

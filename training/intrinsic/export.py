@@ -29,7 +29,7 @@ import torch
 from addon import contract, engine
 
 from . import data
-from .model import CLASSES, STRIDE, IntrinsicNet
+from .model import CLASSES, STRIDE, IntrinsicNet, has_transfer, unoccluded
 from .train import prepare
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -38,7 +38,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 def export_onnx(net: IntrinsicNet, path: pathlib.Path) -> None:
     net.eval()
     names = [contract.OUTPUT_NORMAL, contract.OUTPUT_HEIGHT, contract.OUTPUT_ALBEDO,
-             contract.OUTPUT_PARSING]
+             contract.OUTPUT_PARSING] + ([contract.OUTPUT_TRANSFER] if net.transfer else [])
     dyn = {"image": {0: "N", 2: "H", 3: "W"}, **{n: {0: "N", 2: "H", 3: "W"} for n in names}}
     torch.onnx.export(net, (torch.rand(1, 3, 128, 128),), str(path),
                       input_names=[contract.INPUT_IMAGE], output_names=names, opset_version=17,
@@ -71,8 +71,8 @@ def val_inputs(n: int = 96, res: int = 128, cache_dir=None) -> tuple[dict, torch
 
 
 def onnx_forward(path: pathlib.Path, threads: int = 1):
-    """The ONNX file as a function of a (N, 3, H, W) tensor, one image at a time: its four
-    buffers as tensors, as IntrinsicNet returns them."""
+    """The ONNX file as a function of a (N, 3, H, W) tensor, one image at a time: its buffers
+    as tensors, as IntrinsicNet returns them."""
     from ..run.export import session
 
     sess = session(path, threads)
@@ -90,7 +90,7 @@ def val_metrics(forward, n: int = 96, res: int = 128, cache_dir=None) -> dict:
     network or of an exported file (onnx_forward); ``cache_dir``: another frame cache's val
     frames (long hair: training.intrinsic.data --long-hair)."""
     b, x = val_inputs(n, res, cache_dir)
-    normal, height, albedo, parsing = forward(x)
+    normal, height, albedo, parsing, *transfer = forward(x)
     fg = b["fg"] > 0.5
     t = b["target"]
     cos = (normal * t[:, 0:3]).sum(1, keepdim=True).clamp(-1, 1)
@@ -103,11 +103,20 @@ def val_metrics(forward, n: int = 96, res: int = 128, cache_dir=None) -> dict:
     tm = t[:, 7:8] > 0.5
     iou = float((pm & tm).sum() / (pm | tm).sum().clamp(min=1))
     pf, tf_ = parsing[:, 1:2] > 0.5, t[:, 8:9] > 0.5
+    extra = {}
+    if transfer:
+        # Mean absolute error of the transfer's coefficients, and that of the transfer the true
+        # normals give unoccluded (what a network without it, exact in its normals, would miss).
+        tt = t[:, data.TRANSFER].permute(1, 0, 2, 3)[:, fg[:, 0]]
+        extra = {"transfer_abs": float((transfer[0].permute(1, 0, 2, 3)[:, fg[:, 0]] - tt)
+                                       .abs().mean()),
+                 "transfer_abs_unoccluded_truth": float(
+                     (unoccluded(t[:, 0:3]).permute(1, 0, 2, 3)[:, fg[:, 0]] - tt).abs().mean())}
     return {"normal_angle_deg_mean": float(ang.mean()), "normal_angle_deg_median": float(ang.median()),
             "height_abs_px": float((d - dm)[fg].abs().mean()),
             "albedo_log_abs": float((la - la_m).abs().permute(1, 0, 2, 3)[:, fg[:, 0]].mean()),
             "matte_iou": iou,
-            "face_iou": float((pf & tf_).sum() / (pf | tf_).sum().clamp(min=1)),
+            "face_iou": float((pf & tf_).sum() / (pf | tf_).sum().clamp(min=1)), **extra,
             "samples": n, "split": "val (held-out identities)", "resolution": res}
 
 
@@ -158,6 +167,8 @@ def quantise(float_path: pathlib.Path, out_path: pathlib.Path, calibration: dict
                 "normal_angle_deg_mean": float(torch.rad2deg(torch.acos(cos))[fg].mean()),
                 "albedo_log_abs": float(alb[fg].mean()),
                 "parsing_abs": float((ref[3] - got[3]).abs().mean()),
+                **({"transfer_abs": float((ref[4] - got[4]).abs().mean(1)[fg].mean())}
+                   if len(ref) > 4 else {}),
                 "samples": len(xv), "split": "val (held-out identities)"}}
 
 
@@ -253,7 +264,7 @@ def main(argv=None):
     a = parser().parse_args(argv)
     run = pathlib.Path(a.run)
     state = torch.load(run / a.checkpoint, map_location="cpu")
-    net = IntrinsicNet(state["width"])
+    net = IntrinsicNet(state["width"], has_transfer(state["state_dict"]))
     net.load_state_dict(state["state_dict"])
     net.eval()
     out = pathlib.Path(a.out)
@@ -281,7 +292,9 @@ def main(argv=None):
         "outputs": [{"name": contract.OUTPUT_NORMAL, "shape": ["N", 3, "H", "W"]},
                     {"name": contract.OUTPUT_HEIGHT, "shape": ["N", 1, "H", "W"]},
                     {"name": contract.OUTPUT_ALBEDO, "shape": ["N", 3, "H", "W"]},
-                    {"name": contract.OUTPUT_PARSING, "shape": ["N", len(CLASSES), "H", "W"]}],
+                    {"name": contract.OUTPUT_PARSING, "shape": ["N", len(CLASSES), "H", "W"]}]
+        + ([{"name": contract.OUTPUT_TRANSFER, "shape": ["N", contract.TRANSFER_CHANNELS, "H", "W"]}]
+           if net.transfer else []),
         "stride": STRIDE, "working_size": a.working_size,
         "colour": {"space": "linear Rec.709 scene-referred, channels first",
                    "image": "a square crop around the portrait (addon.framing), scaled so its 90th "

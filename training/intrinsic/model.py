@@ -37,14 +37,18 @@ def block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 
 
 class IntrinsicNet(nn.Module):
-    def __init__(self, width: str = "standard"):
+    """``transfer`` False: the network without the transfer (networks trained before it had
+    none; their files keep four outputs when re-exported)."""
+
+    def __init__(self, width: str = "standard", transfer: bool = True):
         super().__init__()
         w = WIDTHS[width]
         self.width = width
+        self.transfer = transfer
         self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i - 1], w[i], 2)
                                                      for i in range(1, len(w))])
         self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in range(len(w) - 1)])
-        self.head = nn.Conv2d(w[0], HEAD, 1)
+        self.head = nn.Conv2d(w[0], HEAD if transfer else HEAD - TRANSFER_CHANNELS, 1)
 
     def forward(self, image: torch.Tensor):
         x = image.clamp(0.0, 1.0).clamp(min=1e-6) ** (1 / 2.2) - 0.5
@@ -62,14 +66,24 @@ class IntrinsicNet(nn.Module):
         height = out[:, 3:4] * 10.0
         albedo = torch.sigmoid(out[:, 4:7])
         parsing = torch.sigmoid(out[:, 7:9])
+        if not self.transfer:
+            return normal, height, albedo, parsing
         return normal, height, albedo, parsing, unoccluded(normal.detach()) + out[:, 9:HEAD]
+
+
+def has_transfer(state_dict: dict) -> bool:
+    """Whether a saved network predicts the transfer."""
+    return state_dict["head.weight"].shape[0] == HEAD
+
+
+_TRANSFER_BAND = torch.from_numpy(TRANSFER_BAND.copy())
 
 
 def unoccluded(normal: torch.Tensor) -> torch.Tensor:
     """(B, 16, H, W) the transfer of unoccluded Lambertian pixels with these normals: the
     network's transfer is this plus what it predicts occlusion takes away (at initialisation,
     nothing: the renderer's plain Lambert shading)."""
-    band = torch.as_tensor(TRANSFER_BAND, dtype=normal.dtype).view(1, -1, 1, 1)
+    band = _TRANSFER_BAND.to(normal.dtype).view(1, -1, 1, 1)
     return band * sh_basis(normal.unbind(1), TRANSFER_ORDER, stack=lambda v: torch.stack(v, 1))
 
 
