@@ -231,7 +231,8 @@ def occlusion(sh: np.ndarray, bufs: Buffers) -> np.ndarray:
         return np.ones(bufs.matte.shape, np.float32)
     sh = np.asarray(sh, np.float32)
     occluded = np.tensordot(sh, bufs.transfer, axes=(0, 0))
-    free = np.tensordot(sh * TRANSFER_BAND, sh_basis(bufs.normal, TRANSFER_ORDER), axes=(0, 0))
+    # TRANSFER_BAND is zero past order 2: nine terms suffice for the unoccluded side
+    free = np.tensordot(sh[:9] * SH_BAND, sh_basis(bufs.normal), axes=(0, 0))
     floor = OCCLUSION_FLOOR * max(float(np.percentile(free, 90)), 1e-12)
     return np.clip((occluded + floor) / (np.maximum(free, 0.0) + floor), 0.0, 1.0).astype(
         np.float32)

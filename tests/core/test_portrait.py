@@ -38,9 +38,11 @@ def _c(name, value):
     return numpy_helper.from_array(np.asarray(value, np.float32), name)
 
 
-def build_standin(normal_name: str = contract.OUTPUT_NORMAL) -> onnx.ModelProto:
+def build_standin(normal_name: str = contract.OUTPUT_NORMAL,
+                  transfer: int = 0) -> onnx.ModelProto:
     """The stand-in intrinsic network; ``normal_name`` renames its normal output (to break the
-    contract)."""
+    contract); ``transfer``: that many channels of a ``transfer`` output, each the unoccluded
+    transfer of a camera-facing normal (a sixteenth of the light let through)."""
     n = helper.make_node
     nodes = [
         n("Slice", [contract.INPUT_IMAGE, "i0", "i1", "ax1"], ["r"]),
@@ -79,9 +81,15 @@ def build_standin(normal_name: str = contract.OUTPUT_NORMAL) -> onnx.ModelProto:
     inits += [_c("t", T), _c("k", K), _c("zero", 0.0), _c("one", 1.0), _c("half", 0.5),
               _c("bulge", BULGE), _c("two_bulge", 2 * BULGE)]
     f = TensorProto.FLOAT
-    outputs = [helper.make_tensor_value_info(name, f, ["N", c, "H", "W"]) for name, c in
-               ((normal_name, 3), (contract.OUTPUT_HEIGHT, 1), (contract.OUTPUT_ALBEDO, 3),
-                (contract.OUTPUT_PARSING, 2))]
+    outs = [(normal_name, 3), (contract.OUTPUT_HEIGHT, 1), (contract.OUTPUT_ALBEDO, 3),
+            (contract.OUTPUT_PARSING, 2)]
+    if transfer:
+        nodes += [n("Concat", [contract.OUTPUT_HEIGHT] * transfer, ["zeros_t"], axis=1),
+                  n("Add", ["zeros_t", "facing"], [contract.OUTPUT_TRANSFER])]
+        facing = intrinsic.TRANSFER_BAND * intrinsic.sh_basis(np.array([0.0, 0.0, 1.0]), 3)
+        inits.append(_c("facing", np.resize(facing, transfer).reshape(1, transfer, 1, 1)))
+        outs.append((contract.OUTPUT_TRANSFER, transfer))
+    outputs = [helper.make_tensor_value_info(name, f, ["N", c, "H", "W"]) for name, c in outs]
     graph = helper.make_graph(
         nodes, "intrinsic_standin",
         [helper.make_tensor_value_info(contract.INPUT_IMAGE, f, ["N", 3, "H", "W"])], outputs, inits)
@@ -92,14 +100,17 @@ def build_standin(normal_name: str = contract.OUTPUT_NORMAL) -> onnx.ModelProto:
     return model
 
 
-def write_standin(folder, name="standin", normal_name=contract.OUTPUT_NORMAL) -> str:
+def write_standin(folder, name="standin", normal_name=contract.OUTPUT_NORMAL,
+                  transfer: int = 0) -> str:
     """The stand-in and its card (contract relight-intrinsic/1, stride 16, working size 32)."""
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.onnx"
-    path.write_bytes(build_standin(normal_name).SerializeToString())
+    path.write_bytes(build_standin(normal_name, transfer).SerializeToString())
     shapes = {contract.OUTPUT_NORMAL: 3, contract.OUTPUT_HEIGHT: 1, contract.OUTPUT_ALBEDO: 3,
               contract.OUTPUT_PARSING: len(contract.INTRINSIC_CLASSES)}  # what the card promises
+    if transfer:
+        shapes[contract.OUTPUT_TRANSFER] = contract.TRANSFER_CHANNELS
     card = {
         "contract": contract.INTRINSIC_CONTRACT, "name": name, "preset": "standin",
         "onnx": path.name, "sha256": engine.file_sha256(path),
@@ -179,6 +190,38 @@ def test_intrinsic_card_gives_an_intrinsic_session_with_the_buffers(session):
     assert res.albedo.shape == (3, 21, 35) and res.parsing.shape == (2, 21, 35)
     np.testing.assert_allclose(np.linalg.norm(res.normal, axis=0), 1.0, atol=1e-5)
     assert res.parsing[0, 10, 17] > 0.99 and res.parsing[0, 1, 1] < 1e-6
+
+
+def test_a_model_with_the_transfer_gives_it_and_relights_with_it(tmp_path):
+    """The optional transfer output: the card lists it after the four buffers, the session
+    returns it with the others, and the frame path renders with it (here every pixel lets only a
+    camera-facing normal's light through, so a lamp from the side lights the disc less than
+    the stand-in's bulging normals alone would). Sixteen channels or it is refused."""
+    path = write_standin(tmp_path, "with_transfer", transfer=contract.TRANSFER_CHANNELS)
+    sess = engine.new_session(path, providers=["CPUExecutionProvider"], threads=1, spin=False)
+    res = sess.run_planar(chw(frame(21, 35, (17.0, 10.0), 8.0)))
+    assert res.transfer.shape == (contract.TRANSFER_CHANNELS, 21, 35)
+    x = chw(frame(96, 96, (48.0, 48.0), 30.0))
+    plain = engine.new_session(write_standin(tmp_path, "plain"), providers=["CPUExecutionProvider"],
+                               threads=1, spin=False)
+    assert plain.run_planar(x[:, :32, :32]).transfer is None
+    box = portrait.find_box(sess, x)
+    out = {}
+    for name, s in (("with", sess), ("plain", plain)):
+        r = portrait.relight_frame(s, x, RIGHT_LAMP, box, exposure=1.0)
+        y = apply(x, r)
+        assert np.isfinite(y).all()
+        out[name] = float(y[:, within((96, 96), (48.0, 48.0), 20.0)].mean())
+    assert out["with"] < 0.95 * out["plain"], out
+    bad = write_standin(tmp_path, "bad_transfer", transfer=9)
+    card = json.loads(pathlib.Path(bad).with_suffix(".json").read_text())
+    with pytest.raises(ModelError, match="shape"):
+        engine.new_session(bad, providers=["CPUExecutionProvider"], threads=1).run_planar(
+            x[:, :32, :32])
+    card["outputs"].insert(0, card["outputs"].pop())  # the transfer listed first
+    pathlib.Path(bad).with_suffix(".json").write_text(json.dumps(card))
+    with pytest.raises(ModelError, match="outputs"):
+        engine.new_session(bad, providers=["CPUExecutionProvider"], threads=1)
 
 
 def test_a_model_without_a_normal_output_is_refused(tmp_path):
