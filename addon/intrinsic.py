@@ -302,28 +302,23 @@ def irradiance(light: np.ndarray, normal: np.ndarray, exact_cells: int = EXACT_C
 
 
 def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
-    """The footage's shading, luminance only, as coefficients: nine SH irradiance coefficients
-    on the normals (shading SH(n) . c), or with a transfer buffer sixteen SH radiance
-    coefficients of the light (shading transfer . c). Least squares of lum /
-    albedo_variation over the confident foreground, robustly reweighted twice (specular
-    highlights and cast shadows are outliers to a smooth irradiance)."""
-    k = 9 if bufs.transfer is None else TRANSFER_CHANNELS
+    """Nine SH coefficients of the footage's shading, luminance only: least squares of
+    lum / albedo_variation ~ SH(n) . c over the confident foreground, robustly reweighted
+    twice (specular highlights and cast shadows are outliers to a smooth irradiance)."""
     alb = luminance(bufs.albedo)
     fg = (bufs.matte > 0.5) & (alb > 0.02) & np.isfinite(image_lum) & (image_lum > 0)
     if int(fg.sum()) < 16:
-        c = np.zeros(k, np.float32)
-        c[0] = 1.0 if bufs.transfer is None else 1.0 / TRANSFER_BAND[0]
-        return c
+        return np.array([1.0] + [0.0] * 8, np.float32)
     a_med = float(np.median(alb[fg]))
     y = image_lum[fg] / (alb[fg] / a_med)
-    if bufs.transfer is None:
-        basis = sh_basis(bufs.normal[:, fg]).T.astype(np.float64)  # (N, 9)
-    else:
-        basis = bufs.transfer[:, fg].T.astype(np.float64)  # (N, 16)
+    basis = sh_basis(bufs.normal[:, fg]).T.astype(np.float64)  # (N, 9)
+    if bufs.transfer is not None:  # what the footage's light cannot reach is not its shading
+        basis = basis * source_occlusion(
+            np.linalg.lstsq(basis, y, rcond=None)[0], bufs)[fg][:, None]
     w = np.ones(len(y))
-    ridge = 1e-3 * np.eye(k)
+    ridge = 1e-3 * np.eye(9)
     ridge[0, 0] = 0.0
-    c = np.zeros(k)
+    c = np.zeros(9)
     for _ in range(3):
         bw = basis * w[:, None]
         c = np.linalg.solve(basis.T @ bw + ridge * float(w.sum()), bw.T @ y)
@@ -333,11 +328,12 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
     return c.astype(np.float32)
 
 
-def fitted_shading(c: np.ndarray, bufs: Buffers) -> np.ndarray:
-    """(h, w) the shading fit_source's coefficients give."""
-    if len(c) == 9:
-        return np.tensordot(c, sh_basis(bufs.normal), axes=(0, 0))
-    return np.tensordot(c, bufs.transfer, axes=(0, 0))
+def source_occlusion(c: np.ndarray, bufs: Buffers) -> np.ndarray:
+    """(h, w) the occlusion (``occlusion``) of the light fitted by fit_source's coefficients
+    ``c`` (irradiance on the normals: the light's SH up to order 2 times SH_BAND)."""
+    sh = np.zeros(TRANSFER_CHANNELS, np.float32)
+    sh[:9] = np.asarray(c, np.float32) / SH_BAND
+    return occlusion(sh, bufs)
 
 
 def level_colour(image_chw: np.ndarray, lum: np.ndarray, e_src: np.ndarray, skin: np.ndarray):
@@ -373,19 +369,17 @@ def level_factor(level, e_src: np.ndarray, e_new: np.ndarray) -> np.ndarray:
 
 
 def directionality(c: np.ndarray) -> float:
-    """How directional a fitted irradiance is: |band 1| / band 0 of its nine coefficients (a
-    transfer fit's radiance coefficients count as the irradiance they give). The
+    """How directional a fitted irradiance is: |band 1| / band 0 of its nine coefficients. The
     full sphere's irradiance of one distant light gives 1.15 and a uniform world 0; fitted over
     the visible half of a head (the robust fit down-weights the lamp's dark side), one lamp gives
     about 0.6-0.7, an overcast sky 0.33, a broad glow over an ambient 0.16."""
-    if len(c) != 9:
-        c = np.asarray(c[:4], np.float32) * TRANSFER_BAND[:4]
     return float(np.linalg.norm(c[1:4])) / max(abs(float(c[0])), 1e-8)
 
 
 def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
                    weight: float | None = None) -> np.ndarray:
-    """(h, w) the footage's diffuse shading: the SH fit ``c`` on the predicted normals, with, on
+    """(h, w) the footage's diffuse shading: the SH fit ``c`` on the predicted normals (times
+    its light's occlusion where the network predicts the transfer), with, on
     face skin, the shading read per pixel (luminance over the albedo variations) blended in log
     space, by up to ``weight`` as the fitted light is directional. Nine coefficients smooth a
     hard source's terminator and nose shadow away, and the ratio then leaves them in the relit
@@ -394,11 +388,12 @@ def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
     over albedo leaves is shading; hair, eyes and clothes keep the fit. ``weight`` defaults to
     PIXEL_SOURCE_WEIGHT (0: the fit alone)."""
     weight = PIXEL_SOURCE_WEIGHT if weight is None else weight
-    e_fit = fitted_shading(c, bufs)
+    e_fit = np.tensordot(c, sh_basis(bufs.normal), axes=(0, 0))
     if bufs.transfer is not None:
-        # The transfer's shading is irradiance, dark to the bottom of a nostril; the footage
-        # shows it diffused under the skin (as the target's, in shade).
-        e_fit = luminance(subsurface(np.repeat(np.maximum(e_fit, 0.0)[None], 3, 0),
+        # Occluded light, dark to the bottom of a nostril: the footage shows it diffused under
+        # the skin (as the target's, in shade).
+        e_fit = luminance(subsurface(np.repeat(np.maximum(e_fit * source_occlusion(c, bufs),
+                                                          0.0)[None], 3, 0),
                                      bufs.face * bufs.matte))
     fg = bufs.matte > 0.5
     t = weight * min(directionality(c) / PIXEL_SOURCE_DIRECTIONAL, 1.0)
