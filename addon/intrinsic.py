@@ -87,6 +87,10 @@ SSS_SIGMA_CM = (0.30, 0.14, 0.07)
 # stage's, chosen on the CroppedYale tune subjects (it also softens the terminator that the
 # predicted normals draw too sharp).
 SSS_FACE_CM = 6.0
+# A luminance's diffusion in one channel: the channels' shares and widths weighted by LUMA (the
+# green channel's, nearly), for a shading that is luminance only.
+SSS_LUMINANCE = ((sum(a * w for a, w in zip(SSS_ALPHA, LUMA)),),
+                 (sum(c * w for c, w in zip(SSS_SIGMA_CM, LUMA)),))
 
 
 # The skin's colour against its light's level (level_colour) is read between these percentiles
@@ -223,19 +227,21 @@ def transfer_irradiance(light: np.ndarray, transfer: np.ndarray) -> np.ndarray:
     return np.tensordot(light_sh(light).T, transfer, axes=(1, 0))
 
 
-def occlusion(sh: np.ndarray, bufs: Buffers) -> np.ndarray:
-    """(h, w) in [0, 1]: the share of a light's diffuse irradiance (its luminance SH
-    coefficients ``sh`` (16,)) that the transfer lets through, against the unoccluded transfer of
-    the same normals (TRANSFER_BAND) at the same order. 1 without a transfer buffer."""
-    if bufs.transfer is None:
-        return np.ones(bufs.matte.shape, np.float32)
-    sh = np.asarray(sh, np.float32)
-    occluded = np.tensordot(sh, bufs.transfer, axes=(0, 0))
-    # TRANSFER_BAND is zero past order 2: nine terms suffice for the unoccluded side
-    free = np.tensordot(sh[:9] * SH_BAND, sh_basis(bufs.normal), axes=(0, 0))
-    floor = OCCLUSION_FLOOR * max(float(np.percentile(free, 90)), 1e-12)
+def occlusion(sh: np.ndarray, transfer: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(...) in [0, 1]: the share of a light's diffuse irradiance (its luminance SH coefficients
+    ``sh`` (16,)) that the transfer (16, ...) lets through, against ``free``, the unoccluded
+    irradiance on the same pixels' normals (free_irradiance) at the same order."""
+    occluded = np.tensordot(np.asarray(sh, np.float32), transfer, axes=(0, 0))
+    # (a sample of the pixels gives the percentile: the floor need not be exact)
+    floor = OCCLUSION_FLOOR * max(float(np.percentile(free.reshape(-1)[::7], 90)), 1e-12)
     return np.clip((occluded + floor) / (np.maximum(free, 0.0) + floor), 0.0, 1.0).astype(
         np.float32)
+
+
+def free_irradiance(sh: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """The unoccluded irradiance of a light with SH coefficients ``sh`` on normals whose order-2
+    SH are ``basis`` (9, ...): Lambert's lobe (TRANSFER_BAND is zero past order 2)."""
+    return np.tensordot(np.asarray(sh[:9], np.float32) * SH_BAND, basis, axes=(0, 0))
 
 
 OCCLUSION_FLOOR = 0.05  # occlusion's ratio is steadied where the light barely reaches a pixel
@@ -313,8 +319,8 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
     y = image_lum[fg] / (alb[fg] / a_med)
     basis = sh_basis(bufs.normal[:, fg]).T.astype(np.float64)  # (N, 9)
     if bufs.transfer is not None:  # what the footage's light cannot reach is not its shading
-        basis = basis * source_occlusion(
-            np.linalg.lstsq(basis, y, rcond=None)[0], bufs)[fg][:, None]
+        c = np.linalg.lstsq(basis, y, rcond=None)[0]
+        basis = basis * occlusion(source_sh(c), bufs.transfer[:, fg], basis @ c)[:, None]
     w = np.ones(len(y))
     ridge = 1e-3 * np.eye(9)
     ridge[0, 0] = 0.0
@@ -328,12 +334,12 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
     return c.astype(np.float32)
 
 
-def source_occlusion(c: np.ndarray, bufs: Buffers) -> np.ndarray:
-    """(h, w) the occlusion (``occlusion``) of the light fitted by fit_source's coefficients
-    ``c`` (irradiance on the normals: the light's SH up to order 2 times SH_BAND)."""
+def source_sh(c: np.ndarray) -> np.ndarray:
+    """(16,) the light's SH coefficients that fit_source's coefficients ``c`` (irradiance on the
+    normals: the light's SH up to order 2 times SH_BAND) stand for."""
     sh = np.zeros(TRANSFER_CHANNELS, np.float32)
     sh[:9] = np.asarray(c, np.float32) / SH_BAND
-    return occlusion(sh, bufs)
+    return sh
 
 
 def level_colour(image_chw: np.ndarray, lum: np.ndarray, e_src: np.ndarray, skin: np.ndarray):
@@ -392,9 +398,8 @@ def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
     if bufs.transfer is not None:
         # Occluded light, dark to the bottom of a nostril: the footage shows it diffused under
         # the skin (as the target's, in shade).
-        e_fit = luminance(subsurface(np.repeat(np.maximum(e_fit * source_occlusion(c, bufs),
-                                                          0.0)[None], 3, 0),
-                                     bufs.face * bufs.matte))
+        lit = np.maximum(e_fit * occlusion(source_sh(c), bufs.transfer, e_fit), 0.0)
+        e_fit = subsurface(lit[None], bufs.face * bufs.matte, *SSS_LUMINANCE)[0]
     fg = bufs.matte > 0.5
     t = weight * min(directionality(c) / PIXEL_SOURCE_DIRECTIONAL, 1.0)
     if t <= 0 or not fg.any():
@@ -470,16 +475,18 @@ def gaussian_blur(a: np.ndarray, sigma: float) -> np.ndarray:
     return np.matmul(np.matmul(blur_matrix(h, sigma), a), blur_matrix(w, sigma).T)
 
 
-def subsurface(irr: np.ndarray, skin: np.ndarray) -> np.ndarray:
+def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
+               sigmas_cm=SSS_SIGMA_CM) -> np.ndarray:
     """(3, h, w) irradiance diffused under the skin: per channel, SSS_ALPHA of it replaced by its
     Gaussian average over the skin (weights ``skin`` (h, w), normalised, so hair and eyes do not
     bleed in), SSS_SIGMA_CM wide at the scale SSS_FACE_CM gives the skin's size. A terminator
-    and a cast shadow's edge turn soft and warm, as on skin; off the skin nothing changes."""
+    and a cast shadow's edge turn soft and warm, as on skin; off the skin nothing changes.
+    ``alphas``, ``sigmas_cm``: other channels' (SSS_LUMINANCE: one luminance channel)."""
     area = float(skin.sum())
     if area < 16:
         return irr
     px_per_cm = math.sqrt(area) / SSS_FACE_CM
-    sigmas = [c * px_per_cm for c in SSS_SIGMA_CM]
+    sigmas = [c * px_per_cm for c in sigmas_cm]
     # Only the skin's bounding box changes: work there (a wide frame's grid is mostly not skin).
     rows, cols = np.nonzero(skin > 0)
     r = blur_radius(max(sigmas))
@@ -489,7 +496,7 @@ def subsurface(irr: np.ndarray, skin: np.ndarray) -> np.ndarray:
     win = (slice(None), slice(y0, y1), slice(x0, x1))
     sk = skin[win[1:]].astype(np.float32)
     out = irr.copy()
-    for ch, (alpha, sigma) in enumerate(zip(SSS_ALPHA, sigmas)):
+    for ch, (alpha, sigma) in enumerate(zip(alphas, sigmas)):
         if sigma < 0.3:  # narrower than a pixel: nothing to diffuse at this size
             continue
         e = irr[ch][win[1:]]
@@ -605,7 +612,8 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     # the subject; a compact component's hard cast shadow is still screen-space (shadow).
     occl = None
     if bufs.transfer is not None:
-        occl = occlusion(light_sh(light) @ np.asarray(LUMA, np.float32), bufs)
+        sh = light_sh(light) @ np.asarray(LUMA, np.float32)
+        occl = occlusion(sh, bufs.transfer, free_irradiance(sh, sh_basis(bufs.normal)))
         e_t = e_t * occl[None]
     spec = np.zeros_like(e_t)
     height = bufs.height / height_scale(bufs) if effects.shadows and effects.components else None
