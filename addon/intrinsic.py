@@ -1,7 +1,9 @@
 """The physical renderer of the intrinsic presets: shade a target light from predicted buffers.
 
 The network (training/intrinsic) predicts, for a square crop around the portrait, per-pixel
-normals, height toward the camera, albedo variations, the matte and face skin. This module turns
+normals, height toward the camera, albedo variations, the matte and face skin, and (networks
+that have it) the light transport (``transfer``: what the face itself hides from each direction,
+as order-3 SH). This module turns
 those buffers and a light vector into a per-pixel change of the footage:
 
     relit = footage * E_target / E_source + specular
@@ -15,6 +17,9 @@ those buffers and a light vector into a per-pixel change of the footage:
   (``source_shading``).
 * ``E_target``: the irradiance of the light vector on the predicted normals, summed exactly
   over its brightest cells and through order-2 SH for the rest (``irradiance``).
+* Occlusion, with a transfer: both shadings are darkened by the share of their light the
+  transfer lets through (``occlusion``: under an eye's brow, beside the nose, under the jaw),
+  soft to the transfer's order; the source's under the skin as the footage shows it.
 * Effects on demand (``plan``): the light's strong, compact components (a lamp, a sun) get a
   screen-space cast shadow marched over the predicted height and a GGX highlight on skin; soft
   light (an overcast sky, a uniform world) gets neither, and pays nothing for them. On skin the
