@@ -306,3 +306,30 @@ def test_a_long_hair_build_is_its_own_cache_and_the_card_says_so(shared_data, tm
     assert "--cache cache/intrinsic-long" in export.train_command(recipe)
     assert "50% of the identities with hair long hair" in export.training_data(recipe)
     assert "long hair" not in export.training_data({**recipe, "long_hair": 0.0})
+
+
+def test_runs_from_before_the_transfer_are_remade_without_it(frames):
+    """A run recorded before the transfer existed (its recipe has no "transfer") is re-run with
+    --no-transfer, which trains the four buffers alone; a network without the transfer takes
+    the buffers of one with it (--init across the change either way)."""
+    from training.intrinsic import export, train
+    from training.intrinsic.model import IntrinsicNet, has_transfer, load_weights, losses
+
+    recipe = {"width": "small", "res": 128, "steps": 10, "out": "runs/x"}
+    assert "--no-transfer" in export.train_command(recipe)
+    assert "--no-transfer" not in export.train_command({**recipe, "transfer": True})
+    assert train.parser().parse_args(["--out", "x", "--no-transfer"]).transfer is False
+    torch.manual_seed(0)
+    full = IntrinsicNet("small").eval()
+    plain = IntrinsicNet("small", transfer=False).eval()
+    load_weights(plain, full.state_dict())
+    assert not has_transfer(plain.state_dict())
+    b = frames.batch(range(2))
+    x = b["image"] / b["image"].amax()
+    with torch.no_grad():
+        got, ref = plain(x), full(x)
+    assert len(got) == 4
+    for g, r in zip(got, ref):
+        torch.testing.assert_close(g, r)
+    ls = losses(got, b["target"], b["fg"])
+    assert float(ls["transfer"]) == 0.0 and torch.isfinite(ls["total"])

@@ -204,6 +204,8 @@ def train_command(recipe: dict) -> str:
         args.append(f"--{k.replace('_', '-')} {v}")
     if not recipe.get("bf16", True):
         args.append("--no-bf16")
+    if not recipe.get("transfer", False):  # runs recorded before the transfer had none
+        args.append("--no-transfer")
     return "python -m training.intrinsic.train " + " ".join(args)
 
 

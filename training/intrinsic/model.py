@@ -90,9 +90,14 @@ def unoccluded(normal: torch.Tensor) -> torch.Tensor:
 def load_weights(net: IntrinsicNet, state_dict: dict) -> None:
     """Load a state dict into ``net``; one saved before the network predicted the transfer (a
     head of 9 channels) keeps its buffers' weights, and the transfer's channels start at zero
-    (the unoccluded transfer of the predicted normals)."""
+    (the unoccluded transfer of the predicted normals). A network without the transfer takes
+    the buffers' channels of one with it."""
     head = state_dict.get("head.weight")
-    if head is not None and head.shape[0] < HEAD:
+    if head is not None and not net.transfer and head.shape[0] == HEAD:
+        keep = HEAD - TRANSFER_CHANNELS
+        state_dict = {**state_dict, "head.weight": head[:keep],
+                      "head.bias": state_dict["head.bias"][:keep]}
+    elif head is not None and head.shape[0] < HEAD and net.transfer:
         state_dict = dict(state_dict)
         for name in ("head.weight", "head.bias"):
             full = torch.zeros_like(net.state_dict()[name])
@@ -139,7 +144,7 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
     third of the subject and carries the shading a relit face shows); ``gradient_weight``: the
     normals' differences between neighbours on the face skin (normal_gradient) join the normal
     loss."""
-    normal, height, albedo, parsing, transfer = pred
+    normal, height, albedo, parsing, *transfer = pred
     n = fg.sum((2, 3)).clamp(min=1.0)  # (B, 1)
 
     def mean_fg(x):  # (B, C, H, W) -> (B, C) mean over the foreground
@@ -166,7 +171,8 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
     p = parsing.clamp(1e-5, 1 - 1e-5)
     l_matte = tf.binary_cross_entropy(p[:, 0:1], t_m)
     l_face = tf.binary_cross_entropy(p[:, 1:2], t_f)
-    l_transfer = mean_fg((transfer - target[:, 9:9 + TRANSFER_CHANNELS]).abs()).mean()
+    l_transfer = (mean_fg((transfer[0] - target[:, 9:9 + TRANSFER_CHANNELS]).abs()).mean()
+                  if transfer else normal.new_zeros(()))
     total = (l_normal + l_height + 0.5 * l_albedo + 0.5 * l_matte + 0.5 * l_face
              + TRANSFER_WEIGHT * l_transfer)
     with torch.no_grad():

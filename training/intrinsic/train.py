@@ -169,7 +169,7 @@ def train(a) -> pathlib.Path:
     val = vds.batch(range(a.val_n))
     vgen = torch.Generator().manual_seed(99)
     val_in = prepare(val, vgen)
-    model = IntrinsicNet(a.width)
+    model = IntrinsicNet(a.width, a.transfer)
     if a.init:
         load_weights(model, torch.load(a.init, map_location="cpu")["state_dict"])
     opt = torch.optim.AdamW(model.parameters(), lr=a.lr, weight_decay=1e-4)
@@ -249,6 +249,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--start-step", type=int, default=0, help="batch index to start at (a "
                     "continued run sees new samples)")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false")
+    ap.add_argument("--no-transfer", dest="transfer", action="store_false",
+                    help="no transfer head (as the networks trained before it)")
     return ap
 
 
