@@ -281,6 +281,18 @@ def test_extreme_lights_are_finite_and_scale_with_the_light(net, light, backgrou
         assert outs[c].min() >= 0, "negative radiance reached a file"
     ok = np.abs(outs[3]) < HALF_MAX  # values that clamp cannot scale
     if is_intrinsic(model):
+        # Nor can the outline's refit of them (addon.outline.apply): it mixes a fade pixel's
+        # relit value, already clamped to half float, with the footage, so it comes out below
+        # the maximum yet not scaled. Such pixels lie beside ones that clamp outright (within
+        # the fade's few pixels): leave out those within 4 pixels of one.
+        clamped = np.pad(~ok.all(-1), 4)
+        h, w = ok.shape[:2]
+        near = np.zeros((h, w), bool)
+        for dy in range(9):
+            for dx in range(9):
+                near |= clamped[dy:dy + h, dx:dx + w]
+        ok &= ~near[..., None]
+        assert ok.any()
         # In absolute units the subject's change is linear in the light while the footage
         # beyond the portrait stays as it was: the output is affine in the light's power.
         np.testing.assert_allclose((outs[3] - 2 * outs[2] + outs[1])[ok], 0.0,
