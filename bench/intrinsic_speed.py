@@ -19,6 +19,7 @@ frame takes over all threads. Writes ``bench/results/intrinsic_speed.{md,json}``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import pathlib
@@ -142,6 +143,12 @@ def run(model: str, threads: int, repeats: int) -> dict:
         f"network, {size} px crop": timed(lambda: sess.run_planar(crop), repeats),
         "renderer, key lamp (diffuse + shadow + highlight)":
             timed(lambda: intrinsic.shade(crop, bufs, lamp), repeats),
+    }
+    if bufs.transfer is not None:  # what the transfer's occlusion costs, in the same run
+        plain = dataclasses.replace(bufs, transfer=None)
+        rows["renderer, key lamp, the transfer left out (comparison)"] = timed(
+            lambda: intrinsic.shade(crop, plain, lamp), repeats)
+    rows |= {
         "renderer, soft world (diffuse only)": timed(lambda: intrinsic.shade(crop, bufs, soft), repeats),
         search_row: timed(lambda: portrait.find_box(sess, x, fullres), repeats),
         framing_row: timed(lambda: portrait.find_box(sess, x, fullres, prior=box), repeats),
