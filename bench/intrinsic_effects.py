@@ -5,7 +5,8 @@
 Held-out val frames (training/intrinsic/data.py, identities never trained on) are rendered under
 a soft source light, then relit by ``addon.intrinsic.shade`` to five target lights and compared
 with the light stage's own render under each target (its shadows, GGX skin, subsurface
-scattering). Two kinds of buffers: the light stage's exact ones (the renderer's own error) and,
+scattering). Two kinds of buffers: the light stage's exact ones, its light transport included
+(the renderer's own error), and,
 with ``--model``, the network's predictions from the camera-degraded picture (the product's
 error). Error: relative RMSE over the subject after one least-squares gain (exposure is the
 artist's choice), so it measures where the light falls. Effects: diffuse only, + cast shadows,
@@ -70,11 +71,11 @@ def render(a: dict, light: np.ndarray) -> np.ndarray:
     return shading.relight(data.shade_inputs(a), w, stage_dirs())[0].numpy()
 
 
-def exact_buffers(a: dict, transfer: bool = True) -> intrinsic.Buffers:
+def exact_buffers(a: dict) -> intrinsic.Buffers:
     return intrinsic.Buffers(data.dense(a, a["normal"]), data.dense(a, a["height"][:, None])[0],
                              data.dense(a, a["albedo"]), a["cover"].astype(np.float32),
                              (a["label"] == data.SKIN).astype(np.float32),
-                             data.transfer(a) if transfer else None)
+                             data.transfer(a))
 
 
 def predicted_buffers(session, img: np.ndarray) -> intrinsic.Buffers:
