@@ -388,7 +388,7 @@ def directionality(c: np.ndarray) -> float:
 
 
 def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
-                   weight: float | None = None) -> np.ndarray:
+                   weight: float | None = None, basis: np.ndarray | None = None) -> np.ndarray:
     """(h, w) the footage's diffuse shading: the SH fit ``c`` on the predicted normals (times
     its light's occlusion where the network predicts the transfer), with, on
     face skin, the shading read per pixel (luminance over the albedo variations) blended in log
@@ -397,9 +397,11 @@ def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
     frame; a soft source keeps the fit, whose errors in the normals cancel against the target's
     rendering on the same normals. Skin only: its albedo is nearly uniform, so what luminance
     over albedo leaves is shading; hair, eyes and clothes keep the fit. ``weight`` defaults to
-    PIXEL_SOURCE_WEIGHT (0: the fit alone)."""
+    PIXEL_SOURCE_WEIGHT (0: the fit alone). ``basis``: sh_basis(bufs.normal), if the caller has
+    it."""
     weight = PIXEL_SOURCE_WEIGHT if weight is None else weight
-    e_fit = np.tensordot(c, sh_basis(bufs.normal), axes=(0, 0))
+    basis = sh_basis(bufs.normal) if basis is None else basis
+    e_fit = np.tensordot(c, basis, axes=(0, 0))
     if bufs.transfer is not None:
         # Occluded light, dark to the bottom of a nostril: the footage shows it diffused under
         # the skin (as the target's, in shade).
@@ -606,7 +608,8 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     effects = plan(light) if effects is None else effects
     lum = luminance(image_chw)
     c = fit_source(lum, bufs)
-    e_src = source_shading(lum, bufs, c)  # (h, w) luminance shading
+    basis = sh_basis(bufs.normal)
+    e_src = source_shading(lum, bufs, c, basis=basis)  # (h, w) luminance shading
     fg = bufs.matte > 0.5
     p90 = float(np.percentile(e_src[fg], 90)) if fg.any() else 0.0
     unlit = unlit_share(e_src / p90, directionality(c)) if p90 > 0 else None
@@ -618,7 +621,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     occl = None
     if bufs.transfer is not None:
         sh = light_sh(light) @ np.asarray(LUMA, np.float32)
-        occl = occlusion(sh, bufs.transfer, free_irradiance(sh, sh_basis(bufs.normal)))
+        occl = occlusion(sh, bufs.transfer, free_irradiance(sh, basis))
         e_t = e_t * occl[None]
     spec = np.zeros_like(e_t)
     height = bufs.height / height_scale(bufs) if effects.shadows and effects.components else None

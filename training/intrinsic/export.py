@@ -35,10 +35,16 @@ from .train import prepare
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
+def outputs(net: IntrinsicNet) -> list[tuple[str, int]]:
+    """(name, channels) of the network's outputs, in the contract's order."""
+    return ([(contract.OUTPUT_NORMAL, 3), (contract.OUTPUT_HEIGHT, 1), (contract.OUTPUT_ALBEDO, 3),
+             (contract.OUTPUT_PARSING, len(CLASSES))]
+            + ([(contract.OUTPUT_TRANSFER, contract.TRANSFER_CHANNELS)] if net.transfer else []))
+
+
 def export_onnx(net: IntrinsicNet, path: pathlib.Path) -> None:
     net.eval()
-    names = [contract.OUTPUT_NORMAL, contract.OUTPUT_HEIGHT, contract.OUTPUT_ALBEDO,
-             contract.OUTPUT_PARSING] + ([contract.OUTPUT_TRANSFER] if net.transfer else [])
+    names = [name for name, _ in outputs(net)]
     dyn = {"image": {0: "N", 2: "H", 3: "W"}, **{n: {0: "N", 2: "H", 3: "W"} for n in names}}
     torch.onnx.export(net, (torch.rand(1, 3, 128, 128),), str(path),
                       input_names=[contract.INPUT_IMAGE], output_names=names, opset_version=17,
@@ -291,12 +297,7 @@ def main(argv=None):
         "contract": contract.INTRINSIC_CONTRACT, "name": a.name, "preset": a.preset,
         "recommended": a.recommended, "onnx": onnx_path.name, "sha256": engine.file_sha256(onnx_path),
         "inputs": [{"name": contract.INPUT_IMAGE, "shape": ["N", 3, "H", "W"], "dtype": "float32"}],
-        "outputs": [{"name": contract.OUTPUT_NORMAL, "shape": ["N", 3, "H", "W"]},
-                    {"name": contract.OUTPUT_HEIGHT, "shape": ["N", 1, "H", "W"]},
-                    {"name": contract.OUTPUT_ALBEDO, "shape": ["N", 3, "H", "W"]},
-                    {"name": contract.OUTPUT_PARSING, "shape": ["N", len(CLASSES), "H", "W"]}]
-        + ([{"name": contract.OUTPUT_TRANSFER, "shape": ["N", contract.TRANSFER_CHANNELS, "H", "W"]}]
-           if net.transfer else []),
+        "outputs": [{"name": name, "shape": ["N", c, "H", "W"]} for name, c in outputs(net)],
         "stride": STRIDE, "working_size": a.working_size,
         "colour": {"space": "linear Rec.709 scene-referred, channels first",
                    "image": "a square crop around the portrait (addon.framing), scaled so its 90th "
