@@ -25,7 +25,7 @@ class OutputError(RelightError):
 
 
 class DependencyError(RelightError):
-    """A bundled dependency (onnxruntime, OpenEXR, PyAV) is missing or broken."""
+    """A bundled dependency (onnxruntime, OpenEXR, PyAV, threadpoolctl) is missing or broken."""
 
 
 class Cancelled(RelightError):

@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import (colour, contract, detail, engine, framing, frames, lightvec, normalise, outline,
-               portrait, runlock, takes, temporal)
+from . import (blas, colour, contract, detail, engine, framing, frames, lightvec, normalise,
+               outline, portrait, runlock, takes, temporal)
 from .errors import Cancelled, InputError, LightingError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
 
@@ -641,6 +641,7 @@ def _raise_if_failed(*workers):
             raise w.error
 
 
+@blas.one_thread()  # the run's threads too: numpy's BLAS on one thread (addon/blas.py)
 def relight_clip(clip: ClipSpec, lights: np.ndarray, out_dir: str, options: RelightOptions,
                  frames: range | None = None, on_progress=None, should_cancel=None,
                  log=None) -> RunResult:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import detail, framing, intrinsic, lightvec, outline
+from . import blas, detail, framing, intrinsic, lightvec, outline
 from .engine import IntrinsicSession
 
 MARGIN = 2.2  # box side over the face's extent: room for hair, chin and a little shoulder
@@ -140,6 +140,7 @@ def _follows(prior: framing.Box, box: framing.Box) -> bool:
             and 1.0 / TRACK_SCALE <= box.size / prior.size <= TRACK_SCALE)
 
 
+@blas.one_thread()
 def find_box(session: IntrinsicSession, x_full: np.ndarray,
              fullres: detail.FullRes | None = None,
              prior: framing.Box | None = None) -> framing.Box | None:
@@ -212,6 +213,7 @@ def _change(session, x: np.ndarray, light, effects, valid=None, unit=None):
     return m * sh.ratio, m * sh.highlight, m[0], np.clip(bufs.matte, 0.0, 1.0)
 
 
+@blas.one_thread()
 def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarray,
                   box: framing.Box | None, effects: intrinsic.Plan | None = None,
                   exposure: str | float = "keep", fullres: detail.FullRes | None = None,

@@ -7,7 +7,9 @@ The frame is the built-in demo clip's first frame (our own render) enlarged into
 canvas, the portrait off-centre as in a wide shot. Each stage runs ``--repeats`` times after two
 warm-up runs; the table gives the median milliseconds and the frames per second it allows.
 Lights: a key lamp (one compact component: shadows and highlights are computed) and a soft
-uniform world (none: diffuse only). The end-to-end figure counts the framing pass a run makes
+uniform world (none: diffuse only). The stages run as the product runs them, numpy's BLAS on one
+thread (addon/blas.py); relight_frame is also timed with it left on its own threads, for
+comparison. The end-to-end figure counts the framing pass a run makes
 (it follows the last framed frame's box, find_box's ``prior``); the whole-frame search it falls
 back to is listed too. ``--clip N`` also runs the whole product path on an N-frame 1080p
 H.264 clip of the demo's frames in the same canvas (addon.pipeline.relight_clip: framing pass,
@@ -29,7 +31,8 @@ import time
 
 import numpy as np
 
-from addon import api, colour, detail, intrinsic, lightvec, outline, pipeline, portrait, temporal
+from addon import (api, blas, colour, detail, intrinsic, lightvec, outline, pipeline, portrait,
+                   temporal)
 from training.lightstage.png import read_png
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -139,28 +142,36 @@ def run(model: str, threads: int, repeats: int) -> dict:
     blend_row = f"temporal blend with two neighbours ({res.a.shape[1]}x{res.a.shape[2]} grid)"
     outline_row = "outline refit at 1080p (the fade's pixels, after the finish)"
     y = fullres.finish_planar(x, res.a, res.b, float(x.max()))[0]  # refitted in place, repeatedly
-    rows = {
-        f"network, {size} px crop": timed(lambda: sess.run_planar(crop), repeats),
-        "renderer, key lamp (diffuse + shadow + highlight)":
-            timed(lambda: intrinsic.shade(crop, bufs, lamp), repeats),
-    }
-    if bufs.transfer is not None:  # what the transfer's occlusion costs, in the same run
-        plain = dataclasses.replace(bufs, transfer=None)
-        rows["renderer, key lamp, the transfer left out (comparison)"] = timed(
-            lambda: intrinsic.shade(crop, plain, lamp), repeats)
-    rows |= {
-        "renderer, soft world (diffuse only)": timed(lambda: intrinsic.shade(crop, bufs, soft), repeats),
-        search_row: timed(lambda: portrait.find_box(sess, x, fullres), repeats),
-        framing_row: timed(lambda: portrait.find_box(sess, x, fullres, prior=box), repeats),
-        "relight_frame at 1080p (coarse + face passes, key lamp)":
-            timed(lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats),
-        "full-resolution finish at 1080p":
-            timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
-        outline_row: timed(lambda: outline.apply(res.outline, x, y, fullres=fullres), repeats),
-        loose_row: timed(lambda: fullres.finish_planar(x, *loose, float(x.max())), repeats),
-        blend_row: timed(lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
-                                         mask=res.matte), repeats),
-    }
+    # As the product runs them: relight_frame and relight_clip hold numpy's BLAS to one thread.
+    with blas.one_thread():
+        rows = {
+            f"network, {size} px crop": timed(lambda: sess.run_planar(crop), repeats),
+            "renderer, key lamp (diffuse + shadow + highlight)":
+                timed(lambda: intrinsic.shade(crop, bufs, lamp), repeats),
+        }
+        if bufs.transfer is not None:  # what the transfer's occlusion costs, in the same run
+            plain = dataclasses.replace(bufs, transfer=None)
+            rows["renderer, key lamp, the transfer left out (comparison)"] = timed(
+                lambda: intrinsic.shade(crop, plain, lamp), repeats)
+        rows |= {
+            "renderer, soft world (diffuse only)":
+                timed(lambda: intrinsic.shade(crop, bufs, soft), repeats),
+            search_row: timed(lambda: portrait.find_box(sess, x, fullres), repeats),
+            framing_row: timed(lambda: portrait.find_box(sess, x, fullres, prior=box), repeats),
+            "relight_frame at 1080p (coarse + face passes, key lamp)": timed(
+                lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats),
+            "full-resolution finish at 1080p":
+                timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
+            outline_row: timed(lambda: outline.apply(res.outline, x, y, fullres=fullres), repeats),
+            loose_row: timed(lambda: fullres.finish_planar(x, *loose, float(x.max())), repeats),
+            blend_row: timed(lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
+                                             mask=res.matte), repeats),
+        }
+    if max(blas.threads(), default=1) > 1:
+        # relight_frame holds numpy's BLAS to one thread (addon/blas.py); without that:
+        rows[f"relight_frame at 1080p, numpy's BLAS left on its {max(blas.threads())} threads "
+             "(comparison)"] = timed(lambda: portrait.relight_frame.__wrapped__(
+                 sess, x, lamp, box, fullres=fullres), repeats)
     net_render = rows[f"network, {size} px crop"] + rows["renderer, key lamp (diffuse + shadow + highlight)"]
     end_to_end = frame_ms(rows[framing_row],
                           rows["relight_frame at 1080p (coarse + face passes, key lamp)"],

@@ -2,10 +2,11 @@
 
     .venv/bin/python tools/build_extension.py [--platform linux-x64 ...] [--offline]
 
-Downloads the onnxruntime, OpenEXR, PyAV and OpenColorIO wheels pinned in requirements.txt for each platform
-(never numpy: Blender ships its own) into build/wheels/, stages only the extension's files in
-build/stage/ with a generated manifest listing the wheels, validates it with the extension tool
-shipped in the bpy wheel, and builds dist/portrait_relight-<version>-<platform>.zip.
+Downloads the onnxruntime, OpenEXR, PyAV, OpenColorIO and threadpoolctl wheels pinned in
+requirements.txt for each platform (never numpy: Blender ships its own) into build/wheels/,
+stages only the extension's files in build/stage/ with a generated manifest listing the wheels,
+validates it with the extension tool shipped in the bpy wheel, and builds
+dist/portrait_relight-<version>-<platform>.zip.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ import sys
 import tomllib
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-BUNDLED = ("onnxruntime", "OpenEXR", "av", "opencolorio")  # runtime imports beyond Blender's own numpy
+# runtime imports beyond Blender's own numpy
+BUNDLED = ("onnxruntime", "OpenEXR", "av", "opencolorio", "threadpoolctl")
 # Blender platform name -> pip platform tags (pip also accepts older tags of the same family).
 PLATFORMS = {
     "linux-x64": ["manylinux_2_28_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"],

@@ -91,7 +91,8 @@ def test_zip_holds_only_the_extension(linux_zip):
     assert [n for n in names if n.startswith("scripts/")] == ["scripts/relight_batch.py"]
     wheels = sorted(n.split("/")[1].split("-")[0].lower() for n in names
                     if n.startswith("wheels/"))
-    assert wheels == ["av", "onnxruntime", "opencolorio", "openexr"]  # never numpy: Blender has it
+    # never numpy: Blender has it
+    assert wheels == ["av", "onnxruntime", "opencolorio", "openexr", "threadpoolctl"]
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc")]
     assert not [n for n in names if n.startswith("models/research/")]  # measured, not offered
     manifest = zipfile.ZipFile(linux_zip).read("blender_manifest.toml").decode()

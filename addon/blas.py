@@ -1,0 +1,73 @@
+"""numpy's BLAS on one thread while a frame is relit.
+
+The renderer's matrix products are small (nine spherical-harmonic coefficients fitted over a
+crop's pixels, a Gaussian blur of a 128-pixel crop as two matrix products), too small for
+OpenBLAS's worker threads to pay for themselves; and where the other cores are busy (the
+pipeline's own decode and write threads, another job) those threads wait on each other and a
+frame's renderer ran several times slower (``python -m bench.intrinsic_speed`` times
+relight_frame both ways in one run). ``one_thread()`` holds numpy's BLAS to one thread while any
+caller is inside it and gives back the earlier setting when the last leaves; nested and
+concurrent callers (the pipeline's threads) share one limit. threadpoolctl does the work;
+where numpy has no BLAS library it can set (a build without one), nothing changes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+
+import numpy as np  # noqa: F401  (loads numpy's BLAS before threadpoolctl looks for it)
+
+from .errors import DependencyError
+
+_LOCK = threading.Lock()
+_STATE = {"depth": 0, "limiter": None, "controller": None, "module": None}
+
+
+def _controller():
+    """threadpoolctl's controller of the loaded BLAS libraries, found once (under a ms)."""
+    if _STATE["controller"] is None:
+        try:
+            import threadpoolctl
+        except ImportError as err:  # the extension still loads and can say what is missing
+            raise DependencyError("threadpoolctl is not installed; reinstall the extension "
+                                  f"({err}).") from err
+        _STATE["module"] = threadpoolctl
+        _STATE["controller"] = threadpoolctl.ThreadpoolController()
+    return _STATE["controller"]
+
+
+def _release() -> None:
+    """OpenBLAS's thread pool is the process's, so threadpoolctl lets only the thread that
+    first set it set it again (others silently do nothing) until that thread lets go. This
+    module's lock already orders its callers: let go, so that whichever thread is next, sets."""
+    openblas = getattr(_STATE["module"], "OpenBLASController", None)
+    if openblas is not None and hasattr(openblas, "clear_controlling_thread"):
+        openblas.clear_controlling_thread(force=True)
+
+
+@contextlib.contextmanager
+def one_thread():
+    """Hold numpy's BLAS to one thread inside the block (also a decorator)."""
+    with _LOCK:
+        if _STATE["depth"] == 0:
+            controller = _controller()
+            _release()
+            _STATE["limiter"] = controller.limit(limits=1, user_api="blas")
+            _release()
+        _STATE["depth"] += 1
+    try:
+        yield
+    finally:
+        with _LOCK:
+            _STATE["depth"] -= 1
+            if _STATE["depth"] == 0:
+                _release()
+                _STATE["limiter"].restore_original_limits()
+                _release()
+                _STATE["limiter"] = None
+
+
+def threads() -> list[int]:
+    """The thread counts numpy's BLAS libraries use now (empty: none found)."""
+    return [int(lib["num_threads"]) for lib in _controller().select(user_api="blas").info()]
