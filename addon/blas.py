@@ -4,9 +4,9 @@ The renderer's matrix products are small (nine spherical-harmonic coefficients f
 crop's pixels, a Gaussian blur of a 128-pixel crop as two matrix products), too small for
 OpenBLAS's worker threads to pay for themselves; and where the other cores are busy (the
 pipeline's own decode and write threads, another job) those threads wait on each other and a
-frame's renderer ran several times slower (``python -m bench.intrinsic_speed`` times
-relight_frame both ways in one run). ``one_thread()`` holds numpy's BLAS to one thread while any
-caller is inside it and gives back the earlier setting when the last leaves; nested and
+frame's renderer ran many times slower (``python -m bench.intrinsic_speed`` runs a 1080p clip
+and relight_frame both ways in one run). ``one_thread()`` holds numpy's BLAS to one thread while
+any caller is inside it and gives back the earlier setting when the last leaves; nested and
 concurrent callers (the pipeline's threads) share one limit. threadpoolctl does the work;
 where numpy has no BLAS library it can set (a build without one), nothing changes.
 """
@@ -14,14 +14,13 @@ where numpy has no BLAS library it can set (a build without one), nothing change
 from __future__ import annotations
 
 import contextlib
+import importlib
 import threading
-
-import numpy as np  # noqa: F401  (loads numpy's BLAS before threadpoolctl looks for it)
 
 from .errors import DependencyError
 
 _LOCK = threading.Lock()
-_STATE = {"depth": 0, "limiter": None, "controller": None, "module": None}
+_STATE = {"depth": 0, "limiter": None, "controller": None, "module": None, "held": True}
 
 
 def _controller():
@@ -32,6 +31,7 @@ def _controller():
         except ImportError as err:  # the extension still loads and can say what is missing
             raise DependencyError("threadpoolctl is not installed; reinstall the extension "
                                   f"({err}).") from err
+        importlib.import_module("numpy")  # its BLAS loaded before threadpoolctl looks for it
         _STATE["module"] = threadpoolctl
         _STATE["controller"] = threadpoolctl.ThreadpoolController()
     return _STATE["controller"]
@@ -49,6 +49,9 @@ def _release() -> None:
 @contextlib.contextmanager
 def one_thread():
     """Hold numpy's BLAS to one thread inside the block (also a decorator)."""
+    if not _STATE["held"]:
+        yield
+        return
     with _LOCK:
         if _STATE["depth"] == 0:
             controller = _controller()
@@ -66,6 +69,16 @@ def one_thread():
                 _STATE["limiter"].restore_original_limits()
                 _release()
                 _STATE["limiter"] = None
+
+
+@contextlib.contextmanager
+def left_alone():
+    """Inside the block, one_thread() changes nothing (the benchmarks' comparison)."""
+    was, _STATE["held"] = _STATE["held"], False
+    try:
+        yield
+    finally:
+        _STATE["held"] = was
 
 
 def threads() -> list[int]:

@@ -108,6 +108,15 @@ def test_relight_frame_and_find_box_run_on_one_thread(two_threads, monkeypatch):
     assert blas.threads()[0] == 2
 
 
+@needs_blas
+def test_left_alone_changes_nothing(two_threads):
+    with blas.left_alone():
+        with blas.one_thread():
+            assert blas.threads()[0] == 2
+    with blas.one_thread():
+        assert set(blas.threads()) == {1}
+
+
 def test_a_missing_threadpoolctl_says_to_reinstall(monkeypatch):
     monkeypatch.setitem(blas._STATE, "controller", None)
     monkeypatch.setitem(sys.modules, "threadpoolctl", None)
