@@ -333,3 +333,110 @@ def test_runs_from_before_the_transfer_are_remade_without_it(frames):
         torch.testing.assert_close(g, r)
     ls = losses(got, b["target"], b["fg"])
     assert float(ls["transfer"]) == 0.0 and torch.isfinite(ls["total"])
+
+
+def _batch_norms_set_apart(net):
+    """Batch normalisations far from the identity, so that folding them into the convolutions
+    (the export) changes every weight."""
+    g = torch.Generator().manual_seed(1)
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            n = m.num_features
+            m.weight.data = 0.5 + torch.rand(n, generator=g)
+            m.bias.data = 0.2 * torch.randn(n, generator=g)
+            m.running_mean.data = 0.2 * torch.randn(n, generator=g)
+            m.running_var.data = 0.5 + torch.rand(n, generator=g)
+    return net
+
+
+def test_a_network_rebuilt_from_its_onnx_is_the_network(frames, tmp_path):
+    """training.intrinsic.recover: the exported file's folded convolutions, read back into
+    IntrinsicNet, give the network's outputs in evaluation mode, and in training mode too on
+    the frames its batch normalisations were set from."""
+    from training.intrinsic import recover
+    from training.intrinsic.export import export_onnx
+    from training.intrinsic.model import IntrinsicNet
+    from training.intrinsic.train import prepare
+
+    torch.manual_seed(0)
+    net = _batch_norms_set_apart(IntrinsicNet("small")).eval()
+    path = tmp_path / "m.onnx"
+    export_onnx(net, path)
+    x = prepare(frames.batch(range(4)), torch.Generator().manual_seed(3))
+    rebuilt = recover.rebuild(path, "small", True, x).eval()
+    with torch.no_grad():
+        want, got = net(x), rebuilt(x)
+        rebuilt.train()
+        trained = rebuilt(x)
+    for w, g, t in zip(want, got, trained):  # (height is in pixels, up to about ten)
+        scale = max(1.0, float(w.abs().max()))
+        torch.testing.assert_close(g, w, atol=2e-4 * scale, rtol=1e-3)
+        torch.testing.assert_close(t, w, atol=2e-3 * scale, rtol=1e-2)
+    # A file that is not this network's is refused, saying so.
+    export_onnx(IntrinsicNet("standard").eval(), tmp_path / "other.onnx")
+    with pytest.raises(ValueError, match="enc.0.0 has shape"):
+        recover.rebuild(tmp_path / "other.onnx", "small", True, x)
+
+
+def test_a_network_rebuilt_from_its_int8_file_stays_near_it(frames, tmp_path):
+    """An int8 file's weights are dequantised per output channel: the rebuilt float network is
+    as near the int8 file as the float network it was quantised from."""
+    from training.intrinsic import recover
+    from training.intrinsic.export import export_onnx, quantise
+    from training.intrinsic.model import IntrinsicNet
+    from training.intrinsic.train import prepare
+
+    torch.manual_seed(0)
+    net = _batch_norms_set_apart(IntrinsicNet("small")).eval()
+    fp, q8 = tmp_path / "m.float.onnx", tmp_path / "m.onnx"
+    export_onnx(net, fp)
+    quantise(fp, q8, frames.batch(range(4)), frames.batch(range(4, 6)), RES)
+    x = prepare(frames.batch(range(4)), torch.Generator().manual_seed(3))
+    rebuilt = recover.rebuild(q8, "small", True, x)
+    near = recover.distance(rebuilt, q8, x)["eval"]
+    ref = recover.distance(net, q8, x)["eval"]
+    for name, d in near.items():
+        assert d <= 1.5 * ref[name] + 1e-5, (name, d, ref[name])
+    # each weight within one quantisation step (half a step, rounded) of the float network's
+    folded = recover.conv_weights(fp)
+    for name, (w, _) in recover.conv_weights(q8).items():
+        step = np.abs(folded[name][0]).reshape(len(w), -1).max(1) / 127.0
+        assert np.all(np.abs(w - folded[name][0]).reshape(len(w), -1).max(1) <= step + 1e-7), name
+
+
+def test_a_recovered_checkpoint_trains_on_and_its_card_names_where_it_came_from(frames, tmp_path):
+    """recover.save writes what train --init loads, and export.lineage of a run started from it
+    records the file it was rebuilt from and, nested, the runs behind that file."""
+    from training.intrinsic import export, recover
+    from training.intrinsic.model import IntrinsicNet, load_weights
+    from training.intrinsic.train import prepare
+
+    torch.manual_seed(0)
+    net = IntrinsicNet("small").eval()
+    path = tmp_path / "m.onnx"
+    export.export_onnx(net, path)
+    x = prepare(frames.batch(range(2)), torch.Generator().manual_seed(3))
+    rebuilt = recover.rebuild(path, "small", True, x)
+    before = {"recipe": {"command": "python -m training.intrinsic.train --out runs/a",
+                         "args": {"out": "runs/a"}, "git_commit": "abc", "render_version": "v2",
+                         "exported_checkpoint": {"file": "best.pt", "step": 7},
+                         "init": {"checkpoint": "runs/z/best.pt", "recipe": "python -m z"}}}
+    rec = tmp_path / "recovered"
+    recover.save(rebuilt, rec, path, before, {}, "python -m training.intrinsic.recover ...")
+    again = IntrinsicNet("small")
+    load_weights(again, torch.load(rec / "best.pt", map_location="cpu")["state_dict"])
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "recipe.json").write_text(__import__("json").dumps(
+        {"width": "small", "res": 128, "steps": 10, "out": str(run), "transfer": True,
+         "init": str(rec / "best.pt")}))
+    torch.save({"state_dict": again.state_dict(), "step": 10}, run / "best.pt")
+    line = export.lineage(run, "best.pt")
+    init = line["init"]
+    assert init["recipe"].startswith("python -m training.intrinsic.recover")
+    assert init["recovered_from"]["sha256"] == __import__("hashlib").sha256(
+        path.read_bytes()).hexdigest()
+    assert init["step"] == 7
+    assert init["init"]["recipe"] == before["recipe"]["command"]
+    assert init["init"]["checkpoint"] == "runs/a/best.pt"
+    assert init["init"]["init"] == before["recipe"]["init"]

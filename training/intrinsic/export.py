@@ -232,6 +232,8 @@ def lineage(run: pathlib.Path, checkpoint: str) -> dict:
     step, and (nested) the run its --init checkpoint came from, as training.run.reproduce reads."""
     recipe = json.loads((run / "recipe.json").read_text())
     state = torch.load(run / checkpoint, map_location="cpu")
+    if "recovered_from" in recipe:  # rebuilt from a shipped ONNX (training.intrinsic.recover)
+        return recovered_lineage(recipe, checkpoint, state)
     out = {"command": train_command(recipe), "args": {"out": recipe["out"]},
            "git_commit": recipe.get("git_commit"), "render_version": recipe.get("render_version"),
            "exported_checkpoint": {"file": checkpoint, "step": state.get("step")}}
@@ -242,10 +244,29 @@ def lineage(run: pathlib.Path, checkpoint: str) -> dict:
         out["init"] = {"checkpoint": init, "step": rec.get("exported_checkpoint", {}).get("step"),
                        "recipe": rec.get("command"), "git_commit": rec.get("git_commit"),
                        "render_version": rec.get("render_version"), "init": rec.get("init")}
+        if "recovered_from" in rec:
+            out["init"]["recovered_from"] = rec["recovered_from"]
         stopped = json.loads((parent.parent / "recipe.json").read_text()).get("stopped")
         if stopped:
             out["init"]["note"] = stopped
     return out
+
+
+def recovered_lineage(recipe: dict, checkpoint: str, state: dict) -> dict:
+    """lineage() of a run folder training.intrinsic.recover made from a shipped ONNX: its
+    command, the file it read, and (as ``init``) the runs behind that file, from its card."""
+    src = recipe["recovered_from"]
+    before = (src.get("card_training") or {}).get("recipe") or {}
+    return {"command": recipe["command"], "git_commit": recipe.get("git_commit"),
+            "render_version": before.get("render_version"),
+            "exported_checkpoint": {"file": checkpoint, "step": state.get("step")},
+            "recovered_from": {"onnx": src["onnx"], "sha256": src["sha256"]},
+            "init": {"checkpoint": f"{before.get('args', {}).get('out')}/"
+                                   f"{before.get('exported_checkpoint', {}).get('file')}",
+                     "step": before.get("exported_checkpoint", {}).get("step"),
+                     "recipe": before.get("command"), "git_commit": before.get("git_commit"),
+                     "render_version": before.get("render_version"),
+                     "init": before.get("init")} if before else None}
 
 
 def parser() -> argparse.ArgumentParser:
