@@ -6,8 +6,9 @@ OpenBLAS's worker threads to pay for themselves; and where the other cores are b
 pipeline's own decode and write threads, another job) those threads wait on each other and a
 frame's renderer ran many times slower (``python -m bench.intrinsic_speed`` runs a 1080p clip
 and relight_frame both ways in one run). ``one_thread()`` holds numpy's BLAS to one thread while
-any caller is inside it and gives back the earlier setting when the last leaves; nested and
-concurrent callers (the pipeline's threads) share one limit. threadpoolctl does the work;
+any caller is inside it and gives back the earlier setting when the last leaves. The limit is
+the process's, so the pipeline's decode and write threads run under it too, and nested or
+concurrent callers share one. threadpoolctl does the work;
 where numpy has no BLAS library it can set (a build without one), nothing changes.
 """
 
