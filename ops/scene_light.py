@@ -296,14 +296,15 @@ class _Context:
                                f"The world image '{node.image.name}'")
 
     def downsample(self, pixels, to_frame, strength: float, what: str) -> np.ndarray:
-        """hdri.downsample; NaN, infinite or negative pixels become black with a warning (even
-        Blender's bundled studio.exr has three negative pixels)."""
-        bad = int(np.count_nonzero(~(pixels >= 0) | ~np.isfinite(pixels)))
+        """hdri.downsample; NaN, infinite or negative pixels become black, with a warning where
+        they are more than the file's rounding (hdri.damaged_texels: Blender's own studio HDRIs
+        hold a few tiny negative values)."""
+        bad = hdri.damaged_texels(pixels)
         if bad:
             self.warn(f"{what} has {bad} NaN, infinite or negative values; they are treated as "
                       "black.")
         return hdri.downsample(pixels, to_frame, strength=strength, max_width=HDRI_WIDTH,
-                               repair=bad > 0)
+                               repair=True)
 
     def environment_mapping(self, env) -> np.ndarray:
         """Rotation taking the texture's directions to world directions (Mapping node, if any)."""
