@@ -22,6 +22,9 @@ OUTPUT_ALBEDO = "albedo"         # intrinsic: float32 [N, 3, H, W] albedo up to 
 # [N, 16, H, W], the light transport as order-3 SH (addon.intrinsic.TRANSFER_ORDER).
 OUTPUT_TRANSFER = "transfer"
 TRANSFER_CHANNELS = 16
+# The transfer's coefficients odd in x (in the usual SH order): they change sign when the picture
+# is mirrored left to right.
+TRANSFER_X_ODD = (3, 4, 7, 10, 13, 15)
 INTRINSIC_CLASSES = ("foreground", "skin")
 
 # Parsing classes, in channel order. Channel 0 is the portrait foreground (the matte); the others

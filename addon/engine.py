@@ -409,6 +409,17 @@ class IntrinsicResult:
     transfer: np.ndarray | None = None  # (16, H, W) when the model has contract.OUTPUT_TRANSFER
 
 
+def _mirror_mean(name: str, out: np.ndarray) -> np.ndarray:
+    """(1, C, H, W): the mean of a batch's two buffers, the second (the mirror image's) mirrored
+    back, its x-odd channels negated."""
+    back = out[1, :, :, ::-1].copy()
+    if name == contract.OUTPUT_NORMAL:
+        back[0] *= -1.0
+    elif name == contract.OUTPUT_TRANSFER and back.shape[0] == contract.TRANSFER_CHANNELS:
+        back[list(contract.TRANSFER_X_ODD)] *= -1.0
+    return (0.5 * (out[0] + back))[None]
+
+
 class IntrinsicSession:
     """A loaded intrinsic model (contract.INTRINSIC_CONTRACT): ``run_planar(image)`` gives the
     buffers that addon/intrinsic.py renders; the light never enters the network."""
@@ -430,14 +441,23 @@ class IntrinsicSession:
         self.outputs = self.OUTPUTS + ((contract.OUTPUT_TRANSFER,)
                                        if contract.OUTPUT_TRANSFER in outs else ())
 
-    def run_planar(self, image: np.ndarray) -> IntrinsicResult:
+    def run_planar(self, image: np.ndarray, mirror: bool = False) -> IntrinsicResult:
         """(3, H, W) normalised linear image (addon.intrinsic.exposure_scale) -> buffers; the
-        image is reflect-padded to the model's stride and the buffers cropped back."""
+        image is reflect-padded to the model's stride and the buffers cropped back.
+        ``mirror``: the image and its mirror image run as one batch, and each buffer is the mean
+        of the image's and the mirror's, mirrored back (the normal's x and the transfer's x-odd
+        coefficients change sign): the network, trained on randomly mirrored frames, errs
+        differently on the two, and their mean errs less."""
         img, h, w = pad_to_stride(image, self.card.stride)
+        batch = np.stack([img, img[:, :, ::-1]]) if mirror else img[None]
         outs = self.session.run(list(self.outputs),
-                                {contract.INPUT_IMAGE: np.ascontiguousarray(img[None])})
+                                {contract.INPUT_IMAGE: np.ascontiguousarray(batch)})
+        if mirror:
+            outs = [_mirror_mean(name, o) for name, o in zip(self.outputs, outs)]
         n, hgt, alb, par, *rest = (np.ascontiguousarray(o[0, :, :h, :w], dtype=np.float32)
                                    for o in outs)
+        if mirror:
+            n = n / np.maximum(np.linalg.norm(n, axis=0, keepdims=True), 1e-6)
         tr = rest[0] if rest else None
         k = len(self.card.classes)
         if (n.shape[0] != 3 or hgt.shape[0] != 1 or alb.shape[0] != 3 or par.shape[0] != k

@@ -211,7 +211,7 @@ def sh_basis(normal, order: int = 2, stack=None):
 # picture is mirrored left to right.
 TRANSFER_ORDER = 3
 TRANSFER_CHANNELS = contract.TRANSFER_CHANNELS  # (TRANSFER_ORDER + 1) ** 2
-TRANSFER_X_ODD = (3, 4, 7, 10, 13, 15)
+TRANSFER_X_ODD = contract.TRANSFER_X_ODD
 # An unoccluded pixel's transfer: Lambert's cosine lobe in SH (SH_BAND; its band 3 is zero)
 # times the SH of its normal. The network predicts the difference occlusion makes.
 TRANSFER_BAND = np.concatenate([SH_BAND, np.zeros(7, np.float32)])

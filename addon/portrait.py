@@ -92,10 +92,21 @@ def clip_gain(results, exposure: str, scale: float = 1.0) -> float:
     return sum(r.lum_in for r in found) / sum(r.lum_out for r in found)
 
 
-def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None = None):
+# The relighting passes take the mean of the network's buffers for the image and for its mirror
+# image (IntrinsicSession.run_planar's ``mirror``; the framing passes do not): on the CroppedYale
+# tune subjects, 36 pairs each, scale-invariant PSNR 20.14 -> 20.26 dB (HDRI 23.72 -> 23.91, one
+# light 16.90 -> 17.00, two or three 19.81 -> 19.88), balance correlation left/right 0.982 ->
+# 0.983, top/bottom 0.748 either way; the network's time per pass about 1.6x.
+MIRROR = True
+
+
+def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None = None,
+            mirror: bool = False):
     """The network's buffers for a (3, h, w) linear image (normalised here); ``valid``: the
-    share of each pixel inside the frame (crop_planar)."""
-    res = session.run_planar(x * np.float32(intrinsic.exposure_scale(x)))
+    share of each pixel inside the frame (crop_planar); ``mirror``: the mean with the mirror
+    image's (MIRROR)."""
+    x = x * np.float32(intrinsic.exposure_scale(x))
+    res = session.run_planar(x, mirror=True) if mirror else session.run_planar(x)
     names = session.card.classes
     matte = res.parsing[names.index("foreground")]
     face = res.parsing[names.index("skin")] if "skin" in names else np.zeros_like(matte)
@@ -199,7 +210,7 @@ def _change(session, x: np.ndarray, light, effects, valid=None, unit=None):
     image, the weight being the matte's core (MATTE_EDGE). The ratio
     is carried times the matte, never as ratio - 1: under a faint light ratio - 1 + 1 would
     lose the ratio to rounding."""
-    bufs = buffers(session, x, valid)
+    bufs = buffers(session, x, valid, mirror=MIRROR)
     sh = intrinsic.shade(x, bufs, light, effects, keep_exposure=False)
     if unit is not None:
         unit.append(sh.unit)

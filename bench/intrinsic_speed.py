@@ -145,7 +145,10 @@ def run(model: str, threads: int, repeats: int) -> dict:
     # As the product runs them: relight_frame and relight_clip hold numpy's BLAS to one thread.
     with blas.one_thread():
         rows = {
-            f"network, {size} px crop": timed(lambda: sess.run_planar(crop), repeats),
+            f"network, {size} px crop (a framing pass)": timed(lambda: sess.run_planar(crop),
+                                                               repeats),
+            f"network, {size} px crop and its mirror in one batch (a relighting pass)": timed(
+                lambda: sess.run_planar(crop, mirror=portrait.MIRROR), repeats),
             "renderer, key lamp (diffuse + shadow + highlight)":
                 timed(lambda: intrinsic.shade(crop, bufs, lamp), repeats),
         }
@@ -173,7 +176,8 @@ def run(model: str, threads: int, repeats: int) -> dict:
             rows[f"relight_frame at 1080p, numpy's BLAS left on its {max(blas.threads())} "
                  "threads (comparison)"] = timed(lambda: portrait.relight_frame(
                      sess, x, lamp, box, fullres=fullres), repeats)
-    net_render = rows[f"network, {size} px crop"] + rows["renderer, key lamp (diffuse + shadow + highlight)"]
+    net_render = (rows[f"network, {size} px crop and its mirror in one batch (a relighting pass)"]
+                  + rows["renderer, key lamp (diffuse + shadow + highlight)"])
     end_to_end = frame_ms(rows[framing_row],
                           rows["relight_frame at 1080p (coarse + face passes, key lamp)"],
                           rows["full-resolution finish at 1080p"] + rows[outline_row],

@@ -87,7 +87,7 @@ def test_relight_frame_and_find_box_run_on_one_thread(two_threads, monkeypatch):
     class Session:  # a flat, camera-facing portrait filling the frame
         card = Card()
 
-        def run_planar(self, x):
+        def run_planar(self, x, mirror=False):
             h, w = x.shape[1:]
             n = np.zeros((3, h, w), np.float32)
             n[2] = 1.0

@@ -224,6 +224,56 @@ def test_a_model_with_the_transfer_gives_it_and_relights_with_it(tmp_path):
         engine.new_session(bad, providers=["CPUExecutionProvider"], threads=1)
 
 
+def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(tmp_path):
+    """run_planar(mirror=True): each buffer is the mean of the image's and the mirror image's
+    mirrored back, the normal's x and the transfer's x-odd coefficients negated; so mirroring
+    the image mirrors the result exactly. The relighting passes use it, the framing passes
+    not."""
+    # The shipped network (a learned one: its two passes differ) on the demo's first frame.
+    root = pathlib.Path(__file__).resolve().parents[2]
+    sess = engine.new_session(root / "models" / "relight-portrait.onnx",
+                              providers=["CPUExecutionProvider"], threads=1, spin=False)
+    from training.lightstage.png import read_png
+    src = read_png(root / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
+    x = np.ascontiguousarray(src[:128, :128].transpose(2, 0, 1) ** 2.2)
+    flip = np.ascontiguousarray(x[:, :, ::-1])
+    a, b, m = sess.run_planar(x), sess.run_planar(flip), sess.run_planar(x, mirror=True)
+    odd = list(contract.TRANSFER_X_ODD)
+    nb, tb = b.normal[:, :, ::-1].copy(), b.transfer[:, :, ::-1].copy()
+    nb[0] *= -1
+    tb[odd] *= -1
+    n = a.normal + nb
+    n /= np.linalg.norm(n, axis=0, keepdims=True)
+    assert np.abs(a.parsing - b.parsing[:, :, ::-1]).max() > 0.5  # the passes differ
+    np.testing.assert_allclose(m.normal, n, atol=1e-5)
+    np.testing.assert_allclose(m.height, 0.5 * (a.height + b.height[:, ::-1]), atol=1e-5)
+    np.testing.assert_allclose(m.albedo, 0.5 * (a.albedo + b.albedo[:, :, ::-1]), atol=1e-6)
+    np.testing.assert_allclose(m.parsing, 0.5 * (a.parsing + b.parsing[:, :, ::-1]), atol=1e-6)
+    np.testing.assert_allclose(m.transfer, 0.5 * (a.transfer + tb), atol=1e-5)
+    mm = sess.run_planar(flip, mirror=True)
+    back = mm.normal[:, :, ::-1].copy()
+    back[0] *= -1
+    np.testing.assert_allclose(back, m.normal, atol=1e-5)
+    # which passes mirror: every relighting pass, no framing pass
+    sess = engine.new_session(write_standin(tmp_path, "mirror"),
+                              providers=["CPUExecutionProvider"], threads=1, spin=False)
+    seen = []
+
+    class Spy:
+        card = sess.card
+
+        def run_planar(self, image, mirror=False):
+            seen.append(mirror)
+            return sess.run_planar(image, mirror=mirror)
+
+    wide = chw(frame(96, 160, (110.0, 48.0), 20.0))
+    box = portrait.find_box(Spy(), wide)
+    assert seen and not any(seen)
+    seen.clear()
+    portrait.relight_frame(Spy(), wide, RIGHT_LAMP, box)
+    assert seen == [portrait.MIRROR] * 2  # the coarse pass and the face crop
+
+
 def test_a_model_without_a_normal_output_is_refused(tmp_path):
     """A relight-intrinsic/1 model whose outputs lack 'normal' is a ModelError, not a crash."""
     path = write_standin(tmp_path, "no_normal", normal_name="normals")
@@ -251,9 +301,9 @@ class Counting:
     def __init__(self, session):
         self.inner, self.calls, self.card = session, 0, session.card
 
-    def run_planar(self, x):
+    def run_planar(self, x, **kw):
         self.calls += 1
-        return self.inner.run_planar(x)
+        return self.inner.run_planar(x, **kw)
 
 
 def test_find_box_follows_a_prior_box_with_one_network_pass(session):
@@ -397,7 +447,7 @@ def test_a_working_size_in_place_of_the_card_s_runs_the_network_on_crops_of_that
     seen = []
     run = engine.IntrinsicSession.run_planar
     monkeypatch.setattr(engine.IntrinsicSession, "run_planar",
-                        lambda self, x: seen.append(x.shape[1:]) or run(self, x))
+                        lambda self, x, **kw: seen.append(x.shape[1:]) or run(self, x, **kw))
     card = engine.load_card(model).working_size
     for size in (card // 2, card + 16):
         seen.clear()
@@ -416,7 +466,7 @@ def test_a_clip_run_relights_at_the_working_size_its_options_ask_for(model, tmp_
     seen = []
     run = engine.IntrinsicSession.run_planar
     monkeypatch.setattr(engine.IntrinsicSession, "run_planar",
-                        lambda self, x: seen.append(x.shape[1:]) or run(self, x))
+                        lambda self, x, **kw: seen.append(x.shape[1:]) or run(self, x, **kw))
     files = write_exr_sequence(tmp_path / "src", clip_frames())
     size = engine.load_card(model).working_size + 16
     res = pipeline.relight_clip(image_clip(files), RIGHT_LAMP[None], tmp_path / "out",
