@@ -81,7 +81,7 @@ def exact_buffers(a: dict) -> intrinsic.Buffers:
 def predicted_buffers(session, img: np.ndarray) -> intrinsic.Buffers:
     from addon import portrait
 
-    return portrait.buffers(session, img)
+    return portrait.buffers(session, img, mirror=portrait.MIRROR)  # as the relighting passes
 
 
 def error(out: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:

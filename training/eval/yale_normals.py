@@ -49,7 +49,7 @@ def network_normals(session, gray: np.ndarray) -> np.ndarray | None:
     if box is None:
         return None
     crop, valid = portrait.crop_planar(x, box, session.card.working_size)
-    bufs = portrait.buffers(session, crop, valid)
+    bufs = portrait.buffers(session, crop, valid, mirror=portrait.MIRROR)  # as the relighting
     n = framing.uncrop(np.ascontiguousarray(bufs.normal.transpose(1, 2, 0)), box, (h, w), 0.0)
     n = n.reshape(-1, 3).T
     return n / np.maximum(np.linalg.norm(n, axis=0), 1e-9)
@@ -121,8 +121,8 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray):
         state["box"], state["hw"] = box, x.shape[1:]
         return crop_planar(x, box, size)
 
-    def swap(session, x, valid=None):
-        out = buffers(session, x, valid)
+    def swap(session, x, valid=None, mirror=False):
+        out = buffers(session, x, valid, mirror)
         size = session.card.working_size
         if state.get("hw") is None or x.shape[1:] != (size, size):
             return out
