@@ -263,15 +263,46 @@ def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(t
         card = sess.card
 
         def run_planar(self, image, mirror=False):
-            seen.append(mirror)
+            seen.append((mirror, image.shape[1]))
             return sess.run_planar(image, mirror=mirror)
 
     wide = chw(frame(96, 160, (110.0, 48.0), 20.0))
     box = portrait.find_box(Spy(), wide)
-    assert seen and not any(seen)
+    assert seen and not any(m for m, _ in seen)
     seen.clear()
     portrait.relight_frame(Spy(), wide, RIGHT_LAMP, box)
-    assert seen == [portrait.MIRROR] * 2  # the coarse pass and the face crop
+    size = sess.card.working_size  # the coarse pass, the face crop, its finer sampling
+    assert [m for m, _ in seen] == [portrait.MIRROR] * 3
+    assert [n for _, n in seen][1:] == [size, round(size * portrait.ZOOM)]
+
+
+def test_a_finer_sampling_s_buffers_are_shrunk_to_the_crop_and_averaged():
+    """portrait.shrunk: buffers of the same box at a larger size come back at the crop's size,
+    area-averaged, the normals unit, the height in the crop's pixels; mean_buffers averages
+    (the normals renormalised) and keeps the transfer only where both have one."""
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(3, 40, 40)).astype(np.float32)
+    n[2] = np.abs(n[2]) + 1.0
+    n /= np.linalg.norm(n, axis=0, keepdims=True)
+    big = intrinsic.Buffers(n, np.full((40, 40), 10.0, np.float32),
+                            np.full((3, 40, 40), 0.4, np.float32), np.ones((40, 40), np.float32),
+                            np.zeros((40, 40), np.float32), np.ones((16, 40, 40), np.float32))
+    small = portrait.shrunk(big, 32)
+    assert small.normal.shape == (3, 32, 32) and small.transfer.shape == (16, 32, 32)
+    np.testing.assert_allclose(np.linalg.norm(small.normal, axis=0), 1.0, atol=1e-5)
+    np.testing.assert_allclose(small.height, 8.0, atol=1e-5)  # 10 px of 40 are 8 of 32
+    np.testing.assert_allclose(small.albedo, 0.4, atol=1e-6)
+    flat = intrinsic.Buffers(np.broadcast_to(np.float32([0, 0, 1])[:, None, None],
+                                             (3, 32, 32)).copy(), np.zeros((32, 32), np.float32),
+                             np.full((3, 32, 32), 0.2, np.float32), np.zeros((32, 32), np.float32),
+                             np.ones((32, 32), np.float32), None)
+    m = portrait.mean_buffers(small, flat)
+    np.testing.assert_allclose(np.linalg.norm(m.normal, axis=0), 1.0, atol=1e-5)
+    np.testing.assert_allclose(m.height, 4.0, atol=1e-5)
+    np.testing.assert_allclose(m.albedo, 0.3, atol=1e-6)
+    np.testing.assert_allclose(m.matte, 0.5) and np.testing.assert_allclose(m.face, 0.5)
+    assert m.transfer is None
+    assert np.all(m.normal[2] > small.normal[2] - 1e-6)  # pulled toward the camera-facing one
 
 
 def test_a_model_without_a_normal_output_is_refused(tmp_path):
