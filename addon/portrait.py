@@ -242,15 +242,23 @@ def feather(size: int, share: float = FEATHER) -> np.ndarray:
     return np.minimum(edge[:, None], edge[None, :]).astype(np.float32)
 
 
-def _change(session, x: np.ndarray, light, effects, valid=None, unit=None, finer=None):
+def face_buffers(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box, size: int):
+    """(crop, valid, buffers) of the face crop as the relighting pass takes them: the crop and
+    its mirror image (MIRROR), averaged with a finer sampling of the same box (ZOOM)."""
+    crop, valid = crop_planar(x_full, box, size)
+    bufs = buffers(session, crop, valid, mirror=MIRROR)
+    if ZOOM:
+        finer = buffers(session, *crop_planar(x_full, box, round(size * ZOOM)), mirror=MIRROR)
+        bufs = mean_buffers(bufs, shrunk(finer, size))
+    return crop, valid, bufs
+
+
+def _change(session, x: np.ndarray, light, effects, valid=None, unit=None, bufs=None):
     """(ratio and highlight, each times the weight; the weight; the matte) for a (3, h, w)
     image, the weight being the matte's core (MATTE_EDGE). The ratio
     is carried times the matte, never as ratio - 1: under a faint light ratio - 1 + 1 would
-    lose the ratio to rounding. ``finer``: (image, valid) of the same square at a larger size,
-    whose buffers are averaged in (ZOOM)."""
-    bufs = buffers(session, x, valid, mirror=MIRROR)
-    if finer is not None:
-        bufs = mean_buffers(bufs, shrunk(buffers(session, *finer, mirror=MIRROR), x.shape[1]))
+    lose the ratio to rounding. ``bufs``: the image's buffers, if the caller has them."""
+    bufs = buffers(session, x, valid, mirror=MIRROR) if bufs is None else bufs
     sh = intrinsic.shade(x, bufs, light, effects, keep_exposure=False)
     if unit is not None:
         unit.append(sh.unit)
@@ -307,10 +315,9 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
                                  intrinsic.Plan(plan.components, False, False))
         coarse = detail.enlarge_planar(np.concatenate([mr, hi, m[None], raw[None]], 0), gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
-    crop, valid = crop_planar(x_full, box, size)
+    crop, valid, bufs = face_buffers(session, x_full, box, size)
     units: list[float] = []
-    finer = crop_planar(x_full, box, round(size * ZOOM)) if ZOOM else None
-    mr_f, hi_f, m_f, raw_f = _change(session, crop, light, plan, valid, units, finer)
+    mr_f, hi_f, m_f, raw_f = _change(session, crop, light, plan, valid, units, bufs)
     fw = (1.0 if covers else feather(size)) * valid
     k = gh / h
     gbox = framing.Box(box.cx * k, box.cy * k, box.size * k)

@@ -48,8 +48,7 @@ def network_normals(session, gray: np.ndarray) -> np.ndarray | None:
     box = portrait.find_box(session, x)  # buffers() normalises the exposure itself
     if box is None:
         return None
-    crop, valid = portrait.crop_planar(x, box, session.card.working_size)
-    bufs = portrait.buffers(session, crop, valid, mirror=portrait.MIRROR)  # as the relighting
+    _, _, bufs = portrait.face_buffers(session, x, box, session.card.working_size)  # as relit
     n = framing.uncrop(np.ascontiguousarray(bufs.normal.transpose(1, 2, 0)), box, (h, w), 0.0)
     n = n.reshape(-1, 3).T
     return n / np.maximum(np.linalg.norm(n, axis=0), 1e-9)
@@ -113,8 +112,9 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray):
     """Within this context the product's face crops (addon.portrait) carry ``normals`` (3, h*w)
     of the image being relit where ``fitted`` (h*w,) instead of the network's: what the
     pipeline would make of the face with its real normals. A diagnostic for one image size at a
-    time; the network's matte, albedo and height stay."""
-    crop_planar, buffers = portrait.crop_planar, portrait.buffers
+    time; the network's matte, albedo and height stay (the face crop's finer sampling,
+    portrait.ZOOM, is left out: its normals would be the network's)."""
+    crop_planar, buffers, zoom = portrait.crop_planar, portrait.buffers, portrait.ZOOM
     state = {}
 
     def crop(x, box, size):
@@ -134,11 +134,11 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray):
         n = (n / np.maximum(np.linalg.norm(n, axis=0, keepdims=True), 1e-6)).astype(np.float32)
         return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
 
-    portrait.crop_planar, portrait.buffers = crop, swap
+    portrait.crop_planar, portrait.buffers, portrait.ZOOM = crop, swap, 0
     try:
         yield
     finally:
-        portrait.crop_planar, portrait.buffers = crop_planar, buffers
+        portrait.crop_planar, portrait.buffers, portrait.ZOOM = crop_planar, buffers, zoom
 
 
 def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: int = 2021) -> dict:
