@@ -233,7 +233,8 @@ def test_level_fit_rmse_forgives_an_overall_level_and_tint_only():
 
 def test_update_card_rewrites_only_the_metrics_of_the_card_that_describes_the_file(tmp_path):
     """evaluate --update-card: re-measuring a shipped model (a new test set) replaces the card's
-    metrics and nothing else, and refuses a card written for another file or a missing card."""
+    metrics it measures and nothing else (an intrinsic card's buffer figures stay), and refuses
+    a card written for another file or a missing card."""
     onnx_path = tmp_path / "m.onnx"
     onnx_path.write_bytes(b"model bytes")
     with pytest.raises(SystemExit, match="no card"):
@@ -244,6 +245,11 @@ def test_update_card_rewrites_only_the_metrics_of_the_card_that_describes_the_fi
     evaluate.update_card(onnx_path, {"rmse": 0.25, "render_version": "v2"})
     assert json.loads((tmp_path / "m.json").read_text()) == {
         **card, "metrics": {"rmse": 0.25, "render_version": "v2"}}
+    card["metrics"]["val_buffers"] = {"normal_deg": 11.0}
+    (tmp_path / "m.json").write_text(json.dumps(card))
+    evaluate.update_card(onnx_path, {"rmse": 0.2})
+    assert json.loads((tmp_path / "m.json").read_text())["metrics"] == {
+        "rmse": 0.2, "val_buffers": {"normal_deg": 11.0}}
     onnx_path.write_bytes(b"other bytes")
     with pytest.raises(SystemExit, match="sha256 differs"):
         evaluate.update_card(onnx_path, {"rmse": 0.1})

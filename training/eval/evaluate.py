@@ -254,7 +254,9 @@ def update_card(onnx_path, metrics: dict) -> pathlib.Path:
     if card.get("sha256") != digest:
         raise SystemExit(f"--update-card: {card_path} describes another file than {onnx_path} "
                          "(sha256 differs); re-export the model instead")
-    card["metrics"] = metrics
+    # Figures this module does not measure (an intrinsic card's buffers against the light
+    # stage, from its export) stay.
+    card["metrics"] = {**card.get("metrics", {}), **metrics}
     card_path.write_text(json.dumps(card, indent=2) + "\n")
     return card_path
 
