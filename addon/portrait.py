@@ -92,8 +92,9 @@ def clip_gain(results, exposure: str, scale: float = 1.0) -> float:
     return sum(r.lum_in for r in found) / sum(r.lum_out for r in found)
 
 
-# The relighting passes take the mean of the network's buffers for the image and for its mirror
-# image (IntrinsicSession.run_planar's ``mirror``; the framing passes do not): on the CroppedYale
+# The face crop's relighting pass takes the mean of the network's buffers for the crop and for its
+# mirror image (IntrinsicSession.run_planar's ``mirror``; the framing passes and the coarse pass
+# over the whole frame do not): on the CroppedYale
 # tune subjects, 36 pairs each, scale-invariant PSNR 20.14 -> 20.26 dB (HDRI 23.72 -> 23.91, one
 # light 16.90 -> 17.00, two or three 19.81 -> 19.88), balance correlation left/right 0.982 ->
 # 0.983, top/bottom 0.748 either way; the network's time per pass about 1.6x.
@@ -310,9 +311,11 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
         coarse_size = max(int(size * COARSE), 16)
         small = fr.shrink_planar(grid, *detail.working_shape(h, w, coarse_size))
         # Diffuse only: at this scale (a 1080p frame's 15 pixels a sample) cast shadows are
-        # blocks, and highlights fall on face skin, which the face crop covers.
+        # blocks, and highlights fall on face skin, which the face crop covers. One network pass
+        # (no mirror image): the face crop is where the buffers' errors show.
         mr, hi, m, raw = _change(session, small, light,
-                                 intrinsic.Plan(plan.components, False, False))
+                                 intrinsic.Plan(plan.components, False, False),
+                                 bufs=buffers(session, small))
         coarse = detail.enlarge_planar(np.concatenate([mr, hi, m[None], raw[None]], 0), gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
     crop, valid, bufs = face_buffers(session, x_full, box, size)
