@@ -440,3 +440,6 @@ def test_a_recovered_checkpoint_trains_on_and_its_card_names_where_it_came_from(
     assert init["init"]["recipe"] == before["recipe"]["command"]
     assert init["init"]["checkpoint"] == "runs/a/best.pt"
     assert init["init"]["init"] == before["recipe"]["init"]
+    # exported as it is (the shipped model again): its record names its folder like a run's
+    direct = export.lineage(rec, "best.pt")
+    assert direct["args"]["out"] == str(rec) and direct["init"]["step"] == 7

@@ -233,7 +233,7 @@ def lineage(run: pathlib.Path, checkpoint: str) -> dict:
     recipe = json.loads((run / "recipe.json").read_text())
     state = torch.load(run / checkpoint, map_location="cpu")
     if "recovered_from" in recipe:  # rebuilt from a shipped ONNX (training.intrinsic.recover)
-        return recovered_lineage(recipe, checkpoint, state)
+        return recovered_lineage(recipe, run, checkpoint, state)
     out = {"command": train_command(recipe), "args": {"out": recipe["out"]},
            "git_commit": recipe.get("git_commit"), "render_version": recipe.get("render_version"),
            "exported_checkpoint": {"file": checkpoint, "step": state.get("step")}}
@@ -252,13 +252,13 @@ def lineage(run: pathlib.Path, checkpoint: str) -> dict:
     return out
 
 
-def recovered_lineage(recipe: dict, checkpoint: str, state: dict) -> dict:
+def recovered_lineage(recipe: dict, run: pathlib.Path, checkpoint: str, state: dict) -> dict:
     """lineage() of a run folder training.intrinsic.recover made from a shipped ONNX: its
     command, the file it read, and (as ``init``) the runs behind that file, from its card."""
     src = recipe["recovered_from"]
     before = (src.get("card_training") or {}).get("recipe") or {}
-    return {"command": recipe["command"], "git_commit": recipe.get("git_commit"),
-            "render_version": before.get("render_version"),
+    return {"command": recipe["command"], "args": {"out": str(run)},
+            "git_commit": recipe.get("git_commit"), "render_version": before.get("render_version"),
             "exported_checkpoint": {"file": checkpoint, "step": state.get("step")},
             "recovered_from": {"onnx": src["onnx"], "sha256": src["sha256"]},
             "init": {"checkpoint": f"{before.get('args', {}).get('out')}/"
