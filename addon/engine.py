@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import contract, lightvec
+from . import contract, intrinsic, lightvec
 from .errors import DependencyError, InputError, ModelError
 
 # Fastest first. The CPU provider is always last so a machine without a GPU still runs.
@@ -457,7 +457,7 @@ class IntrinsicSession:
         n, hgt, alb, par, *rest = (np.ascontiguousarray(o[0, :, :h, :w], dtype=np.float32)
                                    for o in outs)
         if mirror:
-            n = n / np.maximum(np.linalg.norm(n, axis=0, keepdims=True), 1e-6)
+            n = intrinsic.unit_normals(n)
         tr = rest[0] if rest else None
         k = len(self.card.classes)
         if (n.shape[0] != 3 or hgt.shape[0] != 1 or alb.shape[0] != 3 or par.shape[0] != k

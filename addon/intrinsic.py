@@ -184,6 +184,11 @@ def plan(light: np.ndarray, shadows: bool = True, specular: bool = True,
 SH_BAND = np.array([math.pi] + [2 * math.pi / 3] * 3 + [math.pi / 4] * 5, np.float32)
 
 
+def unit_normals(n: np.ndarray) -> np.ndarray:
+    """(3, ...) vectors scaled to unit length (a mean of normals, a resampled normal map)."""
+    return (n / np.maximum(np.linalg.norm(n, axis=0, keepdims=True), 1e-6)).astype(np.float32)
+
+
 def sh_basis(normal, order: int = 2, stack=None):
     """((order + 1) ** 2, ...) real orthonormal spherical harmonics of unit vectors (3, ...), in
     the usual order (band by band, m from -l to l); ``order`` 2 (nine) or 3 (sixteen).

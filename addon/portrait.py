@@ -135,20 +135,16 @@ def shrunk(bufs: intrinsic.Buffers, size: int) -> intrinsic.Buffers:
         hwc = detail.resize(np.ascontiguousarray(a.transpose(1, 2, 0)), size, size)
         return np.ascontiguousarray(hwc.transpose(2, 0, 1))
 
-    n = rs(bufs.normal)
-    n /= np.maximum(np.linalg.norm(n, axis=0, keepdims=True), 1e-6)
     k = np.float32(size / bufs.height.shape[0])
-    return intrinsic.Buffers(n, rs(bufs.height) * k, rs(bufs.albedo), rs(bufs.matte),
+    return intrinsic.Buffers(intrinsic.unit_normals(rs(bufs.normal)), rs(bufs.height) * k, rs(bufs.albedo), rs(bufs.matte),
                              rs(bufs.face), None if bufs.transfer is None else rs(bufs.transfer))
 
 
 def mean_buffers(a: intrinsic.Buffers, b: intrinsic.Buffers) -> intrinsic.Buffers:
     """The mean of two sets of buffers of one crop (the normals renormalised)."""
-    n = a.normal + b.normal
-    n /= np.maximum(np.linalg.norm(n, axis=0, keepdims=True), 1e-6)
     half = np.float32(0.5)
     return intrinsic.Buffers(
-        n.astype(np.float32), half * (a.height + b.height), half * (a.albedo + b.albedo),
+        intrinsic.unit_normals(a.normal + b.normal), half * (a.height + b.height), half * (a.albedo + b.albedo),
         half * (a.matte + b.matte), half * (a.face + b.face),
         None if a.transfer is None or b.transfer is None else half * (a.transfer + b.transfer))
 

@@ -131,7 +131,7 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray):
         t = framing.crop(np.ascontiguousarray(field.transpose(1, 2, 0), np.float32), state["box"],
                          size).transpose(2, 0, 1)
         n = np.where(t[3] > 0.99, t[:3], out.normal)
-        n = (n / np.maximum(np.linalg.norm(n, axis=0, keepdims=True), 1e-6)).astype(np.float32)
+        n = intrinsic.unit_normals(n)
         return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
 
     portrait.crop_planar, portrait.buffers, portrait.ZOOM = crop, swap, 0
