@@ -57,8 +57,9 @@ class ModelCard:
     @property
     def timing(self) -> tuple[float | None, str]:
         """(ms per frame, what the time refers to, e.g. "512 px, CPU"): bench/frontier.py's
-        figure (the whole per-frame path) where the card has one, else export's CPU time of the
-        network at the size nearest the working size; (None, "") when the card has neither."""
+        figure (the whole per-frame path; bench/intrinsic_frontier.py's for an intrinsic model)
+        where the card has one, else export's CPU time of the network at the size nearest the
+        working size; (None, "") when the card has neither."""
         front = self.data.get("frontier")
         if front:
             provider = str(front.get("provider", "CPU")).replace("ExecutionProvider", "").upper()
@@ -75,15 +76,16 @@ class ModelCard:
 
     @property
     def held_out_error(self) -> tuple[float | None, str]:
-        """(held-out error, its name): bench/frontier.py's RMSE where the card has one; else the
-        card's own RMSE on held-out identities, for an intrinsic model once its level is set (it
-        keeps the footage's exposure, so that is its comparable figure); (None, "") if neither."""
-        front = self.data.get("frontier")
-        if front:
-            return float(front["rmse"]), "RMSE"
+        """(held-out error, its name): for an intrinsic model the card's RMSE on held-out
+        identities once its level is set (it keeps the footage's exposure, so that is its
+        comparable figure); else bench/frontier.py's RMSE where the card has one, else the
+        card's own RMSE; (None, "") if none."""
         model = self.data.get("metrics", {}).get("model", {})
         if self.contract == contract.INTRINSIC_CONTRACT and "rmse_level_fit" in model:
             return float(model["rmse_level_fit"]), "RMSE at the right level"
+        front = self.data.get("frontier")
+        if front and "rmse" in front:
+            return float(front["rmse"]), "RMSE"
         if "rmse" in model:
             return float(model["rmse"]), "RMSE"
         return None, ""
@@ -167,8 +169,12 @@ def layout_problems(data: dict) -> list[str]:
                                             if k in ("rmse", "rmse_level_fit"))):
         problems.append("'metrics.model' is not an object of figures")
     front = data.get("frontier")
+    # bench/frontier.py's entry, or for an intrinsic model bench/intrinsic_frontier.py's (time
+    # only: its error is the card's own, at the right level)
+    need = ("ms_per_frame", "working_size") + (() if name == contract.INTRINSIC_CONTRACT
+                                               else ("rmse",))
     if front is not None and not (isinstance(front, dict) and all(
-            _is_number(front.get(k)) for k in ("ms_per_frame", "rmse", "working_size"))):
+            _is_number(front.get(k)) for k in need)):
         problems.append("'frontier' is not bench/frontier.py's entry")
     if not isinstance(data.get("recommended", False), bool):
         problems.append("'recommended' is not true or false")

@@ -10,7 +10,8 @@ as its table gives it, and the balance correlations with their intervals over re
 subjects); and time on this machine: the network plus the renderer (key lamp) at that size, and
 a 1080p frame end to end as bench/intrinsic_speed.py counts it (framing pass, relight_frame,
 blend, finish; decode and write overlap in other threads). Every repeat times every size in
-turn, so the machine's load falls on all of them alike. Writes
+turn, so the machine's load falls on all of them alike. ``--write-card`` also records the card's
+time per frame, the one the panel shows beside each preset (card_point). Writes
 ``bench/results/intrinsic_frontier.{md,json}``; ``--quick`` (two subjects, three pairs each,
 two repeats) checks that it runs.
 """
@@ -28,8 +29,10 @@ import time
 
 import numpy as np
 
-from addon import api, blas, detail, intrinsic, lightvec, outline, portrait, temporal
+from addon import (api, blas, colour, detail, intrinsic, lightvec, outline, pipeline, portrait,
+                   temporal)
 from training.eval import yale
+from training.lightstage.png import read_png
 
 from .intrinsic_speed import frame_1080p, frame_ms
 
@@ -102,6 +105,53 @@ def timings(model: str, sizes, threads: int, repeats: int) -> dict:
     return out
 
 
+CARD_FRAME = 640  # bench/frontier.py times the end-to-end presets' cards on 640-px frames
+
+
+def card_point(model: str, threads: int, repeats: int) -> dict:
+    """The card's time per frame, as bench/frontier.py records the end-to-end presets': the
+    per-frame path on a CARD_FRAME-px square frame (the demo's first frame enlarged) at the
+    card's working size: the framing pass one frame in pipeline.FRAMING_STEP, relight_frame (key
+    lamp), the finish with the outline's refit and the temporal blend; median and 10th-90th
+    percentile over ``repeats`` rounds after a warm-up."""
+    src = read_png(ROOT / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
+    img = detail.resize(colour.srgb_to_linear(src), CARD_FRAME, CARD_FRAME)
+    x = np.ascontiguousarray(img.transpose(2, 0, 1), np.float32)
+    lamp = lightvec.splat_direction([0.8, 0.3, 0.5], [3, 3, 3]) + 0.05 * lightvec.uniform()
+    sess = api.session(model, threads)
+    fullres = detail.FullRes(threads=threads)
+    box = portrait.find_box(sess, x, fullres)
+    res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
+    stages = {
+        "framing": lambda: portrait.find_box(sess, x, fullres, prior=box),
+        "relight_frame": lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres),
+        "finish": lambda: outline.apply(res.outline, x, fullres.finish_planar(
+            x, res.a, res.b, float(x.max()))[0], fullres=fullres),
+        "blend": lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
+                                        mask=res.matte)}
+    frames = []
+    with blas.one_thread():  # as the product runs them
+        for rep in range(repeats + 1):
+            ms = {}
+            for k, fn in stages.items():
+                t0 = time.perf_counter()
+                fn()
+                ms[k] = (time.perf_counter() - t0) * 1000
+            if rep:  # the first round warms up
+                frames.append(frame_ms(ms["framing"], ms["relight_frame"], ms["finish"],
+                                       ms["blend"]))
+    return {"ms_per_frame": round(statistics.median(frames), 2),
+            "p10_ms": round(float(np.percentile(frames, 10)), 2),
+            "p90_ms": round(float(np.percentile(frames, 90)), 2), "runs": repeats,
+            "working_size": sess.card.working_size, "full_size": CARD_FRAME,
+            "provider": "CPUExecutionProvider", "threads": threads,
+            "what": "per-frame path (the framing pass one frame in "
+                    f"{pipeline.FRAMING_STEP}, relight_frame under a key lamp, the finish with "
+                    "the outline's refit, the temporal blend; decoding and writing excluded) "
+                    f"on a {CARD_FRAME}-px frame, as bench/frontier.py times the end-to-end "
+                    "presets; the error the panel shows is the card's RMSE at the right level"}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", default=str(ROOT / "models" / "relight-portrait.onnx"))
@@ -110,6 +160,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "intrinsic_frontier"))
+    ap.add_argument("--write-card", action="store_true",
+                    help=f"also record the card's time per frame (card_point: the per-frame path "
+                         f"on {CARD_FRAME}-px frames), which the panel shows")
     a = ap.parse_args(argv)
     if not yale.default_root().is_dir():
         print(f"intrinsic_frontier: no CroppedYale at {yale.default_root()}; the accuracy half "
@@ -141,6 +194,18 @@ def main(argv=None) -> int:
                      f"{lr[1]:.2f}) | {r['top_bottom']:.3f} ({tb[0]:.2f}-{tb[1]:.2f}) | "
                      f"{r['network_plus_renderer_fps']:.1f} | {r['end_to_end_1080p_fps']:.1f} | "
                      f"{r['stages_ms']['relight_frame']:.1f} |")
+    if a.write_card:
+        point = {**card_point(a.model, a.threads, 2 if a.quick else a.repeats),
+                 "machine": machine, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                 "command": cmd}
+        card_path = pathlib.Path(a.model).with_suffix(".json")
+        card = json.loads(card_path.read_text())
+        card["frontier"] = point
+        card_path.write_text(json.dumps(card, indent=2) + "\n")
+        lines += ["", f"The card's time per frame (`--write-card`, written to {card_path.name}): "
+                  f"{point['ms_per_frame']:.1f} ms ({point['p10_ms']:.1f}-{point['p90_ms']:.1f}) "
+                  f"on {CARD_FRAME}-px frames at {point['working_size']} px, "
+                  f"{point['threads']} thread(s)."]
     md = "\n".join(lines) + "\n"
     print(md)
     pathlib.Path(a.out + ".md").write_text(md)

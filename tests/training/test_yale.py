@@ -374,3 +374,29 @@ def test_portrait_frontier_measures_each_working_size_on_real_faces_and_in_time(
         assert all(v > 0 for v in r["stages_ms"].values()) and r["end_to_end_1080p_fps"] > 0
     assert small["psnr_scale_invariant"] != card["psnr_scale_invariant"]
     assert "| 128 (card) |" in out.with_suffix(".md").read_text()
+
+
+def test_portrait_frontier_writes_the_card_s_time_per_frame(yale_root, tmp_path):
+    """--write-card: the card records the per-frame path on 640-px frames, as bench/frontier.py
+    records the end-to-end presets', and the panel's summary shows it; the error beside it stays
+    the card's RMSE at the right level."""
+    import shutil
+
+    from addon import engine
+    from bench import intrinsic_frontier
+
+    for suffix in (".onnx", ".json"):
+        shutil.copy(ROOT / "models" / f"relight-portrait{suffix}", tmp_path / f"p{suffix}")
+    model = tmp_path / "p.onnx"
+    before = engine.load_card(model)
+    assert intrinsic_frontier.main(["--model", str(model), "--quick", "--sizes", "128",
+                                    "--threads", "1", "--out", str(tmp_path / "f"),
+                                    "--write-card"]) == 0
+    card = engine.load_card(model)
+    point = card.data["frontier"]
+    assert point["full_size"] == intrinsic_frontier.CARD_FRAME == 640
+    assert point["p10_ms"] <= point["ms_per_frame"] <= point["p90_ms"]
+    assert card.timing == (point["ms_per_frame"], "128 px, CPU")
+    assert point["ms_per_frame"] > before.ms_per_frame  # the whole path, not the network alone
+    assert card.held_out_error == before.held_out_error
+    assert card.held_out_error[1] == "RMSE at the right level"
