@@ -29,12 +29,11 @@ import time
 
 import numpy as np
 
-from addon import (api, blas, colour, detail, intrinsic, lightvec, outline, pipeline, portrait,
+from addon import (api, blas, detail, intrinsic, lightvec, outline, pipeline, portrait,
                    temporal)
 from training.eval import yale
-from training.lightstage.png import read_png
 
-from .intrinsic_speed import frame_1080p, frame_ms
+from .intrinsic_speed import demo_frame, frame_1080p, frame_ms
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SIZES = (96, 128, 160, 192)
@@ -62,6 +61,21 @@ def real_faces(model: str, size: int, threads: int, quick: bool) -> dict:
             "subjects": len(subjects), **yale.balance_correlation(rows)["model"]}
 
 
+def frame_stages(sess, x: np.ndarray, lamp: np.ndarray, fullres) -> dict:
+    """The per-frame path's stages on the (3, H, W) frame ``x`` as frame_ms counts them, each a
+    callable: the framing pass following the frame's box, relight_frame, the finish with the
+    outline's refit, the temporal blend."""
+    box = portrait.find_box(sess, x, fullres)
+    res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
+    return {
+        "framing": lambda: portrait.find_box(sess, x, fullres, prior=box),
+        "relight_frame": lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres),
+        "finish": lambda: outline.apply(res.outline, x, fullres.finish_planar(
+            x, res.a, res.b, float(x.max()))[0], fullres=fullres),
+        "blend": lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
+                                        mask=res.matte)}
+
+
 def timings(model: str, sizes, threads: int, repeats: int) -> dict:
     """Median milliseconds per stage and size, the sizes timed in turn within each repeat."""
     x = frame_1080p()
@@ -73,19 +87,11 @@ def timings(model: str, sizes, threads: int, repeats: int) -> dict:
         box = portrait.find_box(sess, x, fullres)
         crop, _ = portrait.crop_planar(x, box, size)
         bufs = portrait.buffers(sess, crop)
-        res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
         jobs[size] = {
             # a relighting pass: the crop and its mirror (portrait.MIRROR)
             "network": lambda s=sess, c=crop: s.run_planar(c, mirror=portrait.MIRROR),
             "renderer": lambda c=crop, b=bufs: intrinsic.shade(c, b, lamp),
-            "framing": lambda s=sess, b=box: portrait.find_box(s, x, fullres, prior=b),
-            "relight_frame": lambda s=sess, b=box: portrait.relight_frame(s, x, lamp, b,
-                                                                          fullres=fullres),
-            "finish": lambda r=res: outline.apply(
-                r.outline, x, fullres.finish_planar(x, r.a, r.b, float(x.max()))[0],
-                fullres=fullres),
-            "blend": lambda r=res: temporal.blend((r.a, r.b), (r.a, r.b), (r.a, r.b),
-                                                  mask=r.matte)}
+            **frame_stages(sess, x, lamp, fullres)}
     times = {size: {k: [] for k in job} for size, job in jobs.items()}
     with blas.one_thread():  # as the product runs them (addon/blas.py)
         for rep in range(repeats + 1):
@@ -114,21 +120,11 @@ def card_point(model: str, threads: int, repeats: int) -> dict:
     card's working size: the framing pass one frame in pipeline.FRAMING_STEP, relight_frame (key
     lamp), the finish with the outline's refit and the temporal blend; median and 10th-90th
     percentile over ``repeats`` rounds after a warm-up."""
-    src = read_png(ROOT / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
-    img = detail.resize(colour.srgb_to_linear(src), CARD_FRAME, CARD_FRAME)
+    img = detail.resize(demo_frame(), CARD_FRAME, CARD_FRAME)
     x = np.ascontiguousarray(img.transpose(2, 0, 1), np.float32)
     lamp = lightvec.splat_direction([0.8, 0.3, 0.5], [3, 3, 3]) + 0.05 * lightvec.uniform()
     sess = api.session(model, threads)
-    fullres = detail.FullRes(threads=threads)
-    box = portrait.find_box(sess, x, fullres)
-    res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
-    stages = {
-        "framing": lambda: portrait.find_box(sess, x, fullres, prior=box),
-        "relight_frame": lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres),
-        "finish": lambda: outline.apply(res.outline, x, fullres.finish_planar(
-            x, res.a, res.b, float(x.max()))[0], fullres=fullres),
-        "blend": lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
-                                        mask=res.matte)}
+    stages = frame_stages(sess, x, lamp, detail.FullRes(threads=threads))
     frames = []
     with blas.one_thread():  # as the product runs them
         for rep in range(repeats + 1):

@@ -58,9 +58,14 @@ def in_canvas(img: np.ndarray) -> np.ndarray:
     return canvas
 
 
-def frame_1080p() -> np.ndarray:
+def demo_frame() -> np.ndarray:
+    """(H, W, 3) linear: the built-in demo clip's first frame (our own render)."""
     src = read_png(ROOT / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
-    canvas = in_canvas(colour.srgb_to_linear(src))
+    return colour.srgb_to_linear(src)
+
+
+def frame_1080p() -> np.ndarray:
+    canvas = in_canvas(demo_frame())
     return np.ascontiguousarray(canvas.transpose(2, 0, 1), np.float32)
 
 
