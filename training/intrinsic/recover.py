@@ -100,9 +100,8 @@ def conv_outputs(net: IntrinsicNet, x: torch.Tensor) -> dict[str, list[torch.Ten
     return stats
 
 
-def architecture(path: pathlib.Path) -> tuple[str, bool]:
+def architecture(card: engine.ModelCard) -> tuple[str, bool]:
     """(width, whether it predicts the transfer) of a shipped model, from its card."""
-    card = engine.load_card(path)
     outputs = [o["name"] for o in card.data.get("outputs", [])]
     return (card.data.get("architecture", {}).get("width", "standard"),
             contract.OUTPUT_TRANSFER in outputs)
@@ -117,7 +116,7 @@ def rebuild(path: pathlib.Path, width: str, transfer: bool,
     modules = dict(net.named_modules())
     if set(convs) != {n for n, m in modules.items() if isinstance(m, torch.nn.Conv2d)}:
         raise ValueError(f"{path}: its convolutions are not those of a {width} IntrinsicNet")
-    folded = {}  # conv name -> its batch normalisation's name
+    folded = {}  # conv name -> the batch normalisation folded into it
     for name, (w, b) in convs.items():
         conv = modules[name]
         if tuple(conv.weight.shape) != w.shape:
@@ -205,7 +204,7 @@ def main(argv=None):
     path = pathlib.Path(a.onnx)
     card = engine.load_card(path)
     x = calibration_batch(a.cache, a.res, a.frames)
-    net = rebuild(path, *architecture(path), x)
+    net = rebuild(path, *architecture(card), x)
     check = distance(net, path, calibration_batch(a.cache, a.res, 12, seed=6, split="val"))
     cmd = (f"python -m training.intrinsic.recover --onnx {a.onnx} --out {a.out}"
            + (f" --cache {a.cache}" if a.cache else "") + f" --frames {a.frames}")
