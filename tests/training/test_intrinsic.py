@@ -443,3 +443,27 @@ def test_a_recovered_checkpoint_trains_on_and_its_card_names_where_it_came_from(
     # exported as it is (the shipped model again): its record names its folder like a run's
     direct = export.lineage(rec, "best.pt")
     assert direct["args"]["out"] == str(rec) and direct["init"]["step"] == 7
+
+
+def test_a_run_keeps_its_averaged_weights_every_few_steps(frames, shared_data, tmp_path):
+    """--keep-every: the averaged weights at those validation steps stay beside best.pt (a run
+    is chosen on real faces too, not on its synthetic val loss alone); without it, none."""
+    from training.intrinsic import data, train
+
+    root = frames.folder.parent
+    data.build("train", RES, 2, root, data_root=shared_data, progress=None)
+    base = ["--width", "small", "--res", str(RES), "--cache", str(root), "--steps", "4",
+            "--batch", "2", "--val-n", "2", "--val-every", "2", "--log-every", "100"]
+    kept = train.train(train.parser().parse_args([*base, "--out", str(tmp_path / "a"),
+                                                  "--keep-every", "2"]))
+    assert sorted(p.name for p in kept.glob("step_*.pt")) == ["step_000002.pt", "step_000004.pt"]
+    last, final = (torch.load(p, map_location="cpu") for p in (kept / "step_000004.pt",
+                                                                kept / "checkpoint.pt"))
+    assert last["step"] == 4 and final["step"] == 4
+    for k, v in final["state_dict"].items():
+        torch.testing.assert_close(last["state_dict"][k], v)
+    first = torch.load(kept / "step_000002.pt", map_location="cpu")
+    assert any(not torch.equal(first["state_dict"][k], v)
+               for k, v in final["state_dict"].items() if v.dtype.is_floating_point)
+    plain = train.train(train.parser().parse_args([*base, "--out", str(tmp_path / "b")]))
+    assert not list(plain.glob("step_*.pt")) and (plain / "best.pt").is_file()

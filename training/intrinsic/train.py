@@ -217,6 +217,8 @@ def train(a) -> pathlib.Path:
                 best = score
                 torch.save(state, out / "best.pt")
             torch.save({**state, "raw_state_dict": live}, out / "checkpoint.pt")
+            if a.keep_every and step % a.keep_every == 0:
+                torch.save(state, out / f"step_{step:06d}.pt")
             model.load_state_dict(live)
             (out / "val.json").write_text(json.dumps(log, indent=1))
     return out
@@ -238,6 +240,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--val-n", type=int, default=48)
     ap.add_argument("--val-every", type=int, default=250)
     ap.add_argument("--log-every", type=int, default=50)
+    ap.add_argument("--keep-every", type=int, default=0, help="also keep the averaged weights "
+                    "every this many steps (step_NNNNNN.pt, at a validation step): val loss on "
+                    "synthetic identities is not the only way to choose among them")
     ap.add_argument("--init", help="start from this checkpoint's weights")
     ap.add_argument("--zoom", type=float, default=0.5, help="share of samples zoomed in (ZOOM)")
     ap.add_argument("--cut", type=float, default=0.0, help="share of samples cut by the frame's "
