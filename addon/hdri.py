@@ -42,11 +42,13 @@ def pixel_row_solid_angles(height: int, width: int) -> np.ndarray:
     return (np.cos(e[:-1]) - np.cos(e[1:])) * (2.0 * math.pi / width)
 
 
-def pixel_directions(height: int, width: int, rows: slice | None = None) -> np.ndarray:
-    """(h, width, 3) world directions of pixel centres (Blender convention), top row first."""
+def pixel_directions(height: int, width: int, rows: slice | None = None,
+                     offset: float = 0.0) -> np.ndarray:
+    """(h, width, 3) world directions of pixel centres (Blender convention), top row first;
+    ``offset``: the points taken that many pixels right of and below the centres."""
     rows = rows or slice(0, height)
-    v = (np.arange(rows.start, rows.stop, dtype=np.float64) + 0.5) / height
-    u = (np.arange(width, dtype=np.float64) + 0.5) / width
+    v = (np.arange(rows.start, rows.stop, dtype=np.float64) + 0.5 + offset) / height
+    u = (np.arange(width, dtype=np.float64) + 0.5 + offset) / width
     elev = math.pi / 2 - math.pi * v
     azim = math.pi - 2.0 * math.pi * u
     ce, se = np.cos(elev)[:, None], np.sin(elev)[:, None]
@@ -100,6 +102,16 @@ def check_equirect(image: np.ndarray, what: str = "HDRI", repair: bool = False) 
                 "Fix the file, or enable 'Repair HDRI' to treat those pixels as black.")
         rgb = np.where(bad, 0.0, rgb).astype(np.float32)
     return rgb
+
+
+# Pixels are binned by a point this many pixels off their centre. In the front view a map's pixel
+# centres can lie exactly on a cell's edge (a width a multiple of the cells' 16 columns), and
+# there the last bit of the trigonometry decides the cell: numpy's vectorised sin, cos and
+# arctan2 round differently with an array's alignment in memory, so the same HDRI gave light
+# vectors that differed by several per cent in a tenth of the cells from one call to the next
+# (two processes of one farm run could disagree on the lighting). The offset is far beyond that
+# rounding and far below a pixel.
+BIN_OFFSET = 1e-6
 
 
 def _block_reduce(rgb: np.ndarray, max_width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -164,7 +176,7 @@ def downsample(image: np.ndarray, world_to_frame: np.ndarray | None = None,
     chunk = max(1, 65536 // w)
     for r0 in range(0, h, chunk):
         rs = slice(r0, min(h, r0 + chunk))
-        d = pixel_directions(h, w, rs) @ m.T
+        d = pixel_directions(h, w, rs, BIN_OFFSET) @ m.T
         row, col = lightvec.directions_to_cells(d)
         idx = (row * lightvec.COLS + col).reshape(-1)
         om = np.broadcast_to(omega[rs, None], row.shape).reshape(-1)
