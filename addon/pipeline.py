@@ -30,6 +30,7 @@ that a killed process of this machine left behind (see sweep_partials). A run ho
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -49,7 +50,7 @@ from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's A
 RUN_FILE = "relight_run.json"
 BOXES_FILE = "relight_boxes.json"  # intrinsic models: the clip's smoothed portrait boxes
 FRAMING_STEP = 3  # frames between two framing passes (a head moves little in 3 frames at 25 fps)
-RUN_FORMAT = "relight-run/2"
+RUN_FORMAT = "relight-run/3"
 EXPOSURE_MODES = ("keep", "physical")
 DEFAULT_EXPOSURE_MODE = "keep"
 GAIN_SAMPLES = 8  # frames, evenly spaced over the clip, that set its exposure gain
@@ -261,10 +262,30 @@ def _source_files(clip: ClipSpec) -> list[str]:
     return list(clip.files[clip.first:clip.first + clip.count])
 
 
+@functools.lru_cache(maxsize=1)
+def engine_sha256() -> str:
+    """sha256 over the engine's source (every module of this package, by name and content):
+    the code that turns a model's outputs into frames. A run's identity holds it, so a take
+    begun before an update of the extension is not finished by the updated one, whose frames
+    may differ (a renderer change shows as a jump part way through the clip): the run goes to
+    a new take, and a plain output folder is refused with the reason."""
+    digest = hashlib.sha256()
+    for path in sorted(pathlib.Path(__file__).resolve().parent.glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
+# What an artist reads for an identity's keys when a folder holds another run.
+IDENTITY_WORDS = {"engine_sha256": "the version of the extension that made it",
+                  "model_sha256": "the model", "lights_sha256": "the lighting",
+                  "source": "the footage", "range": "the frame range"}
+
+
 def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,
                  card: engine.ModelCard, working: int) -> dict:
     """What makes two runs produce the same frames (the chunk and resume state do not). The
-    footage counts by its files (_file_stamp), not by the path it was reached through."""
+    footage counts by its files (_file_stamp), not by the path it was reached through; the
+    engine by its source (engine_sha256)."""
     src = hashlib.sha256(json.dumps([_file_stamp(f) for f in _source_files(clip)]).encode())
     light_hash = hashlib.sha256(str(lights.shape).encode() + lights.tobytes()).hexdigest()
     return {
@@ -274,6 +295,7 @@ def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,
         "colorspace": clip.colorspace,
         "lights_sha256": light_hash,
         "model_sha256": card.sha256,
+        "engine_sha256": engine_sha256(),
         "settings": {"working_size": working, "detail_transfer": options.detail_transfer,
                      "write_matte": options.write_matte, "background": options.background,
                      "exposure_mode": options.exposure_mode, "temporal": options.temporal},
@@ -359,7 +381,7 @@ def prepare_output(out_dir: str, identity: dict, overwrite: bool) -> dict | None
         diff = ""
         if stored and isinstance(stored.get("identity"), dict):
             keys = [k for k in identity if stored["identity"].get(k) != identity[k]]
-            diff = f" (it differs in: {', '.join(keys)})"
+            diff = f" (it differs in: {', '.join(IDENTITY_WORDS.get(k, k) for k in keys)})"
         raise OutputError(f"The output folder {out_dir} already holds {what}{diff}. Choose "
                           "another folder, or enable Overwrite to replace it.")
     _clear_outputs(out_dir)

@@ -215,7 +215,7 @@ def test_two_concurrent_chunk_processes_equal_one_run(toy, movie, tmp_path):
 
 def test_rerun_onto_another_run_is_refused_unless_overwrite(toy, movie, tmp_path):
     pipeline.relight_clip(movie_clip(movie, count=2), UNIFORM, tmp_path, opts(toy))
-    with pytest.raises(OutputError, match="lights_sha256"):
+    with pytest.raises(OutputError, match=r"differs in: the lighting\)"):
         pipeline.relight_clip(movie_clip(movie, count=2), 2 * UNIFORM, tmp_path, opts(toy))
     with pytest.raises(OutputError, match="settings"):
         pipeline.relight_clip(movie_clip(movie, count=2), UNIFORM, tmp_path,
@@ -251,8 +251,32 @@ def test_footage_reached_through_a_symlink_or_another_mount_is_the_same_run(toy,
     run = json.loads((out / pipeline.RUN_FILE).read_text())
     assert run["source_path"] == os.path.realpath(tmp_path / "link")
     os.utime(real[3], ns=(1, 1))  # the footage changed: another run
-    with pytest.raises(OutputError, match="differs in: source"):
+    with pytest.raises(OutputError, match="differs in: the footage"):
         pipeline.relight_clip(image_clip(linked), UNIFORM, out, opts(toy))
+
+
+def test_a_run_begun_by_another_version_of_the_extension_is_not_finished_by_this_one(
+        toy, movie, tmp_path, monkeypatch):
+    """The run's identity holds the engine's source (pipeline.engine_sha256): after an update
+    of the extension, which may render frames differently, a half-finished take is left as it
+    was and the run goes to a new take; a plain output folder is refused with the reason.
+    The same version resumes as before."""
+    clip = movie_clip(movie, count=4)
+    first = pipeline.relight_clip(clip, UNIFORM, tmp_path / "shot", opts(toy, takes=True),
+                                  frames=range(0, 2))
+    assert pathlib.Path(first.out_dir).name == "v001"
+    plain = pipeline.relight_clip(clip, UNIFORM, tmp_path / "plain", opts(toy), frames=range(0, 2))
+    real = pipeline.engine_sha256()
+    assert len(real) == 64 and real != "0" * 64
+    monkeypatch.setattr(pipeline, "engine_sha256", lambda: "0" * 64)
+    later = pipeline.relight_clip(clip, UNIFORM, tmp_path / "shot", opts(toy, takes=True))
+    assert pathlib.Path(later.out_dir).name == "v002" and (later.written, later.resumed) == (4, 0)
+    assert sorted(os.listdir(pathlib.Path(first.out_dir, "relit"))) == [
+        pathlib.Path(f).name for f in first.relit_files]  # the old take as it was left
+    with pytest.raises(OutputError, match="the version of the extension that made it"):
+        pipeline.relight_clip(clip, UNIFORM, plain.out_dir, opts(toy))
+    again = pipeline.relight_clip(clip, UNIFORM, tmp_path / "shot", opts(toy, takes=True))
+    assert pathlib.Path(again.out_dir).name == "v002" and (again.written, again.resumed) == (0, 4)
 
 
 def test_unknown_frames_in_output_folder_are_refused(toy, movie, tmp_path):
