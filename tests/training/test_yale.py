@@ -281,6 +281,27 @@ def test_balance_correlation_carries_an_interval_over_resampled_subjects():
     assert width(many) < 0.6 * width(few)
 
 
+def test_balance_splits_into_the_truths_and_the_inputs():
+    """A method whose balance is 0.6 x the truth's + 0.3 x the input's (plus noise) is split so;
+    the input's own row (the identity method) has no split."""
+    rng = np.random.default_rng(1)
+    rows = []
+    for s in range(6):
+        for _ in range(10):
+            gt, inp = rng.normal(0, 0.1, 2), rng.normal(0, 0.1, 2)
+            pred = 0.6 * gt + 0.3 * inp + 0.02 + rng.normal(0, 0.002, 2)
+            rows.append(("few", {}, f"s{s}", {"ground_truth": tuple(gt), "identity": tuple(inp),
+                                              "m": tuple(pred)}))
+    res = ye.balance_correlation(rows)
+    for axis in ("left_right", "top_bottom"):
+        split = res["m"][f"{axis}_from"]
+        assert split["truth"] == pytest.approx(0.6, abs=0.02)
+        assert split["input"] == pytest.approx(0.3, abs=0.02)
+    assert "top_bottom_from" not in res["identity"]
+    assert "top_bottom_from" not in ye.balance_correlation(
+        [(k, sc, s, {"ground_truth": b["ground_truth"], "m": b["m"]}) for k, sc, s, b in rows])["m"]
+
+
 def test_identity_is_exact_when_the_light_does_not_change(toy, b01):
     a = ye.Lighting("few", "same", np.where(np.arange(len(b01.dirs)) % 9 == 0, 0.1, 0.0))
     r = ye.relight_pair(b01, a, a, {"toy": ye.PipelineRelighter(toy)})

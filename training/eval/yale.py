@@ -574,15 +574,24 @@ def _correlation(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(a, b)[0, 1]) if np.std(a) > 0 and np.std(b) > 0 else 0.0
 
 
+INPUT_METHOD = "identity"  # the baseline whose output is the input: its balance is the input's
+
+
 def balance_correlation(rows: list[tuple], seed: int = 0) -> dict:
     """Per method, the Pearson correlation over pairs of its output's balance with the ground
     truth's, left/right and top/bottom (rows: (kind, scores, subject, balances)), and the 5th
     and 95th percentiles of each over BOOTSTRAP resamplings of the subjects (with replacement,
     each with all its pairs): how far the figure moves with the faces it was measured on. On a
     dozen subjects the top/bottom figure moves by several hundredths, so settings that differ
-    by less are not told apart by it."""
+    by less are not told apart by it. Where the rows hold the input's balance (the identity
+    method's), also the least-squares split of each method's balance into the truth's and the
+    input's (``<axis>_from``: {"truth": a, "input": b} in a truth + b input + c): a relit face
+    that follows the target light has a near 1 and b near 0; the ratio of a network whose
+    normals are wrong keeps part of the input's light (b) and answers the target's weakly (a)."""
     out = {}
     truth = np.array([r[3]["ground_truth"] for r in rows], np.float64)
+    inputs = (np.array([r[3][INPUT_METHOD] for r in rows], np.float64)
+              if rows and INPUT_METHOD in rows[0][3] else None)
     subjects = np.array([r[2] for r in rows])
     names = sorted(set(subjects))
     rng = np.random.default_rng(seed)
@@ -600,6 +609,10 @@ def balance_correlation(rows: list[tuple], seed: int = 0) -> dict:
             boot = [_correlation(a[i], b[i]) for i in draws]
             res[f"{key}_90"] = ([float(np.percentile(boot, 5)), float(np.percentile(boot, 95))]
                                 if boot else [res[key], res[key]])
+            if inputs is not None and m != INPUT_METHOD and len(rows) > 3:
+                design = np.stack([b, inputs[:, axis], np.ones_like(b)], 1)
+                coef = np.linalg.lstsq(design, a, rcond=None)[0]
+                res[f"{key}_from"] = {"truth": float(coef[0]), "input": float(coef[1])}
         out[m] = res
     return out
 
@@ -875,6 +888,16 @@ def report_body(res: dict) -> str:
 
     for name, c in res["balance_correlation"].items():
         lines.append(f"| {name} | {cell(c, 'left_right')} | {cell(c, 'top_bottom')} |")
+    split = {n: c for n, c in res["balance_correlation"].items() if "top_bottom_from" in c}
+    if split:
+        lines += ["", "Each output's balance split by least squares into the truth's and the "
+                  "input's (a truth + b input + c over the pairs): a method that follows the "
+                  "target light has a near 1 and b near 0.", "",
+                  "| | left/right a, b | top/bottom a, b |", "|---|---|---|"]
+        for name, c in split.items():
+            lr, tb = c["left_right_from"], c["top_bottom_from"]
+            lines.append(f"| {name} | {lr['truth']:.2f}, {lr['input']:.2f} | "
+                         f"{tb['truth']:.2f}, {tb['input']:.2f} |")
     for view, verdicts in res["beats_both_baselines"].items():
         beat = [m for m, yes in verdicts.items() if yes]
         lines += ["", f"Beat both light-blind baselines on overall RMSE, {view.replace('_', '-')} "
