@@ -467,3 +467,25 @@ def test_a_run_keeps_its_averaged_weights_every_few_steps(frames, shared_data, t
                for k, v in final["state_dict"].items() if v.dtype.is_floating_point)
     plain = train.train(train.parser().parse_args([*base, "--out", str(tmp_path / "b")]))
     assert not list(plain.glob("step_*.pt")) and (plain / "best.pt").is_file()
+
+
+def test_sky_flip_turns_environments_upside_down(frames):
+    """--sky-flip: an environment drawn for a sample is its own mirror image top to bottom (its
+    sky below), and the light-stage render follows; without it, samples are drawn as before."""
+    from training.intrinsic import data
+
+    flips = 0
+    for seed in range(40):
+        plain = data.sample_light(np.random.default_rng(seed), frames.bank, frames.pool)
+        turned = data.sample_light(np.random.default_rng(seed), frames.bank, frames.pool, 1.0)
+        if np.random.default_rng(seed).random() < 0.35:  # the environment-only draws
+            np.testing.assert_array_equal(turned, plain[::-1])
+            up = lightvec.directions()[..., 1]
+            power = (plain @ np.asarray(intrinsic.LUMA)) * lightvec.solid_angles()
+            flipped = (turned @ np.asarray(intrinsic.LUMA)) * lightvec.solid_angles()
+            assert (up * flipped).sum() == pytest.approx(-(up * power).sum(), rel=1e-5)
+            flips += 1
+    assert flips >= 5
+    np.testing.assert_array_equal(
+        data.sample_light(np.random.default_rng(3), frames.bank, frames.pool, 0.0),
+        data.sample_light(np.random.default_rng(3), frames.bank, frames.pool))

@@ -117,17 +117,22 @@ def shade_inputs(a: dict, backdrop: torch.Tensor | None = None) -> shading.Shade
                                t(a["cover"]))
 
 
-def sample_light(rng: np.random.Generator, bank, pool) -> np.ndarray:
+def sample_light(rng: np.random.Generator, bank, pool, sky_flip: float = 0.0) -> np.ndarray:
     """A lighting as the product meets it: an environment, one to three lamps, or both (so hard
-    shadows and highlights are as common in training as soft light)."""
+    shadows and highlights are as common in training as soft light). ``sky_flip``: the share of
+    environments turned upside down (their sky below): HDRIs are lit from above, so a network
+    may read a face's up/down shading from that habit rather than from its shape."""
+    def env():
+        e = lighting_sampling.sample_g(rng, bank, pool)
+        return e[::-1].copy() if sky_flip and rng.random() < sky_flip else e
+
     kind = rng.random()
     if kind < 0.35:
-        return lighting_sampling.sample_g(rng, bank, pool)
+        return env()
     lamps = lighting_sampling.sample_h(rng)
     if kind < 0.6:
-        return (lamps + 0.02 * lighting_sampling.sample_g(rng, bank, pool)).astype(np.float32)
-    return (rng.uniform(0.1, 1.0) * lighting_sampling.sample_g(rng, bank, pool) + lamps).astype(
-        np.float32)
+        return (lamps + 0.02 * env()).astype(np.float32)
+    return (rng.uniform(0.1, 1.0) * env() + lamps).astype(np.float32)
 
 
 def dense(a: dict, values: np.ndarray, fill=0.0) -> np.ndarray:
@@ -138,7 +143,8 @@ def dense(a: dict, values: np.ndarray, fill=0.0) -> np.ndarray:
     return out.reshape(-1, h, w)
 
 
-def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo_pool=None) -> dict:
+def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo_pool=None,
+           sky_flip: float = 0.0) -> dict:
     """``image`` (3, H, W) linear radiance and ``target`` (len(TARGETS) buffers stacked: 3 normal,
     1 height, 3 albedo, 1 matte, 1 face, 16 transfer = 25 channels), ``fg`` (1, H, W) where the
     normal, height, albedo and transfer are defined. A random horizontal flip (normal x and the
@@ -148,7 +154,7 @@ def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo
     if photo_bank is not None:
         backdrop = backdrops_mod.sample(rng, h, w, torch.from_numpy(a["backdrop"]), photo_bank,
                                         photo_pool)
-    light = sample_light(rng, bank, pool)
+    light = sample_light(rng, bank, pool, sky_flip)
     wts = torch.from_numpy(layout.weights(light)).float()[None]
     img = shading.relight(shade_inputs(a, backdrop), wts, stage_dirs())[0].numpy()
     normal = dense(a, a["normal"].astype(np.float32))
@@ -171,7 +177,7 @@ class IntrinsicFrames:
     (seed, split, idx). Frames stay in memory once read (a 128-px frame is about 3 MB)."""
 
     def __init__(self, split: str, res: int, seed: int = 0, cache_dir=None, data_root=None,
-                 varied_backdrops: bool = True, length: int = 10 ** 7):
+                 varied_backdrops: bool = True, length: int = 10 ** 7, sky_flip: float = 0.0):
         self.folder = folder_for(cache_dir, split, res)
         man = self.folder / "manifest.json"
         if not man.is_file():
@@ -181,6 +187,7 @@ class IntrinsicFrames:
         self.n = int(info["frames"])
         self.long_hair = float(info.get("long_hair", 0.0))  # share of identities with long hair
         self.split, self.seed, self.length = split, int(seed), int(length)
+        self.sky_flip = float(sky_flip)  # share of environments upside down (sample_light)
         root = pathlib.Path(data_root) if data_root else None
         from ..lightstage import assets
         root = root or assets.default_data_root()
@@ -203,7 +210,8 @@ class IntrinsicFrames:
     def __getitem__(self, idx: int) -> dict:
         rng = np.random.default_rng([self.seed, SPLITS[self.split], int(idx), 77])
         a = self.frame(int(rng.integers(self.n)))
-        return sample(a, rng, self.bank, self.pool, self.photo_bank, self.photo_pool)
+        return sample(a, rng, self.bank, self.pool, self.photo_bank, self.photo_pool,
+                      self.sky_flip)
 
     def batch(self, indices) -> dict:
         items = [self[i] for i in indices]

@@ -162,7 +162,7 @@ def train(a) -> pathlib.Path:
     out.mkdir(parents=True, exist_ok=True)
     recipe = {**vars(a), "git_commit": git_commit(), "machine": platform.processor() or platform.machine(),
               "cpus": os.cpu_count(), "render_version": data.renderer_version()}
-    ds = data.IntrinsicFrames("train", a.res, a.seed, a.cache)
+    ds = data.IntrinsicFrames("train", a.res, a.seed, a.cache, sky_flip=a.sky_flip)
     recipe["long_hair"] = ds.long_hair
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
     vds = data.IntrinsicFrames("val", a.res, 1234, a.cache)
@@ -251,6 +251,8 @@ def parser() -> argparse.ArgumentParser:
                     "1 + this in the normal loss (model.losses)")
     ap.add_argument("--gradient-weight", type=float, default=0.0, help="weight of the normals' "
                     "neighbour differences in the normal loss (model.normal_gradient)")
+    ap.add_argument("--sky-flip", type=float, default=0.0, help="share of training "
+                    "environments turned upside down (data.sample_light)")
     ap.add_argument("--start-step", type=int, default=0, help="batch index to start at (a "
                     "continued run sees new samples)")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false")
