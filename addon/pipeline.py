@@ -278,7 +278,9 @@ def engine_sha256() -> str:
 # What an artist reads for an identity's keys when a folder holds another run.
 IDENTITY_WORDS = {"engine_sha256": "the version of the extension that made it",
                   "model_sha256": "the model", "lights_sha256": "the lighting",
-                  "source": "the footage", "range": "the frame range"}
+                  "source": "the footage", "range": "the frame range",
+                  "colorspace": "the footage's colour space", "settings": "the settings",
+                  "format": "the format of its record"}
 
 
 def run_identity(clip: ClipSpec, lights: np.ndarray, options: RelightOptions,

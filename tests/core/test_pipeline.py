@@ -217,7 +217,7 @@ def test_rerun_onto_another_run_is_refused_unless_overwrite(toy, movie, tmp_path
     pipeline.relight_clip(movie_clip(movie, count=2), UNIFORM, tmp_path, opts(toy))
     with pytest.raises(OutputError, match=r"differs in: the lighting\)"):
         pipeline.relight_clip(movie_clip(movie, count=2), 2 * UNIFORM, tmp_path, opts(toy))
-    with pytest.raises(OutputError, match="settings"):
+    with pytest.raises(OutputError, match=r"differs in: the settings\)"):
         pipeline.relight_clip(movie_clip(movie, count=2), UNIFORM, tmp_path,
                               opts(toy, working_size=16))
     before = frames.read_exr(pipeline.relit_path(tmp_path, 0))
