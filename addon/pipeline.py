@@ -264,14 +264,17 @@ def _source_files(clip: ClipSpec) -> list[str]:
 
 @functools.lru_cache(maxsize=1)
 def engine_sha256() -> str:
-    """sha256 over the engine's source (every module of this package, by name and content):
-    the code that turns a model's outputs into frames. A run's identity holds it, so a take
+    """sha256 over the engine's source (every module of this package, by name and content) and
+    the extension's manifest beside it (its version and bundled wheels, onnxruntime's among
+    them): what turns a model's outputs into frames. A run's identity holds it, so a take
     begun before an update of the extension is not finished by the updated one, whose frames
     may differ (a renderer change shows as a jump part way through the clip): the run goes to
     a new take, and a plain output folder is refused with the reason."""
+    here = pathlib.Path(__file__).resolve().parent
     digest = hashlib.sha256()
-    for path in sorted(pathlib.Path(__file__).resolve().parent.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    for path in [*sorted(here.glob("*.py")), here.parent / "blender_manifest.toml"]:
+        if path.is_file():
+            digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
     return digest.hexdigest()
 
 
