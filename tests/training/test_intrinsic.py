@@ -489,3 +489,20 @@ def test_sky_flip_turns_environments_upside_down(frames):
     np.testing.assert_array_equal(
         data.sample_light(np.random.default_rng(3), frames.bank, frames.pool, 0.0),
         data.sample_light(np.random.default_rng(3), frames.bank, frames.pool))
+
+
+def test_normals_by_light_scores_the_up_down_and_left_right_shape_apart(frames):
+    """bench.normals_by_light's scores: the light stage's own normals score correlation 1 and no
+    angle; noise on the up/down component (a network that cannot read that shape) lowers the
+    up/down correlation, leaves the left/right one, and opens the angle."""
+    from bench.normals_by_light import face_scores
+
+    s = frames[0]
+    truth, face = s["target"][0:3], s["target"][8] > 0.5
+    exact = face_scores(truth, truth, face)
+    assert exact["corr_y"] == pytest.approx(1.0) and exact["corr_x"] == pytest.approx(1.0)
+    assert exact["angle_deg"] < 0.1
+    noisy = truth.copy()
+    noisy[1] += np.random.default_rng(0).normal(0, 0.2, truth[1].shape)
+    got = face_scores(noisy, truth, face)
+    assert got["corr_y"] < 0.9 and got["corr_x"] > 0.95 and got["angle_deg"] > 3.0
