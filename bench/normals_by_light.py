@@ -5,7 +5,8 @@
 
 Held-out val frames (training/intrinsic/data.py, identities never trained on) are rendered by
 the light stage under one lamp (a little fill beside it) from above, level in front, below and
-the side, each normalised as the product normalises a crop; per lamp, over the face skin, the
+the side, each normalised as the product normalises a crop and run once (the product's mirrored
+and finer passes left out: this is the network's own reading); per lamp, over the face skin, the
 correlation of the network's up/down and left/right normal components with the light stage's
 and the mean angle between the two. A network that reads the face's shape from its shading
 scores alike under every lamp; one that leans on light coming from above (as the HDRIs it was
