@@ -106,3 +106,37 @@ def test_photometric_buffers_put_the_given_normals_into_the_face_crop_and_then_s
     rows = np.nonzero(changed)[0]
     # only the part of the crop that shows the image's upper half
     assert rows.max() < sess.card.working_size / 2
+
+
+def test_a_band_swap_keeps_one_shape_s_low_band_and_the_other_s_detail(shared_data):
+    """photometric_buffers' low_sigma: a flat field (every normal up) has no detail, so swapping
+    the network's low band in gives the network's normals blurred, and swapping the flat
+    field's low band in gives "up" with the network's detail on it."""
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    from addon import api, intrinsic, portrait
+
+    s = ye.load_subject(root, "yaleB01")
+    h, w = s.images.shape[1:]
+    x = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, axis=0)
+    x = x.astype(np.float32)
+    sess = api.session("models/relight-portrait.onnx", 1)
+    box = portrait.find_box(sess, x)
+    up = np.tile([[0.0], [1.0], [0.0]], (1, h * w))
+    fitted = np.ones(h * w, bool)
+    crop, valid = portrait.crop_planar(x, box, sess.card.working_size)
+    plain = portrait.buffers(sess, crop, valid).normal
+    got = {}
+    for low in ("network", "photometric"):
+        with yn.photometric_buffers(up, fitted, low_sigma=3.0, low=low):
+            crop, valid = portrait.crop_planar(x, box, sess.card.working_size)
+            got[low] = portrait.buffers(sess, crop, valid).normal
+    inner = np.zeros(plain.shape[1:], bool)  # well inside the image (no band at its edge)
+    n = sess.card.working_size
+    inner[n // 2 - 10:n // 2 + 10, n // 2 - 10:n // 2 + 10] = True
+    blurred = intrinsic.unit_normals(np.stack([intrinsic.gaussian_blur(c, 3.0) for c in plain]))
+    np.testing.assert_allclose(got["network"][:, inner], blurred[:, inner], atol=2e-3)
+    assert got["photometric"][1, inner].mean() > 0.9  # up ...
+    flat = np.array([0.0, 1.0, 0.0])[:, None]
+    assert np.abs(got["photometric"][:, inner] - flat).max() > 0.05  # ... with detail on it

@@ -1,7 +1,7 @@
 """Real-face normals: the intrinsic network's normals against photometric stereo on CroppedYale.
 
     .venv/bin/python -m training.eval.yale_normals --onnx models/relight-portrait.onnx [--onnx ...]
-        [--split tune|test] [--relight]
+        [--split tune|test] [--relight [--low-sigma S]]
 
 A subject's single-light images give its Lambertian normals by least squares per pixel over the
 images in which that pixel is lit and unclipped (photometric stereo, yale.photometric_fit: the
@@ -17,7 +17,9 @@ top/bottom balance; per-pixel correlation is dominated by the nose and eye socke
 the face's large-scale shape, which a frontal light (shading ~ n_z) leaves ambiguous in sign.
 ``--relight`` also relights the split's pairs (training/eval/yale.py's) through
 addon.relight_image twice, with the network's normals and with photometric stereo's in their
-place (photometric_buffers): what better normals alone would buy.
+place (photometric_buffers): what better normals alone would buy; with ``--low-sigma S`` also
+with only the low band (a Gaussian of S crop pixels) of one under the other's detail, which
+tells the face's large-scale shape from its fine detail.
 """
 
 from __future__ import annotations
@@ -107,13 +109,21 @@ def run(onnx_paths, split: str = "tune", root=None) -> dict:
     return out
 
 
+def _low(n: np.ndarray, sigma: float) -> np.ndarray:
+    return np.stack([intrinsic.gaussian_blur(np.ascontiguousarray(c), sigma) for c in n])
+
+
 @contextlib.contextmanager
-def photometric_buffers(normals: np.ndarray, fitted: np.ndarray):
+def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: float | None = None,
+                        low: str = "photometric"):
     """Within this context the product's face crops (addon.portrait) carry ``normals`` (3, h*w)
     of the image being relit where ``fitted`` (h*w,) instead of the network's: what the
     pipeline would make of the face with its real normals. A diagnostic for one image size at a
     time; the network's matte, albedo and height stay (the face crop's finer sampling,
-    portrait.ZOOM, is left out: its normals would be the network's)."""
+    portrait.ZOOM, is left out: its normals would be the network's). With ``low_sigma`` (crop
+    pixels) only one band is swapped: ``low`` "photometric", the real normals' Gaussian low
+    band under the network's finer detail; "network", the network's low band under the real
+    normals' detail: which scale of the face's shape a relit face needs right."""
     crop_planar, buffers, zoom = portrait.crop_planar, portrait.buffers, portrait.ZOOM
     state = {}
 
@@ -130,8 +140,11 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray):
         field = np.concatenate([normals, fitted[None].astype(normals.dtype)], 0).reshape(4, h, w)
         t = framing.crop(np.ascontiguousarray(field.transpose(1, 2, 0), np.float32), state["box"],
                          size).transpose(2, 0, 1)
-        n = np.where(t[3] > 0.99, t[:3], out.normal)
-        n = intrinsic.unit_normals(n)
+        real = np.where(t[3] > 0.99, t[:3], out.normal)
+        if low_sigma:
+            base, detail = (real, out.normal) if low == "photometric" else (out.normal, real)
+            real = _low(base, low_sigma) + detail - _low(detail, low_sigma)
+        n = intrinsic.unit_normals(np.where(t[3] > 0.99, real, out.normal))
         return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
 
     portrait.crop_planar, portrait.buffers, portrait.ZOOM = crop, swap, 0
@@ -141,15 +154,21 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray):
         portrait.crop_planar, portrait.buffers, portrait.ZOOM = crop_planar, buffers, zoom
 
 
-def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: int = 2021) -> dict:
+def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: int = 2021,
+            low_sigma: float | None = None) -> dict:
     """The split's pairs (training/eval/yale.py's) relit through addon.relight_image with the
-    network's normals and with photometric stereo's: per kind and overall, the scale-invariant
-    PSNR, and the balance correlations."""
+    network's normals and with photometric stereo's (and, with ``low_sigma``, with either's low
+    band under the other's detail: photometric_buffers): per kind and overall, the
+    scale-invariant PSNR, and the balance correlations."""
     root = root or yale.default_root()
     _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
     rel = {"model": yale.PipelineRelighter(onnx_path, 1)}
     bank = yale.HdriBank(root.parents[1])
-    rows = {"network": [], "photometric": []}
+    swaps = {"photometric": {}}
+    if low_sigma:
+        swaps.update({"photometric low band": {"low_sigma": low_sigma, "low": "photometric"},
+                      "network low band": {"low_sigma": low_sigma, "low": "network"}})
+    rows = {"network": [], **{k: [] for k in swaps}}
     for name in subjects:
         s = yale.load_subject(root, name)
         fit = yale.photometric_fit(s.images, s.dirs)
@@ -157,7 +176,7 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
         shading = yale.subject_shading(s, fit)
         for a, b in yale.draw_pairs(s, n_pairs, seed, bank):
             for which in rows:
-                with (photometric_buffers(truth, ok) if which == "photometric"
+                with (photometric_buffers(truth, ok, **swaps[which]) if which in swaps
                       else contextlib.nullcontext()):
                     r = yale.relight_pair(s, a, b, rel, shading)
                 y = r.outputs["model"]
@@ -180,10 +199,12 @@ def main(argv=None):
     ap.add_argument("--relight", action="store_true",
                     help="also relight the split's pairs with photometric stereo's normals in "
                          "place of the network's (what better normals would buy)")
+    ap.add_argument("--low-sigma", type=float, help="with --relight, also swap only the low "
+                    "band (a Gaussian of this many crop pixels) one way and the other")
     a = ap.parse_args(argv)
     if a.relight:
         for p in a.onnx:
-            for which, r in relight(p, a.split).items():
+            for which, r in relight(p, a.split, low_sigma=a.low_sigma).items():
                 print(f"{p}, {which} normals: scale-invariant PSNR {r['all']:.2f} dB ("
                       + ", ".join(f"{k} {r[k]:.2f}" for k in yale.KINDS)
                       + f"); balance {r['left_right']:.3f} / {r['top_bottom']:.3f}")
