@@ -140,3 +140,19 @@ def test_a_band_swap_keeps_one_shape_s_low_band_and_the_other_s_detail(shared_da
     assert got["photometric"][1, inner].mean() > 0.9  # up ...
     flat = np.array([0.0, 1.0, 0.0])[:, None]
     assert np.abs(got["photometric"][:, inner] - flat).max() > 0.05  # ... with detail on it
+
+
+def test_relight_with_swapped_bands_reports_every_variant(shared_data):
+    """--relight --low-sigma: the network's normals, the real ones, either's low band under the
+    other's detail and a template of the other subjects' real normals, each with its figures;
+    the real normals put the light where the truth has it at least as well as the network's."""
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    got = yn.relight("models/relight-portrait.onnx", "tune", root, n_pairs=3, low_sigma=4.0)
+    assert set(got) == {"network", "photometric", "photometric low band", "network low band",
+                        "template low band"}
+    for r in got.values():
+        assert all(np.isfinite(r[k]) for k in ("all", "left_right", "top_bottom"))
+    assert got["photometric"]["top_bottom"] >= got["network"]["top_bottom"] - 0.02
+    assert len({round(r["all"], 6) for r in got.values()}) == 5  # five different relightings

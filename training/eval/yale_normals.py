@@ -158,8 +158,9 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
             low_sigma: float | None = None) -> dict:
     """The split's pairs (training/eval/yale.py's) relit through addon.relight_image with the
     network's normals and with photometric stereo's (and, with ``low_sigma``, with either's low
-    band under the other's detail: photometric_buffers): per kind and overall, the
-    scale-invariant PSNR, and the balance correlations."""
+    band under the other's detail: photometric_buffers; and with the low band of the other
+    subjects' mean real normals, a face template as exactly aligned as CroppedYale's crops
+    are): per kind and overall, the scale-invariant PSNR, and the balance correlations."""
     root = root or yale.default_root()
     _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
     rel = {"model": yale.PipelineRelighter(onnx_path, 1)}
@@ -167,17 +168,24 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
     swaps = {"photometric": {}}
     if low_sigma:
         swaps.update({"photometric low band": {"low_sigma": low_sigma, "low": "photometric"},
-                      "network low band": {"low_sigma": low_sigma, "low": "network"}})
+                      "network low band": {"low_sigma": low_sigma, "low": "network"},
+                      "template low band": {"low_sigma": low_sigma, "low": "photometric"}})
     rows = {"network": [], **{k: [] for k in swaps}}
+    real = {}
     for name in subjects:
         s = yale.load_subject(root, name)
         fit = yale.photometric_fit(s.images, s.dirs)
-        truth, ok = photometric_normals(s.images, s.dirs, fit)
+        n, ok = photometric_normals(s.images, s.dirs, fit)
+        real[name] = (s, fit, np.where(ok, n, 0.0), ok)
+    for name in subjects:
+        s, fit, truth, ok = real[name]
+        template = intrinsic.unit_normals(sum(real[k][2] for k in subjects if k != name))
+        given = {"template low band": (template, np.ones(len(ok), bool))}
         shading = yale.subject_shading(s, fit)
         for a, b in yale.draw_pairs(s, n_pairs, seed, bank):
             for which in rows:
-                with (photometric_buffers(truth, ok, **swaps[which]) if which in swaps
-                      else contextlib.nullcontext()):
+                with (photometric_buffers(*given.get(which, (truth, ok)), **swaps[which])
+                      if which in swaps else contextlib.nullcontext()):
                     r = yale.relight_pair(s, a, b, rel, shading)
                 y = r.outputs["model"]
                 psnr = yale.metrics(yale.ls_gain(y, r.gt, r.mask) * y, r.gt, r.mask)["psnr"]
