@@ -23,6 +23,7 @@ import json
 import os
 import pathlib
 import platform
+import sys
 import time
 
 import numpy as np
@@ -147,16 +148,21 @@ def main(argv=None):
     ap.add_argument("--model", help="an intrinsic .onnx: also measure with its predicted buffers")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "intrinsic_effects"))
     a = ap.parse_args(argv)
-    res = run(a.frames, a.model)
-    command = "python -m bench.intrinsic_effects " + " ".join(argv if argv is not None else
-                                                               __import__("sys").argv[1:])
+    write_report(a.out, "intrinsic_effects", argv, run(a.frames, a.model), markdown)
+
+
+def write_report(out: str, module: str, argv, res: dict, markdown) -> None:
+    """Print and write ``out``.md (``markdown(res, command, machine)``) and ``out``.json: the
+    one-thread accuracy benches' results with the command that made them and the machine."""
+    command = f"python -m bench.{module} " + " ".join(argv if argv is not None
+                                                      else sys.argv[1:])
     machine = (f"{platform.machine()} {os.cpu_count()}-core CPU (one thread), load "
                f"{os.getloadavg()[0]:.1f}")
     md = markdown(res, command.strip(), machine)
     print(md)
-    pathlib.Path(a.out + ".md").write_text(md)
-    pathlib.Path(a.out + ".json").write_text(json.dumps({"command": command, "machine": machine,
-                                                         "results": res}, indent=1) + "\n")
+    pathlib.Path(out + ".md").write_text(md)
+    pathlib.Path(out + ".json").write_text(json.dumps({"command": command, "machine": machine,
+                                                       "results": res}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

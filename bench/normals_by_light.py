@@ -17,11 +17,7 @@ trained under do) reads the up/down shape of a face lit from below poorly. Write
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import pathlib
-import platform
-import sys
 
 import numpy as np
 import torch
@@ -29,7 +25,7 @@ import torch
 from training.intrinsic import data
 from training.intrinsic.train import normalise_batch
 
-from .intrinsic_effects import lamp, render
+from .intrinsic_effects import lamp, render, write_report
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # The lamps, in the light frame (+X right, +Y up, +Z toward the camera), with a fill of 0.05.
@@ -91,17 +87,7 @@ def main(argv=None):
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "normals_by_light"))
     a = ap.parse_args(argv)
     models = a.model or [str(ROOT / "models" / "relight-portrait.onnx")]
-    res = run(models, a.frames)
-    command = "python -m bench.normals_by_light " + " ".join(argv if argv is not None
-                                                             else sys.argv[1:])
-    machine = (f"{platform.machine()} {os.cpu_count()}-core CPU (one thread), load "
-               f"{os.getloadavg()[0]:.1f}")
-    md = markdown(res, command.strip(), machine)
-    print(md)
-    pathlib.Path(a.out + ".md").write_text(md)
-    pathlib.Path(a.out + ".json").write_text(json.dumps({"command": command, "machine": machine,
-                                                         "results": res}, indent=1) + "\n")
-
+    write_report(a.out, "normals_by_light", argv, run(models, a.frames), markdown)
 
 if __name__ == "__main__":
     main()
