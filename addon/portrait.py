@@ -107,7 +107,7 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
     share of each pixel inside the frame (crop_planar); ``mirror``: the mean with the mirror
     image's (MIRROR)."""
     x = x * np.float32(intrinsic.exposure_scale(x))
-    res = session.run_planar(x, mirror=True) if mirror else session.run_planar(x)
+    res = session.run_planar(x, mirror=mirror)
     names = session.card.classes
     matte = res.parsing[names.index("foreground")]
     face = res.parsing[names.index("skin")] if "skin" in names else np.zeros_like(matte)
@@ -136,16 +136,17 @@ def shrunk(bufs: intrinsic.Buffers, size: int) -> intrinsic.Buffers:
         return np.ascontiguousarray(hwc.transpose(2, 0, 1))
 
     k = np.float32(size / bufs.height.shape[0])
-    return intrinsic.Buffers(intrinsic.unit_normals(rs(bufs.normal)), rs(bufs.height) * k, rs(bufs.albedo), rs(bufs.matte),
-                             rs(bufs.face), None if bufs.transfer is None else rs(bufs.transfer))
+    return intrinsic.Buffers(intrinsic.unit_normals(rs(bufs.normal)), rs(bufs.height) * k,
+                             rs(bufs.albedo), rs(bufs.matte), rs(bufs.face),
+                             None if bufs.transfer is None else rs(bufs.transfer))
 
 
 def mean_buffers(a: intrinsic.Buffers, b: intrinsic.Buffers) -> intrinsic.Buffers:
     """The mean of two sets of buffers of one crop (the normals renormalised)."""
     half = np.float32(0.5)
     return intrinsic.Buffers(
-        intrinsic.unit_normals(a.normal + b.normal), half * (a.height + b.height), half * (a.albedo + b.albedo),
-        half * (a.matte + b.matte), half * (a.face + b.face),
+        intrinsic.unit_normals(a.normal + b.normal), half * (a.height + b.height),
+        half * (a.albedo + b.albedo), half * (a.matte + b.matte), half * (a.face + b.face),
         None if a.transfer is None or b.transfer is None else half * (a.transfer + b.transfer))
 
 

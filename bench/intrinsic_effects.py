@@ -6,13 +6,13 @@ Held-out val frames (training/intrinsic/data.py, identities never trained on) ar
 a soft source light, then relit by ``addon.intrinsic.shade`` to five target lights and compared
 with the light stage's own render under each target (its shadows, GGX skin, subsurface
 scattering). Two kinds of buffers: the light stage's exact ones, its light transport included
-(the renderer's own error), and,
-with ``--model``, the network's predictions from the camera-degraded picture, the mean of the
-picture's and its mirror image's as the product's face crop takes them (the product's error;
-its finer sampling of the box is left out: the cached frames are 128 pixels). Error: relative RMSE over the subject after one least-squares gain (exposure is the
-artist's choice), so it measures where the light falls. Effects: diffuse only, + cast shadows,
-+ highlights, and "auto" (``intrinsic.plan``: shadows and highlights only for compact, strong
-components). Time: the renderer's milliseconds per 128 x 128 crop, median over the frames, on
+(the renderer's own error), and, with ``--model``, the network's predictions from the
+camera-degraded picture, the mean of the picture's and its mirror image's as the product's face
+crop takes them (the product's error; its finer sampling of the box is left out: the cached
+frames are 128 pixels). Error: relative RMSE over the subject after one least-squares gain
+(exposure is the artist's choice), so it measures where the light falls. Effects: diffuse only,
++ cast shadows, + highlights, and "auto" (``intrinsic.plan``: shadows and highlights only for
+compact, strong components). Time: the renderer's milliseconds per 128 x 128 crop, median over the frames, on
 this machine. Writes ``bench/results/intrinsic_effects.{md,json}``.
 """
 

@@ -70,7 +70,8 @@ def run(models: list[str], n_frames: int = 24) -> dict:
 
 def markdown(res: dict, command: str, machine: str) -> str:
     lines = [f"Produced by `{command}` on {machine}.", "",
-             "| model | lamp | up/down correlation | left/right correlation | angle (deg) | frames |",
+             "| model | lamp | up/down correlation | left/right correlation | angle (deg) "
+             "| frames |",
              "| --- | --- | --- | --- | --- | --- |"]
     for k, v in res.items():
         model, lname = k.split(" | ")
