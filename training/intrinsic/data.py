@@ -79,7 +79,12 @@ def frame_path(folder: pathlib.Path, i: int) -> pathlib.Path:
 
 def render_frame(ds: LightStageDataset, i: int) -> dict:
     """Arrays of one frame: the transfer (float16) and the exact buffers of its foreground."""
-    scene, t = ds.pair_scene(i)
+    return frame_arrays(*ds.pair_scene(i), label=i)
+
+
+def frame_arrays(scene, t: float, label=None) -> dict:
+    """render_frame's arrays for any light-stage scene at time ``t`` (``label`` names it in
+    errors)."""
     f = scene.frame(t)
     gb = f.gb
     pos = gb.position.reshape(-1, 3)[f.idx]
@@ -90,7 +95,7 @@ def render_frame(ds: LightStageDataset, i: int) -> dict:
         x = getattr(f.transfer, name)
         big = float(x.abs().max()) if x.numel() else 0.0
         if not bool(torch.isfinite(x).all()) or big > 6e4:
-            raise ValueError(f"{name} transfer out of float16 range in frame {i}")
+            raise ValueError(f"{name} transfer out of float16 range in frame {label}")
     return {"idx": f.idx.numpy().astype(np.int32),
             "diffuse": f.transfer.diffuse.numpy().astype(np.float16),
             "specular": f.transfer.specular.numpy().astype(np.float16),

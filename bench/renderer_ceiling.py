@@ -1,0 +1,147 @@
+"""How far the intrinsic renderer's design can go on the card's test set, and what stops it.
+
+    .venv/bin/python -m bench.renderer_ceiling [--n 64] [--model models/relight-portrait.onnx]
+
+The card's ``rmse_level_fit`` (training/eval/evaluate.py: the fixed test set of held-out
+identities, each relit frame scaled per channel by its least-squares gain toward the truth, then
+display-normalised RMSE over the portrait) measured for a ladder of relightings of the same 64
+frames, each step replacing an estimate with the light stage's truth:
+
+* ``input unchanged`` and ``the product``: the input as it is, and the model as the card
+  measures it (addon.relight_image: framing, buffers, renderer);
+* ``renderer, network buffers (no framing)``: addon.intrinsic.shade on the network's buffers of
+  the whole 128-pixel frame (the mean with the mirror image's, as the face crop takes them);
+* ``renderer, exact buffers``: the same renderer on the light stage's own normals, height,
+  albedo, matte, face skin and light transport: what a perfect network would score;
+* ``ratio of the true diffuse shading``: the footage times the light stage's own target over
+  source diffuse irradiance (subsurface diffusion included), the source's taken as luminance as
+  the renderer takes it (the footage keeps its colour); ``per channel``: the source's colour
+  divided out too; ``per channel, specular exact``: and the source's specular reflection taken
+  out of the footage and the target's added (what is left is the backdrop blended into the
+  silhouette's pixels).
+
+The light stage's buffers come from rendering each test sample's scene again
+(training.intrinsic.data.frame_arrays); its pictures are checked against the stored test set's.
+Writes ``bench/results/renderer_ceiling.{md,json}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+
+import numpy as np
+import torch
+
+from addon import intrinsic
+from training.data.dataset import LightStageDataset
+from training.data.make_testset import TEST_SEED, load_testset
+from training.eval.metrics import level_fit_rmse
+from training.intrinsic import data
+from training.lightstage import layout, shading
+
+from .intrinsic_effects import exact_buffers, predicted_buffers, render, write_report
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+# The scene rendered again must give the stored test set's pictures (its transfer is kept in
+# float16, as the intrinsic cache keeps it): largest difference over the picture's peak.
+MATCH = 2e-3
+STEPS = ("input unchanged", "the product", "renderer, network buffers (no framing)",
+         "renderer, exact buffers", "ratio of the true diffuse shading",
+         "ratio of the true diffuse shading, per channel",
+         "ratio of the true diffuse shading, per channel, specular exact")
+
+
+def stage_parts(a: dict, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(diffuse irradiance after subsurface diffusion, specular radiance), each (3, H, W), of
+    the light stage's frame ``a`` under ``light`` (shading.relight's terms; silhouette pixels
+    weighted by their coverage as its pictures are)."""
+    s = data.shade_inputs(a)
+    w = torch.from_numpy(layout.weights(light)).float()
+    h, wd = s.mask.shape
+    irr, spec = torch.zeros(3, h * wd), torch.zeros(3, h * wd)
+    irr[:, s.idx] = (s.diffuse.float() @ w).T
+    spec[:, s.idx] = (s.specular.float() @ w).T
+    irr = shading.subsurface(irr.view(3, h, wd), s.sss, s.px_per_cm)
+    spec = spec.view(3, h, wd) * (1.0 if s.cover is None else s.cover[None])
+    return irr.numpy(), spec.numpy()
+
+
+def ladder(sample: dict, a: dict, product=None, session=None) -> dict:
+    """{step: rmse_level_fit} for one test sample (``sample``: the stored test set's, ``a``:
+    its light-stage frame)."""
+    src, gt = sample["img_t_i"], sample["gt_t_k"]
+    mask = sample["mask_t"][0] > 0.5
+    light = sample["light_k"]
+    e_s, s_s = stage_parts(a, sample["light_i"])
+    e_t, s_t = stage_parts(a, light)
+    fg = e_s > 1e-8
+    per_channel = np.where(fg, e_t / np.maximum(e_s, 1e-8), 1.0)
+    e_lum = intrinsic.luminance(e_s)
+    lum = np.where(e_lum > 1e-8, 1.0 / np.maximum(e_lum, 1e-8), 1.0)[None] * e_t
+    outs = {"input unchanged": src,
+            "ratio of the true diffuse shading": src * np.where(fg, lum, 1.0),
+            "ratio of the true diffuse shading, per channel": src * per_channel,
+            "ratio of the true diffuse shading, per channel, specular exact":
+                (src - s_s) * per_channel + s_t}
+    if product is not None:
+        outs["the product"] = product(sample)[0]
+    kinds = {"renderer, exact buffers": exact_buffers(a)}
+    if session is not None:
+        kinds["renderer, network buffers (no framing)"] = predicted_buffers(session, src)
+    for name, bufs in kinds.items():
+        sh = intrinsic.shade(src, bufs, light)
+        outs[name] = src * sh.ratio + sh.highlight
+    return {k: level_fit_rmse(v, gt, mask) for k, v in outs.items()}
+
+
+def run(n: int = 64, model: str | None = None) -> dict:
+    torch.set_num_threads(1)
+    ts = load_testset(128)
+    n = min(n, len(ts["img_t_i"]))
+    ds = LightStageDataset("test", 128, seed=TEST_SEED, length=len(ts["img_t_i"]))
+    product = session = None
+    if model:
+        from addon import api
+        from training.eval.predictors import onnx_file_predictor
+
+        product, _ = onnx_file_predictor(model, 1)
+        session = api.session(model, 1)
+    rows: dict = {}
+    for i in range(n):
+        sample = {k: v[i] for k, v in ts.items()}
+        scene, t, _ = ds.scene_for(i)
+        a = data.frame_arrays(scene, t, i)
+        for key, light in (("img_t_i", sample["light_i"]), ("gt_t_k", sample["light_k"])):
+            off = float(np.abs(render(a, light) - sample[key]).max()) / max(
+                float(sample[key].max()), 1e-12)
+            if off > MATCH:
+                raise RuntimeError(f"test sample {i} rendered again differs from the stored "
+                                   f"test set by {off:.2g} of its peak: rebuild the test set "
+                                   "(python -m training.data.make_testset)")
+        for k, v in ladder(sample, a, product, session).items():
+            rows.setdefault(k, []).append(v)
+    return {"samples": n, "model": model,
+            "rmse_level_fit": {k: float(np.mean(rows[k])) for k in STEPS if k in rows}}
+
+
+def markdown(res: dict, command: str, machine: str) -> str:
+    lines = [f"Produced by `{command}` on {machine}.", "",
+             f"The card's test set ({res['samples']} samples of held-out identities); model: "
+             f"{res['model'] or 'none'}.", "",
+             "| relighting | rmse_level_fit |", "| --- | --- |"]
+    lines += [f"| {k} | {v:.4f} |" for k, v in res["rmse_level_fit"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--n", type=int, default=64, help="test samples (of the stored 64)")
+    ap.add_argument("--model", help="an intrinsic .onnx: also the product and its buffers")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "renderer_ceiling"))
+    a = ap.parse_args(argv)
+    write_report(a.out, "renderer_ceiling", argv, run(a.n, a.model), markdown)
+
+
+if __name__ == "__main__":
+    main()
