@@ -506,3 +506,35 @@ def test_normals_by_light_scores_the_up_down_and_left_right_shape_apart(frames):
     noisy[1] += np.random.default_rng(0).normal(0, 0.2, truth[1].shape)
     got = face_scores(noisy, truth, face)
     assert got["corr_y"] < 0.9 and got["corr_x"] > 0.95 and got["angle_deg"] > 3.0
+
+
+def test_renderer_ceiling_ladder_rests_on_the_light_stages_own_terms(frames):
+    """bench.renderer_ceiling: its diffuse and specular terms make the light stage's picture
+    again; with both taken out exactly the relit frame is the truth (on the pixels the subject
+    covers whole); a warm-left, cool-right source relit by a white lamp keeps its colour
+    through a luminance ratio, not per channel; and the renderer on exact buffers does better
+    than no relighting."""
+    from bench.intrinsic_effects import lamp, render
+    from bench.renderer_ceiling import ladder, stage_parts
+
+    a = frames.frame(0)
+    full = a["cover"] > 0.999
+    warm, cool = np.array([1.0, 0.6, 0.3], np.float32), np.array([0.3, 0.6, 1.0], np.float32)
+    source = (lamp([-1, 0.3, 0.6], 2.0, 0.0) * warm + lamp([1, 0.2, 0.6], 1.0, 0.0) * cool
+              + 0.3 * lightvec.uniform()).astype(np.float32)
+    target = lamp([0.6, 0.4, 0.7])
+    e, s = stage_parts(a, source)
+    albedo = np.zeros((3,) + full.shape, np.float32)
+    albedo.reshape(3, -1)[:, a["idx"]] = a["albedo"].T
+    picture = render(a, source)
+    np.testing.assert_allclose((albedo / np.pi * e + s)[:, full], picture[:, full], rtol=1e-4,
+                               atol=1e-6 * float(picture.max()))
+    sample = {"img_t_i": picture, "gt_t_k": render(a, target), "light_i": source,
+              "light_k": target, "mask_t": full[None].astype(np.float32)}
+    got = ladder(sample, a)
+    floor = got["ratio of the true diffuse shading, per channel, specular exact"]
+    per_channel = got["ratio of the true diffuse shading, per channel"]
+    luminance = got["ratio of the true diffuse shading"]
+    assert floor < 1e-4  # (silhouette pixels, where the backdrop blends in, are left out here)
+    assert per_channel < 0.7 * luminance
+    assert got["renderer, exact buffers"] < 0.7 * got["input unchanged"]
