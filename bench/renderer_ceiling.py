@@ -54,17 +54,13 @@ STEPS = ("input unchanged", "the product", "renderer, network buffers (no framin
 
 def stage_parts(a: dict, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(diffuse irradiance after subsurface diffusion, specular radiance), each (3, H, W), of
-    the light stage's frame ``a`` under ``light`` (shading.relight's terms; silhouette pixels
-    weighted by their coverage as its pictures are)."""
+    the light stage's frame ``a`` under ``light`` (shading.terms; the specular of silhouette
+    pixels weighted by their coverage as the pictures are)."""
     s = data.shade_inputs(a)
-    w = torch.from_numpy(layout.weights(light)).float()
+    irr, spec = shading.terms(s, torch.from_numpy(layout.weights(light)).float()[None])
     h, wd = s.mask.shape
-    irr, spec = torch.zeros(3, h * wd), torch.zeros(3, h * wd)
-    irr[:, s.idx] = (s.diffuse.float() @ w).T
-    spec[:, s.idx] = (s.specular.float() @ w).T
-    irr = shading.subsurface(irr.view(3, h, wd), s.sss, s.px_per_cm)
     spec = spec.view(3, h, wd) * (1.0 if s.cover is None else s.cover[None])
-    return irr.numpy(), spec.numpy()
+    return irr.view(3, h, wd).numpy(), spec.numpy()
 
 
 def ladder(sample: dict, a: dict, product=None, session=None) -> dict:

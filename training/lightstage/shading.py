@@ -190,12 +190,10 @@ class ShadeInputs:
     cover: torch.Tensor | None = None  # (H, W) sub-pixel coverage of the subject (None: mask)
 
 
-def relight(s: ShadeInputs, w: torch.Tensor, dirs: torch.Tensor, lights=None,
-            extra_irradiance=None) -> torch.Tensor:
-    """Images (C, 3, H, W) under stage weights ``w`` (C, M_all, 3): linear in ``w``.
-
-    ``lights``: indices of the lights the transfer holds (all when None); ``extra_irradiance``
-    (N, C*3): irradiance added after subsurface diffusion (the low-frequency path)."""
+def terms(s: ShadeInputs, w: torch.Tensor, lights=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(diffuse irradiance after subsurface diffusion, specular radiance), each (C*3, H*W) and
+    zero off the foreground, under stage weights ``w`` (C, M_all, 3): relight's two terms of
+    the subject (``lights`` as there)."""
     c = w.shape[0]
     h, wd = s.mask.shape
     wsel = w if lights is None else w[:, lights]
@@ -204,7 +202,18 @@ def relight(s: ShadeInputs, w: torch.Tensor, dirs: torch.Tensor, lights=None,
     spec = torch.zeros(c * 3, h * wd)
     irr[:, s.idx] = (s.diffuse.float() @ wm).T
     spec[:, s.idx] = (s.specular.float() @ wm).T
-    irr = subsurface(irr.view(c * 3, h, wd), s.sss, s.px_per_cm).view(c * 3, -1)
+    return subsurface(irr.view(c * 3, h, wd), s.sss, s.px_per_cm).view(c * 3, -1), spec
+
+
+def relight(s: ShadeInputs, w: torch.Tensor, dirs: torch.Tensor, lights=None,
+            extra_irradiance=None) -> torch.Tensor:
+    """Images (C, 3, H, W) under stage weights ``w`` (C, M_all, 3): linear in ``w``.
+
+    ``lights``: indices of the lights the transfer holds (all when None); ``extra_irradiance``
+    (N, C*3): irradiance added after subsurface diffusion (the low-frequency path)."""
+    c = w.shape[0]
+    h, wd = s.mask.shape
+    irr, spec = terms(s, w, lights)
     if extra_irradiance is not None:
         irr[:, s.idx] += extra_irradiance
     alb = torch.zeros(3, h * wd)
