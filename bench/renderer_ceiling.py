@@ -73,10 +73,10 @@ def ladder(sample: dict, a: dict, product=None, session=None) -> dict:
     e_t, s_t = stage_parts(a, light)
     fg = e_s > 1e-8
     per_channel = np.where(fg, e_t / np.maximum(e_s, 1e-8), 1.0)
-    e_lum = intrinsic.luminance(e_s)
-    lum = np.where(e_lum > 1e-8, 1.0 / np.maximum(e_lum, 1e-8), 1.0)[None] * e_t
+    e_lum = intrinsic.luminance(e_s)[None]
+    lum = np.where(fg & (e_lum > 1e-8), e_t / np.maximum(e_lum, 1e-8), 1.0)
     outs = {"input unchanged": src,
-            "ratio of the true diffuse shading": src * np.where(fg, lum, 1.0),
+            "ratio of the true diffuse shading": src * lum,
             "ratio of the true diffuse shading, per channel": src * per_channel,
             "ratio of the true diffuse shading, per channel, specular exact":
                 (src - s_s) * per_channel + s_t}

@@ -516,6 +516,7 @@ def test_renderer_ceiling_ladder_rests_on_the_light_stages_own_terms(frames):
     than no relighting."""
     from bench.intrinsic_effects import lamp, render
     from bench.renderer_ceiling import ladder, stage_parts
+    from training.intrinsic import data
 
     a = frames.frame(0)
     full = a["cover"] > 0.999
@@ -524,8 +525,7 @@ def test_renderer_ceiling_ladder_rests_on_the_light_stages_own_terms(frames):
               + 0.3 * lightvec.uniform()).astype(np.float32)
     target = lamp([0.6, 0.4, 0.7])
     e, s = stage_parts(a, source)
-    albedo = np.zeros((3,) + full.shape, np.float32)
-    albedo.reshape(3, -1)[:, a["idx"]] = a["albedo"].T
+    albedo = data.dense(a, a["albedo"])
     picture = render(a, source)
     np.testing.assert_allclose((albedo / np.pi * e + s)[:, full], picture[:, full], rtol=1e-4,
                                atol=1e-6 * float(picture.max()))
