@@ -374,10 +374,14 @@ def level_colour(image_chw: np.ndarray, lum: np.ndarray, e_src: np.ndarray, skin
 def level_factor(level, e_src: np.ndarray, e_new: np.ndarray) -> np.ndarray:
     """(3, h, w) the colour change, of unit luminance, from the skin colour the footage shows at
     its shading ``e_src`` to the one it shows at ``e_new`` (level_colour's fit ``level``; levels
-    beyond those seen count as the nearest seen)."""
+    beyond those seen count as the nearest seen), where the new light fills (``e_new`` above
+    ``e_src``); none where it darkens. The colour of the footage's shadows comes with its own
+    light (a coloured bounce, the grade); a new shadow's warmth comes from the target light's
+    own diffusion under the skin (subsurface). Carried into a white lamp's new shadows, the
+    footage's turned a whole cheek a saturated red-brown on real footage."""
     coef, lo, hi = level
     xs = np.clip(np.log(np.maximum(e_src, 1e-8)), lo, hi)
-    xn = np.clip(np.log(np.maximum(e_new, 1e-8)), lo, hi)
+    xn = np.maximum(np.clip(np.log(np.maximum(e_new, 1e-8)), lo, hi), xs)
     s = np.maximum(coef[0][:, None, None] + coef[1][:, None, None] * xs[None], 1e-3)
     n = np.maximum(coef[0][:, None, None] + coef[1][:, None, None] * xn[None], 1e-3)
     f = n / s

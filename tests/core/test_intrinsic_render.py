@@ -462,6 +462,9 @@ def test_level_colour_reads_the_skins_colour_against_its_level():
     want /= float(intrinsic.LUMA @ want)
     np.testing.assert_allclose(f[:, 0, 0], want, rtol=0.02)
     assert float(intrinsic.luminance(f)[0, 0]) == pytest.approx(1.0, abs=1e-5)
+    # A light that darkens the skin leaves its colour to the target's own shading: no change.
+    f = intrinsic.level_factor((coef, lo, hi), np.full((1, 1), bright), np.full((1, 1), dark))
+    np.testing.assert_allclose(f[:, 0, 0], 1.0, atol=1e-5)
 
 
 def test_a_filled_shadow_takes_the_colour_of_the_footages_lit_skin(monkeypatch):

@@ -3,6 +3,7 @@
 The footage is local-only data (../shared/data/footage); everything is written under tmp_path."""
 
 import hashlib
+import math
 import os
 import pathlib
 
@@ -107,3 +108,19 @@ def test_skin_chroma_ignores_exposure_and_sees_greyed_skin():
     grey = skin.mean(axis=2, keepdims=True)
     assert fs.skin_chroma(0.5 * skin + 0.5 * grey, matte, skin) == pytest.approx(base / 2, rel=1e-3)
     assert np.isnan(fs.skin_chroma(skin, np.zeros_like(matte), skin))  # no subject
+
+
+def test_shadow_warmth_reads_the_hue_of_the_skin_the_light_darkens():
+    """Half the skin darkened 4x at its own colour: no warmth, whatever the exposure; the same
+    half also turned redder (red x1.3, blue /1.3): log(1.69); nothing darkened: nan."""
+    rng = np.random.default_rng(0)
+    skin = np.array([0.6, 0.4, 0.3], np.float32) * rng.uniform(0.5, 1.0, (32, 32, 1))
+    skin = skin.astype(np.float32)
+    matte = np.ones((32, 32), np.float32)
+    dark = np.ones((32, 32, 1), np.float32)
+    dark[:, :16] = 0.25
+    assert fs.shadow_warmth(skin * dark * 2.0, matte, skin) == pytest.approx(0.0, abs=1e-6)
+    warm = np.where(dark < 1.0, np.array([1.3, 1.0, 1 / 1.3], np.float32), 1.0)
+    assert fs.shadow_warmth(skin * dark * warm, matte, skin) == pytest.approx(math.log(1.69),
+                                                                             rel=1e-4)
+    assert np.isnan(fs.shadow_warmth(skin, matte, skin))

@@ -8,7 +8,8 @@ Each clip of ``../shared/data/footage/*.mp4`` (first ``--frames`` frames) goes t
 lamp setups, into ``<out>/<clip>/<lighting>/<model>/``. Then:
 
 * the console and ``<out>/sheet.json``: per run, the left/right balance of the middle frame
-  (input and relit), its skin's chroma relit over input (skin_chroma), how much the background
+  (input and relit), its skin's chroma relit over input (skin_chroma), the hue the skin the
+  light darkens takes (shadow_warmth), how much the background
   just beyond the subject's outline changed (outline_change: a dark halo shows as below 1) and
   the share of the frame the foreground matte covers (a matte that covers the room makes the kept
   background fall back to the network's);
@@ -123,6 +124,7 @@ class Run:
     matte_cover: float = float("nan")  # share of the middle frame the foreground matte covers
     chroma: tuple[float, float] = (float("nan"), float("nan"))  # skin_chroma (input, relit)
     outline: tuple[float, float] = (float("nan"), float("nan"))  # outline_change
+    warmth: float = float("nan")  # shadow_warmth
 
     def fps_text(self) -> str:
         if not self.written:
@@ -196,6 +198,33 @@ def skin_chroma(linear: np.ndarray, matte: np.ndarray, source: np.ndarray) -> fl
     ok = total[:, 0] > 0
     chroma = np.linalg.norm(rgb[ok] / total[ok] - 1.0 / 3.0, axis=1)
     return float(chroma.mean()) if chroma.size else float("nan")
+
+
+SHADOW_DARKER = 0.5  # skin the relit frame darkens below this share of its source luminance
+
+
+def shadow_warmth(linear: np.ndarray, matte: np.ndarray, source: np.ndarray) -> float:
+    """How much warmer skin the light darkens turns: the median change of log(red / blue) from
+    the source to the relit frame over the matte's core where the source is skin-like (r > g >
+    b) and lit (luminance above the median there) and the relit frame, its exposure matched to
+    the source's over those pixels, keeps less than SHADOW_DARKER of it. A white lamp's new
+    shadows on skin are a little warm at their edges (light diffusing under the skin); a large
+    figure is a shadow painted red-brown. nan when fewer than 64 pixels are darkened."""
+    y_src = normalise.luminance(source)
+    m = (np.asarray(matte) > 0.9) & (source[..., 0] > source[..., 1]) & \
+        (source[..., 1] > source[..., 2]) & (y_src > 0)
+    if m.sum() < 64:
+        return float("nan")
+    m &= y_src > np.median(y_src[m])
+    y = normalise.luminance(linear)[m]
+    q = y / y_src[m] * (float(y_src[m].sum()) / max(float(y.sum()), 1e-12))
+    dark = q < SHADOW_DARKER
+    if dark.sum() < 64:
+        return float("nan")
+    def red_blue(rgb):
+        return np.log(np.maximum(rgb[..., 0], 1e-8) / np.maximum(rgb[..., 2], 1e-8))
+
+    return float(np.median((red_blue(linear[m]) - red_blue(source[m]))[dark]))
 
 
 def dilate(mask: np.ndarray, r: int) -> np.ndarray:
@@ -397,7 +426,7 @@ def run_one(spec, clip_name: str, name: str, light, model: pathlib.Path, out: pa
     return Run(clip_name, name, model.stem, run_dir, spec.count, written, seconds, steady,
                (balance(x_mid, matte), balance(y_mid, matte)), float(np.mean(matte)),
                (skin_chroma(x_mid, matte, x_mid), skin_chroma(y_mid, matte, x_mid)),
-               outline_change(x_mid, y_mid, matte))
+               outline_change(x_mid, y_mid, matte), shadow_warmth(y_mid, matte, x_mid))
 
 
 def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
@@ -414,7 +443,8 @@ def relight_all(data, clips, lights, models, out, frames_n: int, threads: int,
                               background, temporal)
                 print(f"{clip_name:>4} {name:<9} {model.stem}: {run.fps_text()}; left/right "
                       f"balance input {run.balance[0]:.2f} -> relit {run.balance[1]:.2f}; "
-                      f"skin chroma relit/input {run.chroma[1] / run.chroma[0]:.2f}; "
+                      f"skin chroma relit/input {run.chroma[1] / run.chroma[0]:.2f}, "
+                      f"shadow warmth {run.warmth:+.3f}; "
                       f"beyond the outline relit/input {run.outline[0]:.2f} (darkest tenth "
                       f"{run.outline[1]:.2f}); matte covers {run.matte_cover:.0%}", flush=True)
                 row[name] = run
@@ -476,7 +506,7 @@ def make_sheets(a) -> dict:
                   "steady_fps": r.steady_fps and round(r.steady_fps, 2),
                   "balance_input": _num(r.balance[0]), "balance_relit": _num(r.balance[1]),
                   "matte_cover": _num(r.matte_cover), "skin_chroma_input": _num(r.chroma[0]),
-                  "skin_chroma_relit": _num(r.chroma[1]),
+                  "skin_chroma_relit": _num(r.chroma[1]), "shadow_warmth": _num(r.warmth),
                   "outline_relit_over_input": _num(r.outline[0]),
                   "outline_darkest_tenth": _num(r.outline[1])}
                  for r in runs],
