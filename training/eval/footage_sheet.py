@@ -9,10 +9,10 @@ lamp setups, into ``<out>/<clip>/<lighting>/<model>/``. Then:
 
 * the console and ``<out>/sheet.json``: per run, the left/right balance of the middle frame
   (input and relit), its skin's chroma relit over input (skin_chroma), the hue the skin the
-  light darkens takes (shadow_warmth), how much the background
-  just beyond the subject's outline changed (outline_change: a dark halo shows as below 1) and
-  the share of the frame the foreground matte covers (a matte that covers the room makes the kept
-  background fall back to the network's);
+  light darkens takes (shadow_warmth), how much the background just beyond the subject's
+  outline changed (outline_change: a dark halo shows as below 1) and the share of the frame the
+  foreground matte covers (a matte that covers the room makes the kept background fall back to
+  the network's);
 * ``<out>/sheet.png``: one row per clip (and model), columns = the input and each lighting, the
   clip's middle frame; above each lighting column its light vector (16x16 latitude-longitude map:
   top = up, centre = toward the camera, right = the camera's right, both edges = behind).
@@ -181,15 +181,21 @@ def balance(linear: np.ndarray, matte: np.ndarray) -> float:
     return float(lo.mean() / hi.mean()) if lo.size and hi.size and hi.mean() > 0 else float("nan")
 
 
+def skin_core(matte: np.ndarray, source: np.ndarray) -> np.ndarray | None:
+    """The matte's core where the source is skin-like (r > g > b) and lit; None when it holds
+    fewer than 64 pixels."""
+    m = (np.asarray(matte) > 0.9) & (source[..., 0] > source[..., 1]) & \
+        (source[..., 1] > source[..., 2]) & (normalise.luminance(source) > 0)
+    return m if m.sum() >= 64 else None
+
+
 def skin_chroma(linear: np.ndarray, matte: np.ndarray, source: np.ndarray) -> float:
     """How coloured the subject's skin is: the mean distance of its chromaticity (r, g, b over
-    their sum) from grey, over the matte's core where the source is skin-like (r > g > b) and
-    lit (luminance above the median there, so shadows' noise does not count). Comparing a
-    relit frame's with its source's under a white light says whether skin kept its colour."""
-    y_src = normalise.luminance(source)
-    m = (np.asarray(matte) > 0.9) & (source[..., 0] > source[..., 1]) & \
-        (source[..., 1] > source[..., 2]) & (y_src > 0)
-    if m.sum() < 64:
+    their sum) from grey, over skin_core where the relit frame's luminance is above its median
+    there (so shadows' noise does not count). Comparing a relit frame's with its source's under
+    a white light says whether skin kept its colour."""
+    m = skin_core(matte, source)
+    if m is None:
         return float("nan")
     y = normalise.luminance(linear)
     m &= y > np.median(y[m])
@@ -205,22 +211,22 @@ SHADOW_DARKER = 0.5  # skin the relit frame darkens below this share of its sour
 
 def shadow_warmth(linear: np.ndarray, matte: np.ndarray, source: np.ndarray) -> float:
     """How much warmer skin the light darkens turns: the median change of log(red / blue) from
-    the source to the relit frame over the matte's core where the source is skin-like (r > g >
-    b) and lit (luminance above the median there) and the relit frame, its exposure matched to
-    the source's over those pixels, keeps less than SHADOW_DARKER of it. A white lamp's new
+    the source to the relit frame over skin_core where the source's luminance is above its
+    median there and the relit frame, its exposure matched to the source's over those pixels,
+    keeps less than SHADOW_DARKER of it. A white lamp's new
     shadows on skin are a little warm at their edges (light diffusing under the skin); a large
     figure is a shadow painted red-brown. nan when fewer than 64 pixels are darkened."""
-    y_src = normalise.luminance(source)
-    m = (np.asarray(matte) > 0.9) & (source[..., 0] > source[..., 1]) & \
-        (source[..., 1] > source[..., 2]) & (y_src > 0)
-    if m.sum() < 64:
+    m = skin_core(matte, source)
+    if m is None:
         return float("nan")
+    y_src = normalise.luminance(source)
     m &= y_src > np.median(y_src[m])
     y = normalise.luminance(linear)[m]
     q = y / y_src[m] * (float(y_src[m].sum()) / max(float(y.sum()), 1e-12))
     dark = q < SHADOW_DARKER
     if dark.sum() < 64:
         return float("nan")
+
     def red_blue(rgb):
         return np.log(np.maximum(rgb[..., 0], 1e-8) / np.maximum(rgb[..., 2], 1e-8))
 
