@@ -12,8 +12,8 @@ crop takes them (the product's error; its finer sampling of the box is left out:
 frames are 128 pixels). Error: relative RMSE over the subject after one least-squares gain
 (exposure is the artist's choice), so it measures where the light falls. Effects: diffuse only,
 + cast shadows, + highlights, and "auto" (``intrinsic.plan``: shadows and highlights only for
-compact, strong components). Time: the renderer's milliseconds per 128 x 128 crop, median over the frames, on
-this machine. Writes ``bench/results/intrinsic_effects.{md,json}``.
+compact, strong components). Time: the renderer's milliseconds per 128 x 128 crop, median over
+the frames, on this machine. Writes ``bench/results/intrinsic_effects.{md,json}``.
 """
 
 from __future__ import annotations

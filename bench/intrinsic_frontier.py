@@ -61,11 +61,11 @@ def real_faces(model: str, size: int, threads: int, quick: bool) -> dict:
             "subjects": len(subjects), **yale.balance_correlation(rows)["model"]}
 
 
-def frame_stages(sess, x: np.ndarray, lamp: np.ndarray, fullres) -> dict:
+def frame_stages(sess, x: np.ndarray, lamp: np.ndarray, fullres, box=None) -> dict:
     """The per-frame path's stages on the (3, H, W) frame ``x`` as frame_ms counts them, each a
-    callable: the framing pass following the frame's box, relight_frame, the finish with the
-    outline's refit, the temporal blend."""
-    box = portrait.find_box(sess, x, fullres)
+    callable: the framing pass following the frame's box (``box``, found here if not given),
+    relight_frame, the finish with the outline's refit, the temporal blend."""
+    box = portrait.find_box(sess, x, fullres) if box is None else box
     res = portrait.relight_frame(sess, x, lamp, box, fullres=fullres)
     return {
         "framing": lambda: portrait.find_box(sess, x, fullres, prior=box),
@@ -91,7 +91,7 @@ def timings(model: str, sizes, threads: int, repeats: int) -> dict:
             # a relighting pass: the crop and its mirror (portrait.MIRROR)
             "network": lambda s=sess, c=crop: s.run_planar(c, mirror=portrait.MIRROR),
             "renderer": lambda c=crop, b=bufs: intrinsic.shade(c, b, lamp),
-            **frame_stages(sess, x, lamp, fullres)}
+            **frame_stages(sess, x, lamp, fullres, box)}
     times = {size: {k: [] for k in job} for size, job in jobs.items()}
     with blas.one_thread():  # as the product runs them (addon/blas.py)
         for rep in range(repeats + 1):

@@ -90,5 +90,6 @@ def main(argv=None):
     models = a.model or [str(ROOT / "models" / "relight-portrait.onnx")]
     write_report(a.out, "normals_by_light", argv, run(models, a.frames), markdown)
 
+
 if __name__ == "__main__":
     main()

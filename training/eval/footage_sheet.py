@@ -213,9 +213,9 @@ def shadow_warmth(linear: np.ndarray, matte: np.ndarray, source: np.ndarray) -> 
     """How much warmer skin the light darkens turns: the median change of log(red / blue) from
     the source to the relit frame over skin_core where the source's luminance is above its
     median there and the relit frame, its exposure matched to the source's over those pixels,
-    keeps less than SHADOW_DARKER of it. A white lamp's new
-    shadows on skin are a little warm at their edges (light diffusing under the skin); a large
-    figure is a shadow painted red-brown. nan when fewer than 64 pixels are darkened."""
+    keeps less than SHADOW_DARKER of it. A white lamp's new shadows on skin are a little warm
+    at their edges (light diffusing under the skin); a large figure is a shadow painted
+    red-brown. nan when fewer than 64 pixels are darkened."""
     m = skin_core(matte, source)
     if m is None:
         return float("nan")

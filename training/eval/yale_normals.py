@@ -179,8 +179,10 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
         real[name] = (s, fit, np.where(ok, n, 0.0), ok)
     for name in subjects:
         s, fit, truth, ok = real[name]
-        template = intrinsic.unit_normals(sum(real[k][2] for k in subjects if k != name))
-        given = {"template low band": (template, np.ones(len(ok), bool))}
+        given = {}
+        if low_sigma:  # the other subjects' mean real normals
+            template = intrinsic.unit_normals(sum(real[k][2] for k in subjects if k != name))
+            given["template low band"] = (template, np.ones(len(ok), bool))
         shading = yale.subject_shading(s, fit)
         for a, b in yale.draw_pairs(s, n_pairs, seed, bank):
             for which in rows:
