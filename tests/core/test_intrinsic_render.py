@@ -416,6 +416,58 @@ def test_white_light_keeps_skin_colour():
     assert ratio[0][m].mean() > 2.0 * ratio[1][m].mean()
 
 
+def two_coloured(light):
+    """(image, Buffers, left half, right half) of the skin sphere under ``light``."""
+    normal, height, matte, u, _ = sphere()
+    alb = np.broadcast_to(SKIN[:, None, None], (3, S, S)).copy()
+    image = (alb * exact_irradiance(light, normal) * matte / math.pi).astype(np.float32)
+    m = matte > 0.5
+    return image, intrinsic.Buffers(normal, height, alb, matte, matte.copy()), m & (u < -0.2), \
+        m & (u > 0.2)
+
+
+def red_over_blue(chw, m):
+    return float(np.log(chw[0][m].mean() / chw[2][m].mean()))
+
+
+def test_a_light_warm_on_one_side_and_cool_on_the_other_is_divided_out(monkeypatch):
+    """A warm lamp camera-left and a cool one camera-right of equal luminance: source_chroma
+    reads the warm side as warm, and relit under a white light the two sides' colours come
+    within 0.7 of the footage's difference (the threshold is shrunk off what is read); with
+    the colour left unread (a threshold beyond reach) they keep it."""
+    warm = np.array([1.0, 0.75, 0.5], np.float32)
+    cool = warm[::-1].copy()
+    light = (lamp([-1.0, 0.0, 0.7], 6.0, 0.0) * warm / float(warm @ intrinsic.LUMA)
+             + lamp([1.0, 0.0, 0.7], 6.0, 0.0) * cool / float(cool @ intrinsic.LUMA)
+             + lightvec.uniform(0.05))
+    image, bufs, left, right = two_coloured(light)
+    split = red_over_blue(image, left) - red_over_blue(image, right)
+    assert split > 0.3
+    tint = intrinsic.source_chroma(image, bufs)
+    assert tint is not None
+    assert red_over_blue(tint, left) - red_over_blue(tint, right) > 0.3 * split
+    white = lightvec.uniform(1.0)
+    out = image * intrinsic.shade(image, bufs, white).ratio
+    assert abs(red_over_blue(out, left) - red_over_blue(out, right)) < 0.7 * split
+    monkeypatch.setattr(intrinsic, "CHROMA_GRADIENT_MIN", 1e6)
+    kept = image * intrinsic.shade(image, bufs, white).ratio
+    assert red_over_blue(kept, left) - red_over_blue(kept, right) > 0.8 * split
+
+
+def test_a_faces_own_colour_gradient_is_not_read_as_light():
+    """Skin redder toward the chin (red up 35% from brow to chin) under a white lamp, and a grey
+    photo: no light colour is read, so the ratio stays achromatic off the skin's diffusion."""
+    normal, height, matte, _, v = sphere()
+    alb = np.broadcast_to(SKIN[:, None, None], (3, S, S)).copy()
+    alb[0] *= (1.0 + 0.15 * np.clip(v, -1.0, 1.0)).astype(np.float32)
+    image = (alb * exact_irradiance(lamp([0.3, 0.4, 1.0]), normal) * matte / math.pi)
+    bufs = intrinsic.Buffers(normal, height, np.broadcast_to(SKIN[:, None, None], (3, S, S)),
+                             matte, matte.copy())
+    assert intrinsic.source_chroma(image.astype(np.float32), bufs) is None
+    grey = np.repeat(intrinsic.luminance(image.astype(np.float32))[None], 3, 0)
+    assert intrinsic.source_chroma(grey, bufs) is None
+
+
 def saturated_shadows():
     """(image, Buffers, u) of the skin sphere lit from its left, the skin redder the darker it
     is (as real, graded skin is): its chromaticity moves from the albedo's by up to +25% red
