@@ -11,10 +11,12 @@ those buffers and a light vector into a per-pixel change of the footage:
 * ``E_source``: the footage's own diffuse shading, an order-2 spherical-harmonic irradiance
   fitted to the crop's luminance over the predicted normals (divided by the albedo variations, so
   brows and lips do not read as shadow). Fitted on luminance: the footage keeps its own colour,
-  and the target light alone sets the colour change (a white light keeps skin colour). Where the
-  footage's light is directional, nine coefficients cannot hold its hard terminator and cast
-  shadows, so on face skin the shading read per pixel (luminance over albedo) is blended in
-  (``source_shading``).
+  and the target light alone sets the colour change (a white light keeps skin colour), unless
+  the footage's light colour varies across the face more than skin's own colour does (a warm
+  sun on one side, a blue sky on the other): that part is divided out (``source_chroma``).
+  Where the footage's light is directional, nine coefficients cannot hold its hard terminator
+  and cast shadows, so on face skin the shading read per pixel (luminance over albedo) is
+  blended in (``source_shading``).
 * ``E_target``: the irradiance of the light vector on the predicted normals, summed exactly
   over its brightest cells and through order-2 SH for the rest (``irradiance``).
 * Occlusion, with a transfer: both shadings are darkened by the share of their light the

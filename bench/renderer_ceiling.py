@@ -14,11 +14,12 @@ frames, each step replacing an estimate with the light stage's truth:
 * ``renderer, exact buffers``: the same renderer on the light stage's own normals, height,
   albedo, matte, face skin and light transport: what a perfect network would score;
 * ``ratio of the true diffuse shading``: the footage times the light stage's own target over
-  source diffuse irradiance (subsurface diffusion included), the source's taken as luminance as
-  the renderer takes it (the footage keeps its colour); ``per channel``: the source's colour
-  divided out too; ``per channel, specular exact``: and the source's specular reflection taken
-  out of the footage and the target's added (what is left is the backdrop blended into the
-  silhouette's pixels).
+  source diffuse irradiance (subsurface diffusion included), the source's taken as luminance
+  (the footage keeps its colour; the renderer divides out only a strong colour gradient,
+  addon.intrinsic.source_chroma); ``per channel``: the source's colour divided out too;
+  ``per channel, specular exact``: and the source's specular reflection taken out of the
+  footage and the target's added (what is left is the backdrop blended into the silhouette's
+  pixels).
 
 The light stage's buffers come from rendering each test sample's scene again
 (training.intrinsic.data.frame_arrays); its pictures are checked against the stored test set's.
