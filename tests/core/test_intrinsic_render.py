@@ -58,11 +58,13 @@ def unit(v):
     return v / np.linalg.norm(v)
 
 
-def portrait(albedo=SKIN):
-    """(image (3, S, S), Buffers) of a sphere of skin lit softly from the front and above."""
+def portrait(albedo=SKIN, light=None):
+    """(image (3, S, S), Buffers) of a sphere of skin lit by ``light``, by default softly from
+    the front and above."""
     normal, height, matte, _, _ = sphere()
     alb = np.broadcast_to(np.asarray(albedo, np.float32)[:, None, None], (3, S, S)).copy()
-    src = lightvec.uniform(0.3) + lightvec.splat_direction([0.0, 0.3, 1.0], 3.0)
+    src = (lightvec.uniform(0.3) + lightvec.splat_direction([0.0, 0.3, 1.0], 3.0)
+           if light is None else light)
     image = (alb * exact_irradiance(src, normal) * matte / math.pi).astype(np.float32)
     return image, intrinsic.Buffers(normal, height, alb, matte, matte.copy())
 
@@ -416,16 +418,6 @@ def test_white_light_keeps_skin_colour():
     assert ratio[0][m].mean() > 2.0 * ratio[1][m].mean()
 
 
-def two_coloured(light):
-    """(image, Buffers, left half, right half) of the skin sphere under ``light``."""
-    normal, height, matte, u, _ = sphere()
-    alb = np.broadcast_to(SKIN[:, None, None], (3, S, S)).copy()
-    image = (alb * exact_irradiance(light, normal) * matte / math.pi).astype(np.float32)
-    m = matte > 0.5
-    return image, intrinsic.Buffers(normal, height, alb, matte, matte.copy()), m & (u < -0.2), \
-        m & (u > 0.2)
-
-
 def red_over_blue(chw, m):
     return float(np.log(chw[0][m].mean() / chw[2][m].mean()))
 
@@ -440,7 +432,9 @@ def test_a_light_warm_on_one_side_and_cool_on_the_other_is_divided_out(monkeypat
     light = (lamp([-1.0, 0.0, 0.7], 6.0, 0.0) * warm / float(warm @ intrinsic.LUMA)
              + lamp([1.0, 0.0, 0.7], 6.0, 0.0) * cool / float(cool @ intrinsic.LUMA)
              + lightvec.uniform(0.05))
-    image, bufs, left, right = two_coloured(light)
+    image, bufs = portrait(light=light)
+    _, _, matte, u, _ = sphere()
+    left, right = (matte > 0.5) & (u < -0.2), (matte > 0.5) & (u > 0.2)
     split = red_over_blue(image, left) - red_over_blue(image, right)
     assert split > 0.3
     tint = intrinsic.source_chroma(image, bufs)
@@ -456,7 +450,7 @@ def test_a_light_warm_on_one_side_and_cool_on_the_other_is_divided_out(monkeypat
 
 def test_a_faces_own_colour_gradient_is_not_read_as_light():
     """Skin redder toward the chin (red up 35% from brow to chin) under a white lamp, and a grey
-    photo: no light colour is read, so the ratio stays achromatic off the skin's diffusion."""
+    photo of it: no light colour is read from either."""
     normal, height, matte, _, v = sphere()
     alb = np.broadcast_to(SKIN[:, None, None], (3, S, S)).copy()
     alb[0] *= (1.0 + 0.15 * np.clip(v, -1.0, 1.0)).astype(np.float32)
