@@ -333,17 +333,24 @@ def fit_source(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray:
     if bufs.transfer is not None:  # what the footage's light cannot reach is not its shading
         c = np.linalg.lstsq(basis, y, rcond=None)[0]
         basis = basis * occlusion(source_sh(c), bufs.transfer[:, fg], basis @ c)[:, None]
-    w = np.ones(len(y))
     ridge = 1e-3 * np.eye(9)
     ridge[0, 0] = 0.0
-    c = np.zeros(9)
-    for _ in range(3):
+    return huber_lstsq(basis, y, ridge).astype(np.float32)
+
+
+def huber_lstsq(basis: np.ndarray, y: np.ndarray, ridge: np.ndarray, rounds: int = 3):
+    """Coefficients c of y ~ basis @ c ((N, k) basis, (N,) y), least squares reweighted
+    ``rounds`` times by Huber's weights (2 robust sigmas), with ``ridge`` (k, k) times the
+    weights' sum added to the normal equations."""
+    w = np.ones(len(y))
+    c = np.zeros(basis.shape[1])
+    for _ in range(rounds):
         bw = basis * w[:, None]
         c = np.linalg.solve(basis.T @ bw + ridge * float(w.sum()), bw.T @ y)
         r = y - basis @ c
         s = 1.4826 * float(np.median(np.abs(r))) + 1e-12
         w = 1.0 / np.maximum(1.0, np.abs(r) / (2.0 * s))  # Huber weights
-    return c.astype(np.float32)
+    return c
 
 
 def source_sh(c: np.ndarray) -> np.ndarray:
@@ -463,19 +470,11 @@ def source_chroma(image_chw: np.ndarray, bufs: Buffers,
     logc = np.log(np.maximum(x[:, fg], 1e-8) / np.maximum(alb[:, fg], 1e-4))
     n = bufs.normal[:, ::2, ::2][:, fg]
     mean_n = n.mean(1, dtype=np.float64).astype(np.float32)
-    design = np.concatenate([np.ones((1, n.shape[1]), np.float32), n - mean_n[:, None]], 0)
+    design = np.concatenate([np.ones((n.shape[1], 1)), (n - mean_n[:, None]).T], 1)
     grad = np.zeros((3, 3))
-    for c in (0, 2):
-        y = logc[c] - logc[1]
-        w = np.ones(len(y), np.float32)
-        for _ in range(3):  # Huber reweighting: highlights and odd pixels are outliers
-            dw = design * w
-            beta = np.linalg.solve((dw @ design.T).astype(np.float64) + 1e-6 * np.eye(4),
-                                   (dw @ y).astype(np.float64)).astype(np.float32)
-            r = np.abs(y - beta @ design)
-            s = 1.4826 * float(np.median(r)) + 1e-12
-            w = 1.0 / np.maximum(1.0, r / np.float32(2.0 * s))
-        grad[c] = beta[1:]
+    for c in (0, 2):  # robust: highlights and odd pixels are outliers
+        grad[c] = huber_lstsq(design, (logc[c] - logc[1]).astype(np.float64),
+                              1e-9 * np.eye(4))[1:]
     size = float(np.linalg.norm(grad))
     if not size > threshold:
         return None
