@@ -82,6 +82,9 @@ def test_the_shipped_portrait_s_normals_follow_a_real_face(shared_data):
 
 def test_photometric_buffers_put_the_given_normals_into_the_face_crop_and_then_step_aside(
         shared_data):
+    """The face crop and its finer sampling (portrait.ZOOM) carry the given normals where they
+    were fitted; the buffers of an image that is not a crop just taken, and everything after
+    the context, are the network's."""
     root = shared_data / "yale" / "CroppedYale"
     if not (root / "yaleB01").is_dir():
         pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
@@ -96,16 +99,23 @@ def test_photometric_buffers_put_the_given_normals_into_the_face_crop_and_then_s
     up = np.tile([[0.0], [1.0], [0.0]], (1, h * w))  # every fitted pixel faces straight up
     fitted = np.zeros(h * w, bool)
     fitted[: h * w // 2] = True  # the image's upper half
+    finer_size = round(sess.card.working_size * portrait.ZOOM)
     with yn.photometric_buffers(up, fitted):
         crop, valid = portrait.crop_planar(x, box, sess.card.working_size)
         got = portrait.buffers(sess, crop, valid).normal
+        again = portrait.buffers(sess, crop, valid).normal  # no crop taken just before it
+        finer, finer_valid = portrait.crop_planar(x, box, finer_size)
+        got_finer = portrait.buffers(sess, finer, finer_valid).normal
     plain = portrait.buffers(sess, crop, valid).normal
+    plain_finer = portrait.buffers(sess, finer, finer_valid).normal
     assert portrait.buffers.__module__ == "addon.portrait"  # restored
-    changed = np.abs(got - plain).max(0) > 1e-6
-    assert changed.any() and np.allclose(got[:, changed], [[0.0], [1.0], [0.0]], atol=1e-5)
-    rows = np.nonzero(changed)[0]
-    # only the part of the crop that shows the image's upper half
-    assert rows.max() < sess.card.working_size / 2
+    np.testing.assert_array_equal(again, plain)
+    for g, p, size in ((got, plain, sess.card.working_size), (got_finer, plain_finer, finer_size)):
+        changed = np.abs(g - p).max(0) > 1e-6
+        assert changed.any() and np.allclose(g[:, changed], [[0.0], [1.0], [0.0]], atol=1e-5)
+        rows = np.nonzero(changed)[0]
+        # only the part of the crop that shows the image's upper half
+        assert rows.max() < size / 2
 
 
 def test_a_band_swap_keeps_one_shape_s_low_band_and_the_other_s_detail(shared_data):
@@ -154,5 +164,6 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
                         "template low band"}
     for r in got.values():
         assert all(np.isfinite(r[k]) for k in ("all", "left_right", "top_bottom"))
+        assert all(np.isfinite(r["top_bottom_from"][k]) for k in ("truth", "input"))
     assert got["photometric"]["top_bottom"] >= got["network"]["top_bottom"] - 0.02
     assert len({round(r["all"], 6) for r in got.values()}) == 5  # five different relightings

@@ -119,22 +119,24 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
     """Within this context the product's face crops (addon.portrait) carry ``normals`` (3, h*w)
     of the image being relit where ``fitted`` (h*w,) instead of the network's: what the
     pipeline would make of the face with its real normals. A diagnostic for one image size at a
-    time; the network's matte, albedo and height stay (the face crop's finer sampling,
-    portrait.ZOOM, is left out: its normals would be the network's). With ``low_sigma`` (crop
-    pixels) only one band is swapped: ``low`` "photometric", the real normals' Gaussian low
-    band under the network's finer detail; "network", the network's low band under the real
-    normals' detail: which scale of the face's shape a relit face needs right."""
-    crop_planar, buffers, zoom = portrait.crop_planar, portrait.buffers, portrait.ZOOM
+    time; the network's matte, albedo and height stay (its light transport is left out: it
+    holds its own normals' cosine). Each crop of the frame gets the real normals at its own
+    size, the face crop's finer sampling (portrait.ZOOM) too, so the pipeline runs as it does
+    on the network's. With ``low_sigma`` (pixels of a crop at the working size) only one band
+    is swapped: ``low`` "photometric", the real normals' Gaussian low band under the network's
+    finer detail; "network", the network's low band under the real normals' detail: which
+    scale of the face's shape a relit face needs right."""
+    crop_planar, buffers = portrait.crop_planar, portrait.buffers
     state = {}
 
     def crop(x, box, size):
-        state["box"], state["hw"] = box, x.shape[1:]
+        state["box"], state["hw"], state["size"] = box, x.shape[1:], size
         return crop_planar(x, box, size)
 
     def swap(session, x, valid=None, mirror=False):
         out = buffers(session, x, valid, mirror)
-        size = session.card.working_size
-        if state.get("hw") is None or x.shape[1:] != (size, size):
+        size = state.pop("size", None)  # the buffers of the crop just taken, no other image's
+        if size is None or x.shape[1:] != (size, size):
             return out
         h, w = state["hw"]
         field = np.concatenate([normals, fitted[None].astype(normals.dtype)], 0).reshape(4, h, w)
@@ -143,15 +145,16 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
         real = np.where(t[3] > 0.99, t[:3], out.normal)
         if low_sigma:
             base, detail = (real, out.normal) if low == "photometric" else (out.normal, real)
-            real = _low(base, low_sigma) + detail - _low(detail, low_sigma)
+            sigma = low_sigma * size / session.card.working_size
+            real = _low(base, sigma) + detail - _low(detail, sigma)
         n = intrinsic.unit_normals(np.where(t[3] > 0.99, real, out.normal))
         return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
 
-    portrait.crop_planar, portrait.buffers, portrait.ZOOM = crop, swap, 0
+    portrait.crop_planar, portrait.buffers = crop, swap
     try:
         yield
     finally:
-        portrait.crop_planar, portrait.buffers, portrait.ZOOM = crop_planar, buffers, zoom
+        portrait.crop_planar, portrait.buffers = crop_planar, buffers
 
 
 def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: int = 2021,
@@ -160,7 +163,8 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
     network's normals and with photometric stereo's (and, with ``low_sigma``, with either's low
     band under the other's detail: photometric_buffers; and with the low band of the other
     subjects' mean real normals, a face template as exactly aligned as CroppedYale's crops
-    are): per kind and overall, the scale-invariant PSNR, and the balance correlations."""
+    are): per kind and overall, the scale-invariant PSNR, and the balance correlations with
+    their split into the truth's and the input's balance (yale.balance_correlation's)."""
     root = root or yale.default_root()
     _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
     rel = {"model": yale.PipelineRelighter(onnx_path, 1)}
@@ -191,14 +195,19 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
                     r = yale.relight_pair(s, a, b, rel, shading)
                 y = r.outputs["model"]
                 psnr = yale.metrics(yale.ls_gain(y, r.gt, r.mask) * y, r.gt, r.mask)["psnr"]
-                rows[which].append((r.kind, psnr, yale.balance(y, r.mask), yale.balance(r.gt, r.mask)))
+                rows[which].append((r.kind, psnr, yale.balance(y, r.mask), yale.balance(r.gt, r.mask),
+                                    yale.balance(r.outputs[yale.INPUT_METHOD], r.mask)))
     out = {}
     for which, v in rows.items():
-        p, g = np.array([x[2] for x in v]), np.array([x[3] for x in v])
+        p, g, i = (np.array([x[k] for x in v]) for k in (2, 3, 4))
         out[which] = {k: float(np.mean([x[1] for x in v if k in ("all", x[0])]))
                       for k in (*yale.KINDS, "all")}
-        out[which]["left_right"] = float(np.corrcoef(p[:, 0], g[:, 0])[0, 1])
-        out[which]["top_bottom"] = float(np.corrcoef(p[:, 1], g[:, 1])[0, 1])
+        for axis, key in ((0, "left_right"), (1, "top_bottom")):
+            out[which][key] = float(np.corrcoef(p[:, axis], g[:, axis])[0, 1])
+            # as yale.balance_correlation's split: output ~ a truth + b input + c
+            design = np.stack([g[:, axis], i[:, axis], np.ones(len(v))], 1)
+            a, b, _ = np.linalg.lstsq(design, p[:, axis], rcond=None)[0]
+            out[which][f"{key}_from"] = {"truth": float(a), "input": float(b)}
     return out
 
 
@@ -217,7 +226,9 @@ def main(argv=None):
             for which, r in relight(p, a.split, low_sigma=a.low_sigma).items():
                 print(f"{p}, {which} normals: scale-invariant PSNR {r['all']:.2f} dB ("
                       + ", ".join(f"{k} {r[k]:.2f}" for k in yale.KINDS)
-                      + f"); balance {r['left_right']:.3f} / {r['top_bottom']:.3f}")
+                      + f"); balance {r['left_right']:.3f} / {r['top_bottom']:.3f} (top/bottom "
+                      f"from the truth {r['top_bottom_from']['truth']:.2f}, from the input "
+                      f"{r['top_bottom_from']['input']:.2f})")
     for p, r in run(a.onnx, a.split).items():
         print(f"{p} ({r['subjects']} {a.split} subjects): angle {r['angle_deg']:.1f} deg; "
               f"left/right x corr {r['corr_x']:.3f} spread {r['spread_x']:.2f}; "
