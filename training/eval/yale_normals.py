@@ -195,7 +195,8 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
                     r = yale.relight_pair(s, a, b, rel, shading)
                 y = r.outputs["model"]
                 psnr = yale.metrics(yale.ls_gain(y, r.gt, r.mask) * y, r.gt, r.mask)["psnr"]
-                rows[which].append((r.kind, psnr, yale.balance(y, r.mask), yale.balance(r.gt, r.mask),
+                rows[which].append((r.kind, psnr, yale.balance(y, r.mask),
+                                    yale.balance(r.gt, r.mask),
                                     yale.balance(r.outputs[yale.INPUT_METHOD], r.mask)))
     out = {}
     for which, v in rows.items():
