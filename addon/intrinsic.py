@@ -661,17 +661,27 @@ class Shading:
 
 
 def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan | None = None,
-          keep_exposure: bool = True) -> Shading:
+          keep_exposure: bool = True, source: np.ndarray | None = None) -> Shading:
     """The ratio and highlight that relight ``image_chw`` (the crop at the working size, linear)
     to ``light``. ``keep_exposure``: the subject keeps the footage's mean luminance, so the light
     sets direction, colour and contrast (the artist's default); without it the ratio is left as
-    the light's power makes it (twice the light, twice the output)."""
+    the light's power makes it (twice the light, twice the output). ``source``: the footage's
+    own diffuse shading where it is known (a render's: what the benches measure the estimate
+    against), (h, w) luminance or (3, h, w) per channel, in place of the estimate from the
+    footage (source_shading, source_chroma)."""
     light = np.asarray(light, np.float32)
     effects = plan(light) if effects is None else effects
     lum = luminance(image_chw)
     c = fit_source(lum, bufs)
     basis = sh_basis(bufs.normal)
-    e_src = source_shading(lum, bufs, c, basis=basis)  # (h, w) luminance shading
+    tint = None
+    if source is None:
+        e_src = source_shading(lum, bufs, c, basis=basis)  # (h, w) luminance shading
+    elif source.ndim == 3:
+        e_src = luminance(source).astype(np.float32)
+        tint = np.where(e_src > 0, source / np.maximum(e_src, 1e-30), 1.0).astype(np.float32)
+    else:
+        e_src = np.asarray(source, np.float32)
     fg = bufs.matte > 0.5
     p90 = float(np.percentile(e_src[fg], 90)) if fg.any() else 0.0
     unlit = unlit_share(e_src / p90, directionality(c)) if p90 > 0 else None
@@ -703,7 +713,8 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     # absolute power (the change stays linear in the light).
     typical = float(np.median(luminance(e_t)[fg])) if fg.any() else 0.0
     norm = float(np.median(e_src[fg])) / typical if typical > 0 else 1.0
-    tint = source_chroma(image_chw, bufs)
+    if source is None:
+        tint = source_chroma(image_chw, bufs)
     e_src3 = e_src[None] if tint is None else e_src[None] * tint
     ratio = np.minimum(e_t * np.float32(norm) / e_src3, RATIO_MAX) / np.float32(norm)
     # The highlight in the footage's units: the footage's radiance per unit of irradiance on skin

@@ -13,6 +13,11 @@ frames, each step replacing an estimate with the light stage's truth:
   the whole 128-pixel frame (the mean with the mirror image's, as the face crop takes them);
 * ``renderer, exact buffers``: the same renderer on the light stage's own normals, height,
   albedo, matte, face skin and light transport: what a perfect network would score;
+* ``, the true source shading`` (and ``per channel``): either renderer given the light stage's
+  own diffuse irradiance of the footage in place of its estimate from the footage
+  (intrinsic.shade's ``source``; luminance, or with its colour): what the estimate costs. On
+  the network's buffers the estimate can beat the truth: fitted on the same predicted normals
+  as the target is rendered on, their errors partly cancel in the ratio;
 * ``ratio of the true diffuse shading``: the footage times the light stage's own target over
   source diffuse irradiance (subsurface diffusion included), the source's taken as luminance
   (the footage keeps its colour; the renderer divides out only a strong colour gradient,
@@ -47,8 +52,11 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # The scene rendered again must give the stored test set's pictures (its transfer is kept in
 # float16, as the intrinsic cache keeps it): largest difference over the picture's peak.
 MATCH = 2e-3
-STEPS = ("input unchanged", "the product", "renderer, network buffers (no framing)",
-         "renderer, exact buffers", "ratio of the true diffuse shading",
+TRUE_SOURCE = (", the true source shading", ", the true source shading per channel")
+STEPS = ("input unchanged", "the product",
+         *(f"renderer, {b}{t}" for b in ("network buffers (no framing)", "exact buffers")
+           for t in ("", *TRUE_SOURCE)),
+         "ratio of the true diffuse shading",
          "ratio of the true diffuse shading, per channel",
          "ratio of the true diffuse shading, per channel, specular exact")
 
@@ -87,8 +95,10 @@ def ladder(sample: dict, a: dict, product=None, session=None) -> dict:
     if session is not None:
         kinds["renderer, network buffers (no framing)"] = predicted_buffers(session, src)
     for name, bufs in kinds.items():
-        sh = intrinsic.shade(src, bufs, light)
-        outs[name] = src * sh.ratio + sh.highlight
+        for suffix, source in (("", None), (TRUE_SOURCE[0], intrinsic.luminance(e_s)),
+                               (TRUE_SOURCE[1], e_s)):
+            sh = intrinsic.shade(src, bufs, light, source=source)
+            outs[name + suffix] = src * sh.ratio + sh.highlight
     return {k: level_fit_rmse(v, gt, mask) for k, v in outs.items()}
 
 

@@ -448,6 +448,27 @@ def test_a_light_warm_on_one_side_and_cool_on_the_other_is_divided_out(monkeypat
     assert red_over_blue(kept, left) - red_over_blue(kept, right) > 0.8 * split
 
 
+def test_a_known_source_shading_replaces_the_estimate():
+    """shade's ``source``: given the footage's true diffuse shading per channel, the warm and
+    cool lamps' colours are divided out entirely under a white light (the two sides' colours
+    within 0.05 of the footage's difference); given only its luminance, they stay."""
+    warm = np.array([1.0, 0.75, 0.5], np.float32)
+    cool = warm[::-1].copy()
+    light = (lamp([-1.0, 0.0, 0.7], 6.0, 0.0) * warm / float(warm @ intrinsic.LUMA)
+             + lamp([1.0, 0.0, 0.7], 6.0, 0.0) * cool / float(cool @ intrinsic.LUMA)
+             + lightvec.uniform(0.05))
+    image, bufs = portrait(light=light)
+    normal, _, matte, u, _ = sphere()
+    left, right = (matte > 0.5) & (u < -0.2), (matte > 0.5) & (u > 0.2)
+    split = red_over_blue(image, left) - red_over_blue(image, right)
+    true = exact_irradiance(light, normal).astype(np.float32)
+    white = lightvec.uniform(1.0)
+    out = image * intrinsic.shade(image, bufs, white, source=true).ratio
+    assert abs(red_over_blue(out, left) - red_over_blue(out, right)) < 0.05 * split
+    grey = image * intrinsic.shade(image, bufs, white, source=intrinsic.luminance(true)).ratio
+    assert red_over_blue(grey, left) - red_over_blue(grey, right) > 0.9 * split
+
+
 def test_a_faces_own_colour_gradient_is_not_read_as_light():
     """Skin redder toward the chin (red up 35% from brow to chin) under a white lamp, and a grey
     photo of it: no light colour is read from either."""
