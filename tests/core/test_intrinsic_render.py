@@ -422,11 +422,9 @@ def red_over_blue(chw, m):
     return float(np.log(chw[0][m].mean() / chw[2][m].mean()))
 
 
-def test_a_light_warm_on_one_side_and_cool_on_the_other_is_divided_out(monkeypatch):
-    """A warm lamp camera-left and a cool one camera-right of equal luminance: source_chroma
-    reads the warm side as warm, and relit under a white light the two sides' colours come
-    within 0.7 of the footage's difference (the threshold is shrunk off what is read); with
-    the colour left unread (a threshold beyond reach) they keep it."""
+def warm_and_cool():
+    """(light, image, Buffers, left, right) of the skin sphere under a warm lamp camera-left
+    and a cool one camera-right of equal luminance (its left and right thirds' masks)."""
     warm = np.array([1.0, 0.75, 0.5], np.float32)
     cool = warm[::-1].copy()
     light = (lamp([-1.0, 0.0, 0.7], 6.0, 0.0) * warm / float(warm @ intrinsic.LUMA)
@@ -434,7 +432,15 @@ def test_a_light_warm_on_one_side_and_cool_on_the_other_is_divided_out(monkeypat
              + lightvec.uniform(0.05))
     image, bufs = portrait(light=light)
     _, _, matte, u, _ = sphere()
-    left, right = (matte > 0.5) & (u < -0.2), (matte > 0.5) & (u > 0.2)
+    return light, image, bufs, (matte > 0.5) & (u < -0.2), (matte > 0.5) & (u > 0.2)
+
+
+def test_a_light_warm_on_one_side_and_cool_on_the_other_is_divided_out(monkeypatch):
+    """A warm lamp camera-left and a cool one camera-right of equal luminance: source_chroma
+    reads the warm side as warm, and relit under a white light the two sides' colours come
+    within 0.7 of the footage's difference (the threshold is shrunk off what is read); with
+    the colour left unread (a threshold beyond reach) they keep it."""
+    _, image, bufs, left, right = warm_and_cool()
     split = red_over_blue(image, left) - red_over_blue(image, right)
     assert split > 0.3
     tint = intrinsic.source_chroma(image, bufs)
@@ -452,16 +458,9 @@ def test_a_known_source_shading_replaces_the_estimate():
     """shade's ``source``: given the footage's true diffuse shading per channel, the warm and
     cool lamps' colours are divided out entirely under a white light (the two sides' colours
     within 0.05 of the footage's difference); given only its luminance, they stay."""
-    warm = np.array([1.0, 0.75, 0.5], np.float32)
-    cool = warm[::-1].copy()
-    light = (lamp([-1.0, 0.0, 0.7], 6.0, 0.0) * warm / float(warm @ intrinsic.LUMA)
-             + lamp([1.0, 0.0, 0.7], 6.0, 0.0) * cool / float(cool @ intrinsic.LUMA)
-             + lightvec.uniform(0.05))
-    image, bufs = portrait(light=light)
-    normal, _, matte, u, _ = sphere()
-    left, right = (matte > 0.5) & (u < -0.2), (matte > 0.5) & (u > 0.2)
+    light, image, bufs, left, right = warm_and_cool()
     split = red_over_blue(image, left) - red_over_blue(image, right)
-    true = exact_irradiance(light, normal).astype(np.float32)
+    true = exact_irradiance(light, sphere()[0]).astype(np.float32)
     white = lightvec.uniform(1.0)
     out = image * intrinsic.shade(image, bufs, white, source=true).ratio
     assert abs(red_over_blue(out, left) - red_over_blue(out, right)) < 0.05 * split
