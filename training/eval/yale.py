@@ -577,6 +577,14 @@ def _correlation(a: np.ndarray, b: np.ndarray) -> float:
 INPUT_METHOD = "identity"  # the baseline whose output is the input: its balance is the input's
 
 
+def balance_split(pred: np.ndarray, truth: np.ndarray, inputs: np.ndarray) -> dict:
+    """{"truth": a, "input": b}: the least-squares split pred ~ a truth + b inputs + c of one
+    balance axis over pairs (balance_correlation's ``<axis>_from``)."""
+    design = np.stack([truth, inputs, np.ones_like(truth)], 1)
+    coef = np.linalg.lstsq(design, pred, rcond=None)[0]
+    return {"truth": float(coef[0]), "input": float(coef[1])}
+
+
 def balance_correlation(rows: list[tuple], seed: int = 0) -> dict:
     """Per method, the Pearson correlation over pairs of its output's balance with the ground
     truth's, left/right and top/bottom (rows: (kind, scores, subject, balances)), and the 5th
@@ -610,9 +618,7 @@ def balance_correlation(rows: list[tuple], seed: int = 0) -> dict:
             res[f"{key}_90"] = ([float(np.percentile(boot, 5)), float(np.percentile(boot, 95))]
                                 if boot else [res[key], res[key]])
             if inputs is not None and m != INPUT_METHOD and len(rows) > 3:
-                design = np.stack([b, inputs[:, axis], np.ones_like(b)], 1)
-                coef = np.linalg.lstsq(design, a, rcond=None)[0]
-                res[f"{key}_from"] = {"truth": float(coef[0]), "input": float(coef[1])}
+                res[f"{key}_from"] = balance_split(a, b, inputs[:, axis])
         out[m] = res
     return out
 

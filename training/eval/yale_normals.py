@@ -205,10 +205,7 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
                       for k in (*yale.KINDS, "all")}
         for axis, key in ((0, "left_right"), (1, "top_bottom")):
             out[which][key] = float(np.corrcoef(p[:, axis], g[:, axis])[0, 1])
-            # as yale.balance_correlation's split: output ~ a truth + b input + c
-            design = np.stack([g[:, axis], i[:, axis], np.ones(len(v))], 1)
-            a, b, _ = np.linalg.lstsq(design, p[:, axis], rcond=None)[0]
-            out[which][f"{key}_from"] = {"truth": float(a), "input": float(b)}
+            out[which][f"{key}_from"] = yale.balance_split(p[:, axis], g[:, axis], i[:, axis])
     return out
 
 
