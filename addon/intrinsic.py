@@ -674,9 +674,10 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     lum = luminance(image_chw)
     c = fit_source(lum, bufs)
     basis = sh_basis(bufs.normal)
-    tint = None
+    tint = None  # the footage's light colour that varies over the face (source_chroma)
     if source is None:
         e_src = source_shading(lum, bufs, c, basis=basis)  # (h, w) luminance shading
+        tint = source_chroma(image_chw, bufs)
     elif source.ndim == 3:
         e_src = luminance(source).astype(np.float32)
         tint = np.where(e_src > 0, source / np.maximum(e_src, 1e-30), 1.0).astype(np.float32)
@@ -713,8 +714,6 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     # absolute power (the change stays linear in the light).
     typical = float(np.median(luminance(e_t)[fg])) if fg.any() else 0.0
     norm = float(np.median(e_src[fg])) / typical if typical > 0 else 1.0
-    if source is None:
-        tint = source_chroma(image_chw, bufs)
     e_src3 = e_src[None] if tint is None else e_src[None] * tint
     ratio = np.minimum(e_t * np.float32(norm) / e_src3, RATIO_MAX) / np.float32(norm)
     # The highlight in the footage's units: the footage's radiance per unit of irradiance on skin

@@ -95,8 +95,7 @@ def ladder(sample: dict, a: dict, product=None, session=None) -> dict:
     if session is not None:
         kinds["renderer, network buffers (no framing)"] = predicted_buffers(session, src)
     for name, bufs in kinds.items():
-        for suffix, source in (("", None), (TRUE_SOURCE[0], intrinsic.luminance(e_s)),
-                               (TRUE_SOURCE[1], e_s)):
+        for suffix, source in (("", None), (TRUE_SOURCE[0], e_lum[0]), (TRUE_SOURCE[1], e_s)):
             sh = intrinsic.shade(src, bufs, light, source=source)
             outs[name + suffix] = src * sh.ratio + sh.highlight
     return {k: level_fit_rmse(v, gt, mask) for k, v in outs.items()}

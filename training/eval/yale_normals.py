@@ -181,11 +181,12 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = 12, seed: 
         fit = yale.photometric_fit(s.images, s.dirs)
         n, ok = photometric_normals(s.images, s.dirs, fit)
         real[name] = (s, fit, np.where(ok, n, 0.0), ok)
+    total = sum(r[2] for r in real.values())  # every subject's real normals, summed
     for name in subjects:
         s, fit, truth, ok = real[name]
         given = {}
         if low_sigma:  # the other subjects' mean real normals
-            template = intrinsic.unit_normals(sum(real[k][2] for k in subjects if k != name))
+            template = intrinsic.unit_normals(total - truth)
             given["template low band"] = (template, np.ones(len(ok), bool))
         shading = yale.subject_shading(s, fit)
         for a, b in yale.draw_pairs(s, n_pairs, seed, bank):
