@@ -281,6 +281,29 @@ def test_balance_correlation_carries_an_interval_over_resampled_subjects():
     assert width(many) < 0.6 * width(few)
 
 
+def test_a_paired_gain_tells_apart_what_the_intervals_alone_do_not():
+    """Two methods that share each pair's error and differ by a little more: each one's interval
+    is wide and they overlap, but the gain of the better over the worse, taken over the same
+    resampled subjects, stays above zero; the reference itself has no gain."""
+    rng = np.random.default_rng(2)
+    rows = []
+    for s in range(10):
+        for _ in range(12):
+            gt = rng.normal(0, 0.1, 2)
+            shared = rng.normal(0, 0.1, 2)  # the pair's own difficulty, common to both
+            worse = gt + shared + rng.normal(0, 0.03, 2)
+            better = gt + 0.8 * shared + rng.normal(0, 0.03, 2)
+            rows.append(("few", {}, f"s{s}", {"ground_truth": tuple(gt), "a": tuple(worse),
+                                              "b": tuple(better)}))
+    res = ye.balance_correlation(rows, reference="a")
+    a, b = res["a"], res["b"]
+    assert "top_bottom_gain" not in a
+    assert b["top_bottom_gain"] == pytest.approx(b["top_bottom"] - a["top_bottom"])
+    assert b["top_bottom_90"][0] < a["top_bottom_90"][1]  # the intervals overlap ...
+    assert 0 < b["top_bottom_gain_90"][0] < b["top_bottom_gain"] < b["top_bottom_gain_90"][1]
+    assert "top_bottom_gain" not in ye.balance_correlation(rows)["b"]  # only with a reference
+
+
 def test_balance_splits_into_the_truths_and_the_inputs():
     """A method whose balance is 0.6 x the truth's + 0.3 x the input's (plus noise) is split so;
     the input's own row (the identity method) has no split."""

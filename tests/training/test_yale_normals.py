@@ -162,8 +162,16 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
     got = yn.relight("models/relight-portrait.onnx", "tune", root, n_pairs=3, low_sigma=4.0)
     assert set(got) == {"network", "photometric", "photometric low band", "network low band",
                         "template low band"}
-    for r in got.values():
+    for which, r in got.items():
         assert all(np.isfinite(r[k]) for k in ("all", "left_right", "top_bottom"))
         assert all(np.isfinite(r["top_bottom_from"][k]) for k in ("truth", "input"))
+        lo, hi = r["top_bottom_90"]
+        assert lo <= hi and r["pairs"] == 3 * r["subjects"]
+        # each variant's gain over the network's normals, paired over the same pairs
+        assert ("top_bottom_gain" in r) == (which != "network")
+        if which != "network":
+            want = r["top_bottom"] - got["network"]["top_bottom"]
+            assert r["top_bottom_gain"] == pytest.approx(want, abs=1e-9)
+            assert r["top_bottom_gain_90"][0] <= r["top_bottom_gain_90"][1]
     assert got["photometric"]["top_bottom"] >= got["network"]["top_bottom"] - 0.02
     assert len({round(r["all"], 6) for r in got.values()}) == 5  # five different relightings

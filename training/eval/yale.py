@@ -585,7 +585,18 @@ def balance_split(pred: np.ndarray, truth: np.ndarray, inputs: np.ndarray) -> di
     return {"truth": float(coef[0]), "input": float(coef[1])}
 
 
-def balance_correlation(rows: list[tuple], seed: int = 0) -> dict:
+def subject_draws(subjects, seed: int = 0) -> list[np.ndarray]:
+    """BOOTSTRAP resamplings of the subjects (with replacement), each as the indices of all its
+    subjects' rows (``subjects``: each row's subject); none for a single subject."""
+    subjects = np.asarray(subjects)
+    names = sorted(set(subjects.tolist()))
+    rng = np.random.default_rng(seed)
+    return [np.concatenate([np.flatnonzero(subjects == names[k])
+                            for k in rng.integers(len(names), size=len(names))])
+            for _ in range(BOOTSTRAP if len(names) > 1 else 0)]
+
+
+def balance_correlation(rows: list[tuple], seed: int = 0, reference: str | None = None) -> dict:
     """Per method, the Pearson correlation over pairs of its output's balance with the ground
     truth's, left/right and top/bottom (rows: (kind, scores, subject, balances)), and the 5th
     and 95th percentiles of each over BOOTSTRAP resamplings of the subjects (with replacement,
@@ -595,22 +606,22 @@ def balance_correlation(rows: list[tuple], seed: int = 0) -> dict:
     method's), also the least-squares split of each method's balance into the truth's and the
     input's (``<axis>_from``: {"truth": a, "input": b} in a truth + b input + c): a relit face
     that follows the target light has a near 1 and b near 0; the ratio of a network whose
-    normals are wrong keeps part of the input's light (b) and answers the target's weakly (a)."""
+    normals are wrong keeps part of the input's light (b) and answers the target's weakly (a).
+    With ``reference`` (a method's name), each other method's gain in correlation over it
+    (``<axis>_gain``) and the gain's percentiles over the same resamplings (``<axis>_gain_90``):
+    a paired comparison, in which the pairs' own difficulty cancels."""
     out = {}
     truth = np.array([r[3]["ground_truth"] for r in rows], np.float64)
     inputs = (np.array([r[3][INPUT_METHOD] for r in rows], np.float64)
               if rows and INPUT_METHOD in rows[0][3] else None)
-    subjects = np.array([r[2] for r in rows])
-    names = sorted(set(subjects))
-    rng = np.random.default_rng(seed)
-    draws = [np.concatenate([np.flatnonzero(subjects == names[k])
-                             for k in rng.integers(len(names), size=len(names))])
-             for _ in range(BOOTSTRAP if len(names) > 1 else 0)]
+    subjects = [r[2] for r in rows]
+    draws = subject_draws(subjects, seed)
+    ref = np.array([r[3][reference] for r in rows], np.float64) if reference else None
     for m in rows[0][3] if rows else ():
         if m == "ground_truth":
             continue
         pred = np.array([r[3][m] for r in rows], np.float64)
-        res = {"pairs": len(rows), "subjects": len(names)}
+        res = {"pairs": len(rows), "subjects": len(set(subjects))}
         for axis, key in ((0, "left_right"), (1, "top_bottom")):
             a, b = pred[:, axis], truth[:, axis]
             res[key] = _correlation(a, b)
@@ -619,6 +630,13 @@ def balance_correlation(rows: list[tuple], seed: int = 0) -> dict:
                                 if boot else [res[key], res[key]])
             if inputs is not None and m != INPUT_METHOD and len(rows) > 3:
                 res[f"{key}_from"] = balance_split(a, b, inputs[:, axis])
+            if ref is not None and m != reference:
+                r0 = ref[:, axis]
+                res[f"{key}_gain"] = res[key] - _correlation(r0, b)
+                gain = [g - _correlation(r0[i], b[i]) for g, i in zip(boot, draws)]
+                res[f"{key}_gain_90"] = ([float(np.percentile(gain, 5)),
+                                          float(np.percentile(gain, 95))]
+                                         if gain else [res[f"{key}_gain"]] * 2)
         out[m] = res
     return out
 
