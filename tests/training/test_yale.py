@@ -304,6 +304,22 @@ def test_a_paired_gain_tells_apart_what_the_intervals_alone_do_not():
     assert "top_bottom_gain" not in ye.balance_correlation(rows)["b"]  # only with a reference
 
 
+def test_one_pair_far_off_the_truth_carries_the_pearson_figure_but_not_the_rank_one():
+    rng = np.random.default_rng(3)
+    rows = []
+    for s in range(10):
+        for _ in range(12):
+            gt = rng.normal(0, 0.1, 2)
+            rows.append(("few", {}, f"s{s}", {"ground_truth": tuple(gt),
+                                              "m": tuple(gt + rng.normal(0, 0.02, 2))}))
+    clean = ye.balance_correlation(rows)["m"]
+    gt = rows[0][3]["ground_truth"]
+    rows[0] = ("few", {}, "s0", {"ground_truth": gt, "m": (gt[0], -10.0 * gt[1] + 0.9)})
+    off = ye.balance_correlation(rows)["m"]
+    assert clean["top_bottom"] > 0.95 and clean["top_bottom_rank"] > 0.95
+    assert off["top_bottom"] < 0.6 and off["top_bottom_rank"] > 0.9
+
+
 def test_balance_splits_into_the_truths_and_the_inputs():
     """A method whose balance is 0.6 x the truth's + 0.3 x the input's (plus noise) is split so;
     the input's own row (the identity method) has no split."""

@@ -230,13 +230,14 @@ def main(argv=None):
         for p in a.onnx:
             for which, r in relight(p, a.split, n_pairs=a.pairs, low_sigma=a.low_sigma).items():
                 tb, tb90 = r["top_bottom"], r["top_bottom_90"]
-                gain = ("" if "top_bottom_gain" not in r else
-                        f"; over the network's {r['top_bottom_gain']:+.3f} "
-                        f"({r['top_bottom_gain_90'][0]:+.3f} to {r['top_bottom_gain_90'][1]:+.3f})")
+                gain = "" if "top_bottom_gain" not in r else (
+                    f"; over the network's {r['top_bottom_gain']:+.3f} ("
+                    f"{r['top_bottom_gain_90'][0]:+.3f} to {r['top_bottom_gain_90'][1]:+.3f})")
                 print(f"{p}, {which} normals: scale-invariant PSNR {r['all']:.2f} dB ("
                       + ", ".join(f"{k} {r[k]:.2f}" for k in yale.KINDS)
                       + f"); balance {r['left_right']:.3f} / {tb:.3f} ({tb90[0]:.2f}-"
-                      f"{tb90[1]:.2f}){gain}; top/bottom from the truth "
+                      f"{tb90[1]:.2f}; by rank {r['top_bottom_rank']:.3f}){gain}; top/bottom "
+                      "from the truth "
                       f"{r['top_bottom_from']['truth']:.2f}, from the input "
                       f"{r['top_bottom_from']['input']:.2f}")
     for p, r in run(a.onnx, a.split).items():
