@@ -169,8 +169,8 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
     are): per kind and overall, the scale-invariant PSNR, and the balance correlations with
     their intervals, their split into the truth's and the input's balance and each variant's
     gain over the network's normals paired over the same pairs (yale.balance_correlation's).
-    A dozen pairs a subject do not tell such settings apart: a change that gained 0.02 in
-    top/bottom on 12 lost 0.01 on 36."""
+    A dozen pairs a subject do not tell such settings apart: on the tune subjects photometric
+    stereo's normals read 0.931 top/bottom with ``n_pairs`` 12, 0.750 with 36 (0.869 by rank)."""
     root = root or yale.default_root()
     _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
     rel = {"model": yale.PipelineRelighter(onnx_path, 1)}
