@@ -617,35 +617,37 @@ def balance_correlation(rows: list[tuple], seed: int = 0, reference: str | None 
     (Spearman) correlation, which one pair far off the truth cannot carry as it carries the
     Pearson figure: photometric stereo's normals on the tune subjects, 0.75 against 0.87 by
     rank, lose the difference on one pair (a light from straight above on one subject)."""
-    out = {}
+    out, boots = {}, {}
     truth = np.array([r[3]["ground_truth"] for r in rows], np.float64)
     inputs = (np.array([r[3][INPUT_METHOD] for r in rows], np.float64)
               if rows and INPUT_METHOD in rows[0][3] else None)
     subjects = [r[2] for r in rows]
+    n_subjects = len(set(subjects))
     draws = subject_draws(subjects, seed)
-    ref = np.array([r[3][reference] for r in rows], np.float64) if reference else None
+
+    def interval(values, fallback):  # 5th and 95th percentiles; a single subject has none
+        return ([float(np.percentile(values, 5)), float(np.percentile(values, 95))]
+                if len(values) else [fallback, fallback])
+
     for m in rows[0][3] if rows else ():
         if m == "ground_truth":
             continue
         pred = np.array([r[3][m] for r in rows], np.float64)
-        res = {"pairs": len(rows), "subjects": len(set(subjects))}
+        res = {"pairs": len(rows), "subjects": n_subjects}
         for axis, key in ((0, "left_right"), (1, "top_bottom")):
             a, b = pred[:, axis], truth[:, axis]
             res[key] = _correlation(a, b)
             res[f"{key}_rank"] = _correlation(_ranks(a), _ranks(b))
-            boot = [_correlation(a[i], b[i]) for i in draws]
-            res[f"{key}_90"] = ([float(np.percentile(boot, 5)), float(np.percentile(boot, 95))]
-                                if boot else [res[key], res[key]])
+            boots[m, key] = np.array([_correlation(a[i], b[i]) for i in draws])
+            res[f"{key}_90"] = interval(boots[m, key], res[key])
             if inputs is not None and m != INPUT_METHOD and len(rows) > 3:
                 res[f"{key}_from"] = balance_split(a, b, inputs[:, axis])
-            if ref is not None and m != reference:
-                r0 = ref[:, axis]
-                res[f"{key}_gain"] = res[key] - _correlation(r0, b)
-                gain = [g - _correlation(r0[i], b[i]) for g, i in zip(boot, draws)]
-                res[f"{key}_gain_90"] = ([float(np.percentile(gain, 5)),
-                                          float(np.percentile(gain, 95))]
-                                         if gain else [res[f"{key}_gain"]] * 2)
         out[m] = res
+    for m, res in out.items() if reference else ():
+        for key in ("left_right", "top_bottom") if m != reference else ():
+            res[f"{key}_gain"] = res[key] - out[reference][key]
+            res[f"{key}_gain_90"] = interval(boots[m, key] - boots[reference, key],
+                                             res[f"{key}_gain"])
     return out
 
 
