@@ -124,20 +124,6 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
 # way. Chosen there among 1.25, 1.5 (0.784, 20.28 dB) and 0.75 (0.772, but 20.05 dB), each
 # measured with the finer crop enlarged from the working size's.
 ZOOM = 1.25
-# The finer sampling's pass without its mirror image: it costs what the room around the face crop
-# (CONTEXT) adds, and on the tune subjects lost 0.008 top/bottom and 0.02 dB with the room.
-ZOOM_MIRROR = False
-
-# The face crop's relighting pass sees room around its box: the network runs on the crop of a
-# box wider by CONTEXT of the working size on each side, at the same pixel scale, and keeps the
-# box's own pixels (a face that fills its crop, as CroppedYale's do, the network reads as more
-# tilted down than it is). On the CroppedYale tune subjects (36 pairs each, ZOOM_MIRROR off)
-# top/bottom balance correlation 0.807 -> 0.846 (paired gain +0.039, 5-95% over resampled
-# subjects +0.023 to +0.056; by rank 0.781 -> 0.826), the input's share of the relit balance
-# 0.30 -> 0.17, PSNR 20.34 -> 20.20 dB, left/right 0.983 -> 0.982. Chosen there among 0.125
-# (0.830, 20.27 dB), 0.16 and 0.19 (0.852, 20.08 dB). The synthetic test set's rmse_level_fit
-# 0.0577 -> 0.0580; the dev footage's contact sheets alike.
-CONTEXT = 0.16
 
 
 def shrunk(bufs: intrinsic.Buffers, size: int) -> intrinsic.Buffers:
@@ -254,35 +240,13 @@ def feather(size: int, share: float = FEATHER) -> np.ndarray:
     return np.minimum(edge[:, None], edge[None, :]).astype(np.float32)
 
 
-def centre(bufs: intrinsic.Buffers, margin: int) -> intrinsic.Buffers:
-    """Buffers with ``margin`` pixels cut from each side."""
-    if margin <= 0:
-        return bufs
-    k = slice(margin, -margin)
-
-    def cut(a):
-        return np.ascontiguousarray(a[..., k, k])
-
-    return intrinsic.Buffers(cut(bufs.normal), cut(bufs.height), cut(bufs.albedo),
-                             cut(bufs.matte), cut(bufs.face),
-                             None if bufs.transfer is None else cut(bufs.transfer))
-
-
 def face_buffers(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box, size: int):
-    """(crop, valid, buffers) of the face crop as the relighting pass takes them: the crop with
-    room around it (CONTEXT) and its mirror image (MIRROR), averaged with a finer sampling of
-    the same box (ZOOM; its mirror image too with ZOOM_MIRROR)."""
+    """(crop, valid, buffers) of the face crop as the relighting pass takes them: the crop and
+    its mirror image (MIRROR), averaged with a finer sampling of the same box (ZOOM)."""
     crop, valid = crop_planar(x_full, box, size)
-    margin = round(CONTEXT * size)
-    if margin > 0:
-        wide = framing.Box(box.cx, box.cy, box.size * (size + 2 * margin) / size)
-        bufs = centre(buffers(session, *crop_planar(x_full, wide, size + 2 * margin),
-                              mirror=MIRROR), margin)
-    else:
-        bufs = buffers(session, crop, valid, mirror=MIRROR)
+    bufs = buffers(session, crop, valid, mirror=MIRROR)
     if ZOOM:
-        finer = buffers(session, *crop_planar(x_full, box, round(size * ZOOM)),
-                        mirror=ZOOM_MIRROR)
+        finer = buffers(session, *crop_planar(x_full, box, round(size * ZOOM)), mirror=MIRROR)
         bufs = mean_buffers(bufs, shrunk(finer, size))
     return crop, valid, bufs
 

@@ -192,14 +192,11 @@ def test_intrinsic_card_gives_an_intrinsic_session_with_the_buffers(session):
     assert res.parsing[0, 10, 17] > 0.99 and res.parsing[0, 1, 1] < 1e-6
 
 
-def test_a_model_with_the_transfer_gives_it_and_relights_with_it(tmp_path, monkeypatch):
+def test_a_model_with_the_transfer_gives_it_and_relights_with_it(tmp_path):
     """The optional transfer output: the card lists it after the four buffers, the session
     returns it with the others, and the frame path renders with it (here every pixel lets only a
     camera-facing normal's light through, so a lamp from the side lights the disc less than
     the stand-in's bulging normals alone would). Sixteen channels or it is refused."""
-    # The stand-in's sphere fills whatever it is given: the face crop without room around it
-    # (portrait.CONTEXT) keeps the disc's normals leaning out as far as the side lamp needs.
-    monkeypatch.setattr(portrait, "CONTEXT", 0.0)
     path = write_standin(tmp_path, "with_transfer", transfer=contract.TRANSFER_CHANNELS)
     sess = engine.new_session(path, providers=["CPUExecutionProvider"], threads=1, spin=False)
     res = sess.run_planar(chw(frame(21, 35, (17.0, 10.0), 8.0)))
@@ -274,11 +271,9 @@ def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(t
     assert seen and not any(m for m, _ in seen)
     seen.clear()
     portrait.relight_frame(Spy(), wide, RIGHT_LAMP, box)
-    size = sess.card.working_size  # the coarse pass, the face crop with room, its finer sampling
-    assert [m for m, _ in seen] == [False, portrait.MIRROR, portrait.ZOOM_MIRROR]
-    margin = round(portrait.CONTEXT * size)
-    assert margin > 0
-    assert [n for _, n in seen][1:] == [size + 2 * margin, round(size * portrait.ZOOM)]
+    size = sess.card.working_size  # the coarse pass, the face crop, its finer sampling
+    assert [m for m, _ in seen] == [False] + [portrait.MIRROR] * 2
+    assert [n for _, n in seen][1:] == [size, round(size * portrait.ZOOM)]
 
 
 def test_a_finer_sampling_s_buffers_are_shrunk_to_the_crop_and_averaged():
@@ -308,41 +303,6 @@ def test_a_finer_sampling_s_buffers_are_shrunk_to_the_crop_and_averaged():
     np.testing.assert_allclose(m.matte, 0.5) and np.testing.assert_allclose(m.face, 0.5)
     assert m.transfer is None
     assert np.all(m.normal[2] > small.normal[2] - 1e-6)  # pulled toward the camera-facing one
-
-
-def test_the_face_crop_s_pass_sees_room_around_its_box_and_keeps_the_box_s_pixels(
-        tmp_path, monkeypatch):
-    """face_buffers: the network runs on a box wider by CONTEXT each side at the crop's pixel
-    scale, whose middle is the box's own crop, and keeps the middle; so the room changes what
-    the network sees and nothing else (the shipped network's buffers differ with it)."""
-    root = pathlib.Path(__file__).resolve().parents[2]
-    sess = engine.new_session(root / "models" / "relight-portrait.onnx",
-                              providers=["CPUExecutionProvider"], threads=1, spin=False)
-    from training.lightstage.png import read_png
-    src = read_png(root / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
-    x = np.ascontiguousarray(src.transpose(2, 0, 1) ** 2.2)
-    size, h, w = sess.card.working_size, *x.shape[1:]
-    box = framing.Box(w / 2, h / 2, 0.6 * min(h, w))
-    margin = round(portrait.CONTEXT * size)
-    wide = framing.Box(box.cx, box.cy, box.size * (size + 2 * margin) / size)
-    crop, valid = portrait.crop_planar(x, box, size)
-    wide_crop, wide_valid = portrait.crop_planar(x, wide, size + 2 * margin)
-    inner = slice(margin, margin + size)
-    np.testing.assert_allclose(wide_crop[:, inner, inner], crop, atol=1e-6)
-    np.testing.assert_allclose(wide_valid[inner, inner], valid, atol=1e-6)
-
-    monkeypatch.setattr(portrait, "ZOOM", 0.0)
-    got_crop, got_valid, got = portrait.face_buffers(sess, x, box, size)
-    np.testing.assert_array_equal(got_crop, crop)
-    np.testing.assert_array_equal(got_valid, valid)
-    ref = portrait.buffers(sess, wide_crop, wide_valid, mirror=portrait.MIRROR)
-    assert got.normal.shape == (3, size, size) and got.transfer.shape[1:] == (size, size)
-    for a, b in ((got.normal, ref.normal), (got.albedo, ref.albedo), (got.matte, ref.matte),
-                 (got.height, ref.height), (got.transfer, ref.transfer)):
-        np.testing.assert_array_equal(a, b[..., inner, inner])
-    monkeypatch.setattr(portrait, "CONTEXT", 0.0)
-    tight = portrait.face_buffers(sess, x, box, size)[2]
-    assert np.abs(tight.normal - got.normal).max() > 0.05  # the room is seen
 
 
 def test_a_model_without_a_normal_output_is_refused(tmp_path):

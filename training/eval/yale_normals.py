@@ -121,25 +121,17 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
     pipeline would make of the face with its real normals. A diagnostic for one image size at a
     time; the network's matte, albedo and height stay (its light transport is left out: it
     holds its own normals' cosine). Each crop of the frame gets the real normals at its own
-    size, the face crop's room (portrait.CONTEXT) and finer sampling (portrait.ZOOM) too, so
-    the pipeline runs as it does on the network's. With ``low_sigma`` (pixels of a crop at the
-    working size) only one band is swapped: ``low`` "photometric", the real normals' Gaussian
-    low band under the network's finer detail; "network", the network's low band under the
-    real normals' detail: which scale of the face's shape a relit face needs right."""
+    size, the face crop's finer sampling (portrait.ZOOM) too, so the pipeline runs as it does
+    on the network's. With ``low_sigma`` (pixels of a crop at the working size) only one band
+    is swapped: ``low`` "photometric", the real normals' Gaussian low band under the network's
+    finer detail; "network", the network's low band under the real normals' detail: which
+    scale of the face's shape a relit face needs right."""
     crop_planar, buffers = portrait.crop_planar, portrait.buffers
-    face_buffers = portrait.face_buffers
     state = {}
 
     def crop(x, box, size):
         state["box"], state["hw"], state["size"] = box, x.shape[1:], size
         return crop_planar(x, box, size)
-
-    def face(session, x, box, size):  # the face crop's pixel pitch, its room's crop has it too
-        state["pitch"] = box.size / session.card.working_size
-        try:
-            return face_buffers(session, x, box, size)
-        finally:
-            state.pop("pitch", None)
 
     def swap(session, x, valid=None, mirror=False):
         out = buffers(session, x, valid, mirror)
@@ -153,19 +145,16 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
         real = np.where(t[3] > 0.99, t[:3], out.normal)
         if low_sigma:
             base, detail = (real, out.normal) if low == "photometric" else (out.normal, real)
-            # working-size pixels of the face crop, in this crop's (same pitch, or finer)
-            pitch = state.get("pitch", state["box"].size / session.card.working_size)
-            sigma = low_sigma * pitch / (state["box"].size / size)
+            sigma = low_sigma * size / session.card.working_size
             real = _low(base, sigma) + detail - _low(detail, sigma)
         n = intrinsic.unit_normals(np.where(t[3] > 0.99, real, out.normal))
         return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
 
-    portrait.crop_planar, portrait.buffers, portrait.face_buffers = crop, swap, face
+    portrait.crop_planar, portrait.buffers = crop, swap
     try:
         yield
     finally:
-        portrait.crop_planar, portrait.buffers, portrait.face_buffers = (
-            crop_planar, buffers, face_buffers)
+        portrait.crop_planar, portrait.buffers = crop_planar, buffers
 
 
 PAIRS = 36  # pairs per subject for --relight, as the tune subjects' evaluation takes them
