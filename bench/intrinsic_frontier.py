@@ -7,9 +7,10 @@ portrait (the card's, or ``RelightOptions.working_size`` / ``relight_image(worki
 For each size: accuracy on real faces, CroppedYale's held-out test subjects relit through
 ``addon.relight_image`` on training/eval/yale.py's pairs (the scale-invariant PSNR over all pairs,
 as its table gives it, and the balance correlations with their intervals over resampled
-subjects); and time on this machine: the network plus the renderer (key lamp) at that size, and
-a 1080p frame end to end as bench/intrinsic_speed.py counts it (framing pass, relight_frame,
-blend, finish; decode and write overlap in other threads). Every repeat times every size in
+subjects); and time on this machine: the network (the face crop's relighting passes,
+portrait.face_buffers) plus the renderer (key lamp) at that size, and a 1080p frame end to end
+as bench/intrinsic_speed.py counts it (framing pass, relight_frame, blend, finish; decode and
+write overlap in other threads). Every repeat times every size in
 turn, so the machine's load falls on all of them alike. ``--write-card`` also records the card's
 time per frame, the one the panel shows beside each preset (card_point). Writes
 ``bench/results/intrinsic_frontier.{md,json}``; ``--quick`` (two subjects, three pairs each,
@@ -88,8 +89,8 @@ def timings(model: str, sizes, threads: int, repeats: int) -> dict:
         crop, _ = portrait.crop_planar(x, box, size)
         bufs = portrait.buffers(sess, crop)
         jobs[size] = {
-            # a relighting pass: the crop and its mirror (portrait.MIRROR)
-            "network": lambda s=sess, c=crop: s.run_planar(c, mirror=portrait.MIRROR),
+            # the face crop's relighting passes, as relight_frame makes them
+            "network": lambda s=sess, b=box, n=size: portrait.face_buffers(s, x, b, n),
             "renderer": lambda c=crop, b=bufs: intrinsic.shade(c, b, lamp),
             **frame_stages(sess, x, lamp, fullres, box)}
     times = {size: {k: [] for k in job} for size, job in jobs.items()}
