@@ -10,8 +10,8 @@ as its table gives it, and the balance correlations with their intervals over re
 subjects); and time on this machine: the network (the face crop's relighting passes,
 portrait.face_buffers) plus the renderer (key lamp) at that size, and a 1080p frame end to end
 as bench/intrinsic_speed.py counts it (framing pass, relight_frame, blend, finish; decode and
-write overlap in other threads). Every repeat times every size in
-turn, so the machine's load falls on all of them alike. ``--write-card`` also records the card's
+write overlap in other threads). Every repeat times every size in turn, so the machine's load
+falls on all of them alike. ``--write-card`` also records the card's
 time per frame, the one the panel shows beside each preset (card_point). Writes
 ``bench/results/intrinsic_frontier.{md,json}``; ``--quick`` (two subjects, three pairs each,
 two repeats) checks that it runs.

@@ -123,6 +123,11 @@ def frame_ms(framing: float, relight: float, finish: float, blend: float) -> flo
     return framing / pipeline.FRAMING_STEP + relight + finish + blend
 
 
+# What the network costs a relit frame: every pass relight_frame makes on the face crop.
+FACE_ROW = ("network, the face crop's relighting passes (portrait.face_buffers: the crop "
+            "and its mirror image, the finer sampling and its mirror image)")
+
+
 def run(model: str, threads: int, repeats: int) -> dict:
     sess = api.session(model, threads)
     size = sess.card.working_size
@@ -190,11 +195,6 @@ def run(model: str, threads: int, repeats: int) -> dict:
     return {"stages_ms": rows, "network_plus_renderer_fps": 1000 / net_render,
             "end_to_end_1080p_fps": 1000 / end_to_end, "threads": threads, "working_size": size,
             "decode_and_write": "not included (the pipeline overlaps them in other threads)"}
-
-
-# What the network costs a relit frame: every pass relight_frame makes on the face crop.
-FACE_ROW = ("network, the face crop's relighting passes (portrait.face_buffers: the crop "
-            "and its mirror image, the finer sampling and its mirror image)")
 
 
 def main(argv=None):
