@@ -28,9 +28,12 @@ _FULLRES: dict = {}
 
 
 def shared_fullres(fullres: detail.FullRes | None = None) -> detail.FullRes:
-    """The caller's full-resolution graphs, else one kept here (building them costs time)."""
+    """The caller's full-resolution graphs, else one kept here (building them costs time: it is
+    built on the first call only)."""
     if fullres is None:
-        fullres = _FULLRES.setdefault("default", detail.FullRes(threads=1))
+        fullres = _FULLRES.get("default")
+        if fullres is None:
+            fullres = _FULLRES["default"] = detail.FullRes(threads=1)
     return fullres
 
 
@@ -126,19 +129,18 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
 ZOOM = 1.25
 
 
-def shrunk(bufs: intrinsic.Buffers, size: int) -> intrinsic.Buffers:
+def shrunk(bufs: intrinsic.Buffers, size: int,
+           fullres: detail.FullRes | None = None) -> intrinsic.Buffers:
     """Buffers of a crop of the same box at another size, resampled to (size, size) (area means;
-    the normals renormalised, the height in the smaller crop's pixels)."""
-    def rs(a):
-        if a.ndim == 2:
-            return detail.resize(a[..., None], size, size)[..., 0]
-        hwc = detail.resize(np.ascontiguousarray(a.transpose(1, 2, 0)), size, size)
-        return np.ascontiguousarray(hwc.transpose(2, 0, 1))
-
+    the normals renormalised, the height in the smaller crop's pixels), all channels in one
+    pass of the full-resolution graphs' shrink (FullRes.shrink_planar)."""
+    planes = [bufs.normal, bufs.height[None], bufs.albedo, bufs.matte[None], bufs.face[None]]
+    if bufs.transfer is not None:
+        planes.append(bufs.transfer)
+    small = shared_fullres(fullres).shrink_planar(np.concatenate(planes, 0), size, size)
     k = np.float32(size / bufs.height.shape[0])
-    return intrinsic.Buffers(intrinsic.unit_normals(rs(bufs.normal)), rs(bufs.height) * k,
-                             rs(bufs.albedo), rs(bufs.matte), rs(bufs.face),
-                             None if bufs.transfer is None else rs(bufs.transfer))
+    return intrinsic.Buffers(intrinsic.unit_normals(small[0:3]), small[3] * k, small[4:7],
+                             small[7], small[8], small[9:] if bufs.transfer is not None else None)
 
 
 def mean_buffers(a: intrinsic.Buffers, b: intrinsic.Buffers) -> intrinsic.Buffers:
@@ -240,14 +242,15 @@ def feather(size: int, share: float = FEATHER) -> np.ndarray:
     return np.minimum(edge[:, None], edge[None, :]).astype(np.float32)
 
 
-def face_buffers(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box, size: int):
+def face_buffers(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box, size: int,
+                 fullres: detail.FullRes | None = None):
     """(crop, valid, buffers) of the face crop as the relighting pass takes them: the crop and
     its mirror image (MIRROR), averaged with a finer sampling of the same box (ZOOM)."""
     crop, valid = crop_planar(x_full, box, size)
     bufs = buffers(session, crop, valid, mirror=MIRROR)
     if ZOOM:
         finer = buffers(session, *crop_planar(x_full, box, round(size * ZOOM)), mirror=MIRROR)
-        bufs = mean_buffers(bufs, shrunk(finer, size))
+        bufs = mean_buffers(bufs, shrunk(finer, size, fullres))
     return crop, valid, bufs
 
 
@@ -315,7 +318,7 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
                                  bufs=buffers(session, small))
         coarse = detail.enlarge_planar(np.concatenate([mr, hi, m[None], raw[None]], 0), gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
-    crop, valid, bufs = face_buffers(session, x_full, box, size)
+    crop, valid, bufs = face_buffers(session, x_full, box, size, fr)
     units: list[float] = []
     mr_f, hi_f, m_f, raw_f = _change(session, crop, light, plan, valid, units, bufs)
     fw = (1.0 if covers else feather(size)) * valid

@@ -8,6 +8,7 @@ the subject at any exposure; normals bulge like a sphere filling the crop (the c
 on the face, so a side lamp lights that side of the face); height 0; albedo 0.5.
 """
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -303,6 +304,42 @@ def test_a_finer_sampling_s_buffers_are_shrunk_to_the_crop_and_averaged():
     np.testing.assert_allclose(m.matte, 0.5) and np.testing.assert_allclose(m.face, 0.5)
     assert m.transfer is None
     assert np.all(m.normal[2] > small.normal[2] - 1e-6)  # pulled toward the camera-facing one
+
+
+def test_shrunk_buffers_are_exact_area_means_of_every_channel():
+    """portrait.shrunk takes all channels through one shrink: each (albedo, matte, face, the
+    transfer's coefficients, the height times the size ratio) equals detail.resize's exact area
+    means of the same channel, and the normals are those means renormalised."""
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=(3, 40, 40)).astype(np.float32)
+    n[2] = np.abs(n[2]) + 1.0
+    n /= np.linalg.norm(n, axis=0, keepdims=True)
+    big = intrinsic.Buffers(n, rng.random((40, 40), np.float32) * 10,
+                            rng.random((3, 40, 40), np.float32), rng.random((40, 40), np.float32),
+                            rng.random((40, 40), np.float32), rng.normal(size=(16, 40, 40))
+                            .astype(np.float32))
+
+    def area(a):  # (C, 40, 40) or (40, 40) -> (C, 32, 32)
+        hwc = np.moveaxis(a.reshape((-1,) + a.shape[-2:]), 0, -1)
+        return detail.resize(hwc, 32, 32).transpose(2, 0, 1)
+
+    small = portrait.shrunk(big, 32)
+    for got, full in ((small.albedo, big.albedo), (small.matte, big.matte),
+                      (small.face, big.face), (small.transfer, big.transfer)):
+        np.testing.assert_allclose(got, area(full).reshape(got.shape), atol=1e-5)
+    np.testing.assert_allclose(small.height, 0.8 * area(big.height)[0], atol=1e-5)
+    mean_n = area(big.normal)
+    np.testing.assert_allclose(small.normal, mean_n / np.linalg.norm(mean_n, axis=0), atol=1e-5)
+    assert portrait.shrunk(dataclasses.replace(big, transfer=None), 32).transfer is None
+
+
+def test_the_shared_full_resolution_graphs_are_built_once():
+    """shared_fullres() without the caller's graphs keeps one FullRes and returns it again
+    (building one costs more than relighting a small frame), and the caller's when given."""
+    first = portrait.shared_fullres()
+    assert portrait.shared_fullres() is first and portrait.shared_fullres(None) is first
+    own = detail.FullRes(threads=1)
+    assert portrait.shared_fullres(own) is own
 
 
 def test_a_model_without_a_normal_output_is_refused(tmp_path):
