@@ -491,6 +491,64 @@ def test_sky_flip_turns_environments_upside_down(frames):
         data.sample_light(np.random.default_rng(3), frames.bank, frames.pool))
 
 
+def test_studio_lamps_are_one_near_white_lamp_from_the_front(frames):
+    """--studio: a studio lighting is one lamp from the camera's side of the subject, within
+    STUDIO_AZIMUTH and STUDIO_ELEVATION, its channels within 10% of each other, over an
+    environment of at most a tenth of its own; the lamps cover lights from below and above.
+    Without it, samples are drawn as before."""
+    from training.intrinsic import data
+
+    d = lightvec.directions().reshape(-1, 3)
+    ups = []
+    for seed in range(30):
+        lamp = data.studio_lamp(np.random.default_rng(seed))
+        power = (lamp.reshape(-1, 3) * lightvec.solid_angles().reshape(-1, 1)).sum(0)
+        assert power.max() / power.min() < 1.1 ** 2 + 1e-3  # near white
+        lum = lamp.reshape(-1, 3) @ np.asarray(intrinsic.LUMA) * lightvec.solid_angles().ravel()
+        centre = (lum[:, None] * d).sum(0) / lum.sum()
+        centre /= np.linalg.norm(centre)
+        azimuth = np.degrees(np.arctan2(centre[0], centre[2]))
+        assert abs(azimuth) <= data.STUDIO_AZIMUTH + 12  # the lamp's splat spans cells
+        ups.append(centre[1])
+        # The same draw through sample_light: that lamp plus a faint environment (the
+        # environment's own gain is at most 4 x e^0.45 per channel, times at most 0.1 here).
+        rng = np.random.default_rng(seed)
+        lit = data.sample_light(rng, frames.bank, frames.pool, 0.0, 1.0)
+        rng = np.random.default_rng(seed)
+        rng.random()
+        rest = lit - data.studio_lamp(rng)
+        assert rest.min() > -1e-5 and rest.max() <= 0.1 * 4 * np.exp(0.6) * frames.bank.max()
+    assert min(ups) < -0.3 and max(ups) > 0.8
+    np.testing.assert_array_equal(
+        data.sample_light(np.random.default_rng(3), frames.bank, frames.pool, 0.0, 0.0),
+        data.sample_light(np.random.default_rng(3), frames.bank, frames.pool))
+
+
+def test_up_weight_counts_the_up_down_error_more(frames):
+    """--up-weight: an error in the normals' up/down component costs up_weight times as much in
+    the absolute-error part of the normal loss; an error across the face costs the same."""
+    from training.intrinsic.model import losses
+
+    b = frames.batch(range(2))
+    t, fg = b["target"], b["fg"]
+    truth = (t[:, 0:3], t[:, 3:4], t[:, 4:7], t[:, 7:9], t[:, 9:25])
+    assert float(losses(truth, t, fg, up_weight=3.0)["normal"]) < 1e-4
+
+    def tilted(axis):
+        n = t[:, 0:3].clone()
+        n[:, axis] += 0.2
+        return (torch.nn.functional.normalize(n, dim=1), *truth[1:])
+
+    for axis, factor in ((1, 3.0), (0, 1.0)):
+        plain = losses(tilted(axis), t, fg)["normal"]
+        weighted = losses(tilted(axis), t, fg, up_weight=3.0)["normal"]
+        if factor == 1.0:
+            assert float(weighted) > float(plain) - 1e-6
+            assert float(weighted) < 1.2 * float(plain)
+        else:
+            assert float(weighted) > 1.3 * float(plain)
+
+
 def test_normals_by_light_scores_the_up_down_and_left_right_shape_apart(frames):
     """bench.normals_by_light's scores: the light stage's own normals score correlation 1 and no
     angle; noise on the up/down component (a network that cannot read that shape) lowers the

@@ -122,15 +122,41 @@ def shade_inputs(a: dict, backdrop: torch.Tensor | None = None) -> shading.Shade
                                t(a["cover"]))
 
 
-def sample_light(rng: np.random.Generator, bank, pool, sky_flip: float = 0.0) -> np.ndarray:
+# A studio lamp (sample_light's ``studio``): one near-white lamp on the camera's side of the
+# subject, from this range of azimuths and elevations (degrees; CroppedYale's flash positions and
+# a film set's key lights span about the same), over a faint environment.
+STUDIO_AZIMUTH = 130.0
+STUDIO_ELEVATION = (-45.0, 90.0)
+
+
+def studio_lamp(rng: np.random.Generator) -> np.ndarray:
+    """(16, 16, 3) one near-white lamp (each channel within 10%) from the front, anywhere in
+    STUDIO_AZIMUTH and STUDIO_ELEVATION (elevation uniform in its sine: uniform over the band)."""
+    az = np.radians(rng.uniform(-STUDIO_AZIMUTH, STUDIO_AZIMUTH))
+    lo, hi = np.sin(np.radians(STUDIO_ELEVATION))
+    sin_el = rng.uniform(lo, hi)
+    cos_el = np.sqrt(max(1.0 - sin_el * sin_el, 0.0))
+    d = np.array([np.sin(az) * cos_el, sin_el, np.cos(az) * cos_el])
+    dist = rng.uniform(1.0 + 1e-6, 2.5)
+    colour = rng.uniform(0.9, 1.1, 3) * rng.uniform(0.5, 4.0)
+    return lighting_sampling.project_point_light(d * dist, colour * dist * dist,
+                                                 subject_radius=1.0).astype(np.float32)
+
+
+def sample_light(rng: np.random.Generator, bank, pool, sky_flip: float = 0.0,
+                 studio: float = 0.0) -> np.ndarray:
     """A lighting as the product meets it: an environment, one to three lamps, or both (so hard
     shadows and highlights are as common in training as soft light). ``sky_flip``: the share of
     environments turned upside down (their sky below): HDRIs are lit from above, so a network
-    may read a face's up/down shading from that habit rather than from its shape."""
+    may read a face's up/down shading from that habit rather than from its shape. ``studio``:
+    the share of lightings that are one near-white lamp from the front over a faint environment
+    (studio_lamp), as a film set's key or a flash lights a face."""
     def env():
         e = lighting_sampling.sample_g(rng, bank, pool)
         return e[::-1].copy() if sky_flip and rng.random() < sky_flip else e
 
+    if studio and rng.random() < studio:
+        return (studio_lamp(rng) + rng.uniform(0.0, 0.1) * env()).astype(np.float32)
     kind = rng.random()
     if kind < 0.35:
         return env()
@@ -149,7 +175,7 @@ def dense(a: dict, values: np.ndarray, fill=0.0) -> np.ndarray:
 
 
 def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo_pool=None,
-           sky_flip: float = 0.0) -> dict:
+           sky_flip: float = 0.0, studio: float = 0.0) -> dict:
     """``image`` (3, H, W) linear radiance and ``target`` (len(TARGETS) buffers stacked: 3 normal,
     1 height, 3 albedo, 1 matte, 1 face, 16 transfer = 25 channels), ``fg`` (1, H, W) where the
     normal, height, albedo and transfer are defined. A random horizontal flip (normal x and the
@@ -159,7 +185,7 @@ def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo
     if photo_bank is not None:
         backdrop = backdrops_mod.sample(rng, h, w, torch.from_numpy(a["backdrop"]), photo_bank,
                                         photo_pool)
-    light = sample_light(rng, bank, pool, sky_flip)
+    light = sample_light(rng, bank, pool, sky_flip, studio)
     wts = torch.from_numpy(layout.weights(light)).float()[None]
     img = shading.relight(shade_inputs(a, backdrop), wts, stage_dirs())[0].numpy()
     normal = dense(a, a["normal"].astype(np.float32))
@@ -182,7 +208,8 @@ class IntrinsicFrames:
     (seed, split, idx). Frames stay in memory once read (a 128-px frame is about 3 MB)."""
 
     def __init__(self, split: str, res: int, seed: int = 0, cache_dir=None, data_root=None,
-                 varied_backdrops: bool = True, length: int = 10 ** 7, sky_flip: float = 0.0):
+                 varied_backdrops: bool = True, length: int = 10 ** 7, sky_flip: float = 0.0,
+                 studio: float = 0.0):
         self.folder = folder_for(cache_dir, split, res)
         man = self.folder / "manifest.json"
         if not man.is_file():
@@ -193,6 +220,7 @@ class IntrinsicFrames:
         self.long_hair = float(info.get("long_hair", 0.0))  # share of identities with long hair
         self.split, self.seed, self.length = split, int(seed), int(length)
         self.sky_flip = float(sky_flip)  # share of environments upside down (sample_light)
+        self.studio = float(studio)  # share of lightings that are a studio lamp (sample_light)
         root = pathlib.Path(data_root) if data_root else None
         from ..lightstage import assets
         root = root or assets.default_data_root()
@@ -216,7 +244,7 @@ class IntrinsicFrames:
         rng = np.random.default_rng([self.seed, SPLITS[self.split], int(idx), 77])
         a = self.frame(int(rng.integers(self.n)))
         return sample(a, rng, self.bank, self.pool, self.photo_bank, self.photo_pool,
-                      self.sky_flip)
+                      self.sky_flip, self.studio)
 
     def batch(self, indices) -> dict:
         items = [self[i] for i in indices]

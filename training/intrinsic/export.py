@@ -195,7 +195,7 @@ def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20)
 
 TRAIN_ARGS = ("width", "res", "cache", "minutes", "steps", "batch", "lr", "ema", "seed", "threads",
               "val_n", "val_every", "zoom", "cut", "face_weight", "gradient_weight", "start_step",
-              "init", "sky_flip", "out")
+              "init", "sky_flip", "studio", "up_weight", "out")
 
 
 def train_command(recipe: dict) -> str:

@@ -136,14 +136,16 @@ def normal_gradient(normal: torch.Tensor, t_n: torch.Tensor, face: torch.Tensor)
 
 
 def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.0,
-           gradient_weight: float = 0.0) -> dict:
+           gradient_weight: float = 0.0, up_weight: float = 1.0) -> dict:
     """Per-buffer losses against the light stage's exact buffers (data.TARGETS order: normal 3,
     height 1, albedo 3, matte 1, face 1, transfer 16); ``fg`` (B, 1, H, W) where the subject's
     buffers exist.
     ``face_weight``: the normal losses count face-skin pixels 1 + face_weight times (the face is a
     third of the subject and carries the shading a relit face shows); ``gradient_weight``: the
     normals' differences between neighbours on the face skin (normal_gradient) join the normal
-    loss."""
+    loss; ``up_weight``: the up/down component's absolute error counts this many times the
+    others' (a face varies less up and down than across, so a flattened up/down shape costs
+    little in the angle, yet it sets the balance of a light from above or below)."""
     normal, height, albedo, parsing, *transfer = pred
     n = fg.sum((2, 3)).clamp(min=1.0)  # (B, 1)
 
@@ -159,7 +161,10 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
     def mean_w(x):
         return (x * w).sum((2, 3)) / nw
 
-    l_normal = mean_w(1.0 - cos).mean() + 0.5 * mean_w((normal - t_n).abs()).mean()
+    err = (normal - t_n).abs()
+    if up_weight != 1.0:
+        err = err * err.new_tensor([1.0, up_weight, 1.0]).view(1, 3, 1, 1)
+    l_normal = mean_w(1.0 - cos).mean() + 0.5 * mean_w(err).mean()
     if gradient_weight:
         l_normal = l_normal + gradient_weight * normal_gradient(normal, t_n, fg * t_f)
     d = height - t_h

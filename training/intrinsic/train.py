@@ -162,7 +162,8 @@ def train(a) -> pathlib.Path:
     out.mkdir(parents=True, exist_ok=True)
     recipe = {**vars(a), "git_commit": git_commit(), "machine": platform.processor() or platform.machine(),
               "cpus": os.cpu_count(), "render_version": data.renderer_version()}
-    ds = data.IntrinsicFrames("train", a.res, a.seed, a.cache, sky_flip=a.sky_flip)
+    ds = data.IntrinsicFrames("train", a.res, a.seed, a.cache, sky_flip=a.sky_flip,
+                              studio=a.studio)
     recipe["long_hair"] = ds.long_hair
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
     vds = data.IntrinsicFrames("val", a.res, 1234, a.cache)
@@ -195,7 +196,8 @@ def train(a) -> pathlib.Path:
         inp = prepare(batch, gen)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=a.bf16):
             pred = model(inp)
-        ls = losses(pred, batch["target"], batch["fg"], a.face_weight, a.gradient_weight)
+        ls = losses(pred, batch["target"], batch["fg"], a.face_weight, a.gradient_weight,
+                    a.up_weight)
         opt.zero_grad(set_to_none=True)
         ls["total"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
@@ -253,6 +255,10 @@ def parser() -> argparse.ArgumentParser:
                     "neighbour differences in the normal loss (model.normal_gradient)")
     ap.add_argument("--sky-flip", type=float, default=0.0, help="share of training "
                     "environments turned upside down (data.sample_light)")
+    ap.add_argument("--studio", type=float, default=0.0, help="share of training lightings "
+                    "that are one near-white lamp from the front (data.studio_lamp)")
+    ap.add_argument("--up-weight", type=float, default=1.0, help="the normals' up/down "
+                    "component's error counts this many times the others' (model.losses)")
     ap.add_argument("--start-step", type=int, default=0, help="batch index to start at (a "
                     "continued run sees new samples)")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false")
