@@ -85,16 +85,23 @@ def sample_g(rng: np.random.Generator, bank: np.ndarray, pool=None) -> np.ndarra
     return (lv * gain).astype(np.float32)
 
 
+def point_lamp(rng: np.random.Generator, d: np.ndarray, tint=(0.0, 1.0)) -> np.ndarray:
+    """(16, 16, 3) a point lamp in the unit direction ``d`` at a random distance (1 to 2.5
+    subject radii), its colour each channel uniform in ``tint`` times a random gain, scaled by
+    the distance squared so the gain sets the irradiance it gives the subject."""
+    dist = rng.uniform(1.0, 2.5)
+    if dist <= 1.0:  # uniform() may return the lower bound; keep strictly outside
+        dist = 1.0 + 1e-6
+    colour = rng.uniform(*tint, 3) * rng.uniform(0.5, 4.0)
+    return project_point_light(d * dist, colour * dist * dist, subject_radius=1.0)
+
+
 def sample_h(rng: np.random.Generator) -> np.ndarray:
     out = np.zeros(lightvec.SHAPE, np.float32)
     for _ in range(int(rng.integers(1, 4))):
         d = rng.normal(size=3)
         d /= max(np.linalg.norm(d), 1e-9)
-        dist = rng.uniform(1.0, 2.5)
-        if dist <= 1.0:  # uniform() may return the lower bound; keep strictly outside
-            dist = 1.0 + 1e-6
-        colour = rng.uniform(0, 1, 3) * rng.uniform(0.5, 4.0)
-        out += project_point_light(d * dist, colour * dist * dist, subject_radius=1.0)
+        out += point_lamp(rng, d)
     return out
 
 

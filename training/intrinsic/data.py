@@ -137,10 +137,7 @@ def studio_lamp(rng: np.random.Generator) -> np.ndarray:
     sin_el = rng.uniform(lo, hi)
     cos_el = np.sqrt(max(1.0 - sin_el * sin_el, 0.0))
     d = np.array([np.sin(az) * cos_el, sin_el, np.cos(az) * cos_el])
-    dist = rng.uniform(1.0 + 1e-6, 2.5)
-    colour = rng.uniform(0.9, 1.1, 3) * rng.uniform(0.5, 4.0)
-    return lighting_sampling.project_point_light(d * dist, colour * dist * dist,
-                                                 subject_radius=1.0).astype(np.float32)
+    return lighting_sampling.point_lamp(rng, d, (0.9, 1.1)).astype(np.float32)
 
 
 def sample_light(rng: np.random.Generator, bank, pool, sky_flip: float = 0.0,
