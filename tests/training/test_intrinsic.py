@@ -596,3 +596,29 @@ def test_renderer_ceiling_ladder_rests_on_the_light_stages_own_terms(frames):
     assert floor < 1e-4  # (silhouette pixels, where the backdrop blends in, are left out here)
     assert per_channel < 0.7 * luminance
     assert got["renderer, exact buffers"] < 0.7 * got["input unchanged"]
+
+
+def test_batches_made_by_workers_are_the_batches_made_inline(frames, shared_data, tmp_path):
+    """--workers: a step's batch is a pure function of (seed, step), so batches made ahead in
+    worker processes (reading frames from the disk cache, not keeping them) are the inline ones,
+    in step order."""
+    from training.intrinsic import data, train
+
+    root = frames.folder.parent
+    data.build("train", RES, 2, root, data_root=shared_data, progress=None)
+    a = train.parser().parse_args(["--out", str(tmp_path), "--res", str(RES), "--batch", "2",
+                                   "--cut", "0.5", "--start-step", "5"])
+    ds = data.IntrinsicFrames("train", RES, a.seed, root, shared_data)
+    inline = train.batches(ds, a)
+    first = [next(inline) for _ in range(3)]
+    a.workers = 2
+    lean = data.IntrinsicFrames("train", RES, a.seed, root, shared_data, keep_frames=False)
+    ahead = train.batches(lean, a)
+    for want in first:
+        got = next(ahead)
+        for w, g in zip(want, got):
+            torch.testing.assert_close(g, w, rtol=0, atol=0)
+    assert not lean._frames
+    assert not torch.equal(first[0][0], first[1][0])
+    again = train.step_batch(ds, a, 1)
+    torch.testing.assert_close(again[0], first[1][0], rtol=0, atol=0)

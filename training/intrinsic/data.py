@@ -202,11 +202,13 @@ def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo
 
 class IntrinsicFrames:
     """Map-style dataset over a built frame folder: sample ``idx`` is a pure function of
-    (seed, split, idx). Frames stay in memory once read (a 128-px frame is about 3 MB)."""
+    (seed, split, idx). Frames stay in memory once read (a 128-px frame is about 4 MB), unless
+    ``keep_frames`` is False (many processes reading one cache share the system's file cache
+    instead of each holding every frame)."""
 
     def __init__(self, split: str, res: int, seed: int = 0, cache_dir=None, data_root=None,
                  varied_backdrops: bool = True, length: int = 10 ** 7, sky_flip: float = 0.0,
-                 studio: float = 0.0):
+                 studio: float = 0.0, keep_frames: bool = True):
         self.folder = folder_for(cache_dir, split, res)
         man = self.folder / "manifest.json"
         if not man.is_file():
@@ -228,11 +230,14 @@ class IntrinsicFrames:
             pnames, self.photo_bank = backdrops_mod.photo_bank(root)
             self.photo_pool = backdrops_mod.pool_for(pnames, split)
         self._frames: dict[int, dict] = {}
+        self.keep_frames = bool(keep_frames)
 
     def __len__(self) -> int:
         return self.length
 
     def frame(self, i: int) -> dict:
+        if not self.keep_frames:
+            return load_frame(frame_path(self.folder, i))
         if i not in self._frames:
             self._frames[i] = load_frame(frame_path(self.folder, i))
         return self._frames[i]

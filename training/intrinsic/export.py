@@ -195,7 +195,7 @@ def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20)
 
 TRAIN_ARGS = ("width", "res", "cache", "minutes", "steps", "batch", "lr", "ema", "seed", "threads",
               "val_n", "val_every", "zoom", "cut", "face_weight", "gradient_weight", "start_step",
-              "init", "sky_flip", "studio", "up_weight", "out")
+              "init", "sky_flip", "studio", "up_weight", "device", "workers", "out")
 
 
 def train_command(recipe: dict) -> str:
@@ -237,6 +237,8 @@ def lineage(run: pathlib.Path, checkpoint: str) -> dict:
     out = {"command": train_command(recipe), "args": {"out": recipe["out"]},
            "git_commit": recipe.get("git_commit"), "render_version": recipe.get("render_version"),
            "exported_checkpoint": {"file": checkpoint, "step": state.get("step")}}
+    if recipe.get("accelerator"):
+        out["machine"] = f"{recipe.get('machine')}, {recipe.get('cpus')} CPUs, {recipe['accelerator']}"
     init = recipe.get("init")
     if init:
         parent = pathlib.Path(init)

@@ -83,7 +83,7 @@ def unoccluded(normal: torch.Tensor) -> torch.Tensor:
     """(B, 16, H, W) the transfer of unoccluded Lambertian pixels with these normals: the
     network's transfer is this plus what it predicts occlusion takes away (at initialisation,
     nothing: the renderer's plain Lambert shading)."""
-    band = _TRANSFER_BAND.to(normal.dtype).view(1, -1, 1, 1)
+    band = _TRANSFER_BAND.to(normal.device, normal.dtype).view(1, -1, 1, 1)
     return band * sh_basis(normal.unbind(1), TRANSFER_ORDER, stack=lambda v: torch.stack(v, 1))
 
 

@@ -8,6 +8,12 @@ product's decode back to linear), normalises them as the product does (addon.int
 supervises every buffer with the light stage's exact values. bf16 autocast on the CPU (dense 3x3
 convolutions run about twice as fast in bf16 on processors with AVX-512 bf16). The run keeps an
 exponential moving average of the weights and chooses ``best.pt`` on held-out val identities.
+
+A step's batch is a pure function of (seed, step) (``step_batch``), so ``--workers N`` (batches
+made in N processes ahead of the network) and ``--device cuda`` train on the same samples as one
+thread on the CPU does:
+
+    python -m training.intrinsic.train --device cuda --workers 15 --batch 24 ...
 """
 
 from __future__ import annotations
@@ -119,6 +125,51 @@ def prepare(batch: dict, gen: torch.Generator, strength: float = 1.0) -> torch.T
     return normalise_batch(img)
 
 
+def step_batch(ds, a, step: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(input, target, fg) of the run's batch ``step`` (counted from --start-step's batch index):
+    the frames, lights, zoom, frame cut and camera all drawn from (seed, step) alone."""
+    first = (a.start_step + step) * a.batch
+    gen = torch.Generator().manual_seed(int(a.seed) * 1_000_003 + a.start_step + step)
+    batch = ds.batch(range(first, first + a.batch))
+    if a.zoom > 0:
+        batch = zoom(batch, gen, a.zoom)
+    if a.cut > 0:
+        batch = frame_cut(batch, gen, a.cut)
+    return prepare(batch, gen), batch["target"], batch["fg"]
+
+
+class StepBatches(torch.utils.data.IterableDataset):
+    """step_batch for steps 0, 1, 2, ... in order, shared out among a DataLoader's workers
+    (worker k of n makes steps k, k + n, ...; the loader takes them in turn, so in order)."""
+
+    def __init__(self, ds, a):
+        super().__init__()
+        self.ds, self.a = ds, a
+
+    def __iter__(self):
+        torch.set_num_threads(1)
+        info = torch.utils.data.get_worker_info()
+        k, n = (info.id, info.num_workers) if info else (0, 1)
+        step = k
+        while True:
+            yield step_batch(self.ds, self.a, step)
+            step += n
+
+
+def batches(ds, a):
+    """The run's batches in step order: made inline, or by --workers processes ahead of use."""
+    if not a.workers:
+        step = 0
+        while True:
+            yield step_batch(ds, a, step)
+            step += 1
+    loader = torch.utils.data.DataLoader(StepBatches(ds, a), batch_size=None,
+                                         num_workers=a.workers, prefetch_factor=4,
+                                         persistent_workers=True,
+                                         pin_memory=a.device.startswith("cuda"))
+    yield from loader
+
+
 class EMA:
     def __init__(self, model: torch.nn.Module, decay: float):
         self.decay = decay
@@ -147,6 +198,10 @@ def validate(model: torch.nn.Module, val: dict, inputs: torch.Tensor) -> dict:
     return {k: v / len(inputs) for k, v in out.items()}
 
 
+def cpu(state: dict) -> dict:
+    return {k: v.detach().cpu() for k, v in state.items()}
+
+
 def git_commit() -> str:
     try:
         return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
@@ -157,25 +212,32 @@ def git_commit() -> str:
 
 def train(a) -> pathlib.Path:
     torch.set_num_threads(a.threads)
+    device = torch.device(a.device)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
     torch.manual_seed(a.seed)
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     recipe = {**vars(a), "git_commit": git_commit(), "machine": platform.processor() or platform.machine(),
-              "cpus": os.cpu_count(), "render_version": data.renderer_version()}
+              "cpus": os.cpu_count(), "render_version": data.renderer_version(),
+              "accelerator": (torch.cuda.get_device_name(device) if device.type == "cuda"
+                              else None)}
     ds = data.IntrinsicFrames("train", a.res, a.seed, a.cache, sky_flip=a.sky_flip,
-                              studio=a.studio)
+                              studio=a.studio, keep_frames=not a.workers)
     recipe["long_hair"] = ds.long_hair
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
     vds = data.IntrinsicFrames("val", a.res, 1234, a.cache)
     val = vds.batch(range(a.val_n))
     vgen = torch.Generator().manual_seed(99)
-    val_in = prepare(val, vgen)
+    val_in = prepare(val, vgen).to(device)
+    val = {k: v.to(device) for k, v in val.items()}
     model = IntrinsicNet(a.width, a.transfer)
     if a.init:
         load_weights(model, torch.load(a.init, map_location="cpu")["state_dict"])
+    model.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=a.lr, weight_decay=1e-4)
     ema = EMA(model, a.ema)
-    gen = torch.Generator().manual_seed(a.seed)
+    feed = batches(ds, a)
     t0 = time.time()
     budget = a.minutes * 60 if a.minutes else None
     step, best, log = 0, math.inf, []
@@ -187,17 +249,10 @@ def train(a) -> pathlib.Path:
         lr = a.lr * (min(1.0, (step + 1) / 200) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
         for g in opt.param_groups:
             g["lr"] = lr
-        first = (a.start_step + step) * a.batch
-        batch = ds.batch(range(first, first + a.batch))
-        if a.zoom > 0:
-            batch = zoom(batch, gen, a.zoom)
-        if a.cut > 0:
-            batch = frame_cut(batch, gen, a.cut)
-        inp = prepare(batch, gen)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=a.bf16):
+        inp, target, fg = (t.to(device, non_blocking=True) for t in next(feed))
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=a.bf16):
             pred = model(inp)
-        ls = losses(pred, batch["target"], batch["fg"], a.face_weight, a.gradient_weight,
-                    a.up_weight)
+        ls = losses(pred, target, fg, a.face_weight, a.gradient_weight, a.up_weight)
         opt.zero_grad(set_to_none=True)
         ls["total"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
@@ -206,7 +261,7 @@ def train(a) -> pathlib.Path:
         step += 1
         if step % a.log_every == 0:
             print(f"step {step} {time.time() - t0:.0f}s lr {lr:.2e} " + " ".join(
-                f"{k} {float(v):.4f}" for k, v in ls.items()), flush=True)
+                f"{k} {float(v.detach()):.4f}" for k, v in ls.items()), flush=True)
         if step % a.val_every == 0:
             live = {k: v.clone() for k, v in model.state_dict().items()}
             model.load_state_dict(ema.shadow)
@@ -214,11 +269,11 @@ def train(a) -> pathlib.Path:
             score = v["normal_deg"] + 10 * v["albedo"] + 10 * v["height"] + 10 * v["transfer"]
             log.append({"step": step, "seconds": round(time.time() - t0), **v, "score": score})
             print("val", json.dumps(log[-1]), flush=True)
-            state = {"state_dict": ema.shadow, "width": a.width, "step": step, "val": v}
+            state = {"state_dict": cpu(ema.shadow), "width": a.width, "step": step, "val": v}
             if score < best:
                 best = score
                 torch.save(state, out / "best.pt")
-            torch.save({**state, "raw_state_dict": live}, out / "checkpoint.pt")
+            torch.save({**state, "raw_state_dict": cpu(live)}, out / "checkpoint.pt")
             if a.keep_every and step % a.keep_every == 0:
                 torch.save(state, out / f"step_{step:06d}.pt")
             model.load_state_dict(live)
@@ -239,6 +294,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--ema", type=float, default=0.998)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--device", default="cpu", help="where the network trains (cpu, cuda)")
+    ap.add_argument("--workers", type=int, default=0, help="processes making batches ahead of "
+                    "the network (0: made inline; each worker reads frames from the disk cache "
+                    "rather than keeping them)")
     ap.add_argument("--val-n", type=int, default=48)
     ap.add_argument("--val-every", type=int, default=250)
     ap.add_argument("--log-every", type=int, default=50)
