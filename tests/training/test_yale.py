@@ -373,6 +373,24 @@ def test_command_line_says_what_to_do_with_two_models_of_one_name(toy, shared_da
     assert not (tmp_path / "y.json").exists()
 
 
+def test_several_models_are_compared_pair_by_pair_with_the_first(toy, shared_data, yale_root,
+                                                                tmp_path):
+    """With two models, the second's balance correlations carry their paired gain over the
+    first's (the same network under another name: no gain, on every resampling either)."""
+    from tests.onnx_fixtures import write_toy_model
+
+    twin = write_toy_model(tmp_path / "twin", name="twin")
+    out = tmp_path / "y.json"
+    assert ye.main(["--onnx", str(toy), "--onnx", str(twin), "--quick", "--data",
+                    str(shared_data), "--json", str(out), "--sheet", ""]) == 0
+    bc = json.loads(out.read_text())["balance_correlation"]
+    assert "top_bottom_gain" not in bc["toy"]
+    for key in ("left_right", "top_bottom"):
+        assert bc["twin"][f"{key}_gain"] == pytest.approx(0.0, abs=1e-12)
+        assert bc["twin"][f"{key}_gain_90"] == pytest.approx([0.0, 0.0], abs=1e-12)
+    assert "Paired gain in correlation over `toy`" in out.with_suffix(".md").read_text()
+
+
 def test_the_tune_split_reports_only_tune_subjects_and_never_overwrites_the_results(
         toy, shared_data, yale_root, tmp_path, capsys):
     out = tmp_path / "tune.json"

@@ -885,7 +885,10 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         "gains": gains, "results": summary, "beats_both_baselines": verdict(summary, models),
         "beats_flattened_ratio": verdict(summary, models, (FLATTENED,)),
         "paired": paired_comparison(rows, models) if rows else {},
-        "balance_correlation": balance_correlation(rows),
+        # with several models, each one's paired gain over the first (the pairs' own
+        # difficulty cancels: a checkpoint against the shipped model)
+        "balance_correlation": balance_correlation(rows, reference=models[0]
+                                                   if len(models) > 1 else None),
         "data": {"dropped_failed_strobes": {k: v for k, v in dropped.items() if v},
                  "ambient": ambient},
         "seconds": round(time.perf_counter() - t0, 1),
@@ -922,6 +925,16 @@ def report_body(res: dict) -> str:
 
     for name, c in res["balance_correlation"].items():
         lines.append(f"| {name} | {cell(c, 'left_right')} | {cell(c, 'top_bottom')} |")
+    gains = {n: c for n, c in res["balance_correlation"].items() if "top_bottom_gain" in c
+             and n in res["models"]}
+    if gains:
+        lines += ["", f"Paired gain in correlation over `{models[0]}` on the same pairs (in "
+                  "brackets, its 5th to 95th percentile over the same resamplings):", "",
+                  "| | left/right | top/bottom |", "|---|---|---|"]
+        for name, c in gains.items():
+            lines.append(f"| {name} | " + " | ".join(
+                f"{c[k + '_gain']:+.3f} ({c[k + '_gain_90'][0]:+.3f} to "
+                f"{c[k + '_gain_90'][1]:+.3f})" for k in ("left_right", "top_bottom")) + " |")
     split = {n: c for n, c in res["balance_correlation"].items() if "top_bottom_from" in c}
     if split:
         lines += ["", "Each output's balance split by least squares into the truth's and the "
