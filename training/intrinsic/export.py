@@ -238,7 +238,8 @@ def lineage(run: pathlib.Path, checkpoint: str) -> dict:
            "git_commit": recipe.get("git_commit"), "render_version": recipe.get("render_version"),
            "exported_checkpoint": {"file": checkpoint, "step": state.get("step")}}
     if recipe.get("accelerator"):
-        out["machine"] = f"{recipe.get('machine')}, {recipe.get('cpus')} CPUs, {recipe['accelerator']}"
+        out["machine"] = (f"{recipe.get('machine')}, {recipe.get('cpus')} CPUs, "
+                          f"{recipe['accelerator']}")
     init = recipe.get("init")
     if init:
         parent = pathlib.Path(init)
