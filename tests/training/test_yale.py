@@ -320,6 +320,33 @@ def test_one_pair_far_off_the_truth_carries_the_pearson_figure_but_not_the_rank_
     assert off["top_bottom"] < 0.6 and off["top_bottom_rank"] > 0.9
 
 
+def test_top_bottom_by_elevation_says_which_lights_a_method_gets_wrong():
+    """A method exact under targets from above and pushed down under targets from below shows
+    it in the target bins alone: correlation 1 and no error above, a negative bias below; the
+    input bins mix both. Rows without elevations (yale_normals') are left out."""
+    rng = np.random.default_rng(0)
+    rows = []
+    for i in range(40):
+        eb = 40.0 if i % 2 else -30.0
+        t = float(rng.normal()) * 0.05
+        p = t if eb > 0 else t - 0.1
+        bal = {"ground_truth": (0.0, t), "m": (0.0, p)}
+        rows.append(("single", None, f"s{i % 4}", bal, (rng.choice([-30.0, 0.0, 40.0]), eb)))
+    rows.append(("single", None, "s0", {"ground_truth": (0.0, 9.0), "m": (0.0, -9.0)}))
+    res = ye.balance_by_elevation(rows)["m"]
+    assert res["target above"]["pairs"] == 20 and res["target below"]["pairs"] == 20
+    assert res["target above"]["correlation"] == pytest.approx(1.0)
+    assert res["target above"]["bias"] == pytest.approx(0.0, abs=1e-12)
+    assert res["target below"]["bias"] == pytest.approx(-0.1)
+    assert res["target level"] == {"pairs": 0, "correlation": None, "bias": None, "mae": None}
+    assert sum(res[f"input {k}"]["pairs"] for k in ("above", "level", "below")) == 40
+    assert -0.1 < res["input level"]["bias"] < 0.0
+    assert ye.balance_by_elevation([r[:4] for r in rows]) == {}
+    dirs = np.array([[0.0, 1.0, 1.0], [0.0, -1.0, 1.0]]) / np.sqrt(2)
+    assert ye.light_elevation(dirs, np.array([1.0, 0.0])) == pytest.approx(45.0)
+    assert ye.light_elevation(dirs, np.array([1.0, 1.0])) == pytest.approx(0.0, abs=1e-9)
+
+
 def test_balance_splits_into_the_truths_and_the_inputs():
     """A method whose balance is 0.6 x the truth's + 0.3 x the input's (plus noise) is split so;
     the input's own row (the identity method) has no split."""
@@ -388,7 +415,11 @@ def test_several_models_are_compared_pair_by_pair_with_the_first(toy, shared_dat
     for key in ("left_right", "top_bottom"):
         assert bc["twin"][f"{key}_gain"] == pytest.approx(0.0, abs=1e-12)
         assert bc["twin"][f"{key}_gain_90"] == pytest.approx([0.0, 0.0], abs=1e-12)
-    assert "Paired gain in correlation over `toy`" in out.with_suffix(".md").read_text()
+    report = out.with_suffix(".md").read_text()
+    assert "Paired gain in correlation over `toy`" in report
+    by_elev = json.loads(out.read_text())["top_bottom_by_elevation"]
+    assert sum(by_elev["toy"][f"target {k}"]["pairs"] for k in ("above", "level", "below")) == 6
+    assert "Top/bottom balance by where the input's" in report
 
 
 def test_the_tune_split_reports_only_tune_subjects_and_never_overwrites_the_results(

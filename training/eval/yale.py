@@ -505,6 +505,7 @@ class PairResult:
     inputs: np.ndarray     # (H, W) the real image under A
     light_b: np.ndarray    # (16, 16, 3) the network's target light
     outputs: dict          # method -> (H, W) linear gray, absolute
+    elevations: tuple = (0.0, 0.0)  # degrees: A's and B's light_elevation
 
 
 def relight_pair(subject: Subject, a: Lighting, b: Lighting, relighters: dict,
@@ -518,7 +519,17 @@ def relight_pair(subject: Subject, a: Lighting, b: Lighting, relighters: dict,
     outs.update(baselines(img_a, light_a, light_b))
     outs.update(ceilings(img_a, a, b, subject_shading(subject) if shading is None else shading))
     return PairResult(subject.name, a.kind, a.label, b.label, gt,
-                      face_mask(gt.shape, subject, b.weights), img_a, light_b, outs)
+                      face_mask(gt.shape, subject, b.weights), img_a, light_b, outs,
+                      (light_elevation(subject.dirs, a.weights),
+                       light_elevation(subject.dirs, b.weights)))
+
+
+def light_elevation(dirs: np.ndarray, weights: np.ndarray) -> float:
+    """Degrees above the camera's horizontal plane of a lighting's centre: the weighted mean of
+    its directions (K, 3) (+Y up)."""
+    d = (np.asarray(weights, np.float64)[:, None] * np.asarray(dirs, np.float64)).sum(0)
+    norm = float(np.linalg.norm(d))
+    return float(np.degrees(np.arcsin(np.clip(d[1] / norm, -1.0, 1.0)))) if norm > 0 else 0.0
 
 
 def iter_pairs(subjects, relighters: dict, n_pairs: int, seed: int, bank):
@@ -648,6 +659,44 @@ def balance_correlation(rows: list[tuple], seed: int = 0, reference: str | None 
             res[f"{key}_gain"] = res[key] - out[reference][key]
             res[f"{key}_gain_90"] = interval(boots[m, key] - boots[reference, key],
                                              res[f"{key}_gain"])
+    return out
+
+
+ELEVATION_BAND = 15.0  # degrees: a lighting's centre above, within or below this of level
+
+
+def balance_by_elevation(rows: list[tuple]) -> dict:
+    """Per method, its top/bottom balance against the truth's over the pairs whose input (A) or
+    target (B) light lies above, level with or below the face (ELEVATION_BAND; rows carry
+    (elevation A, elevation B) as their fifth item): pairs, Pearson correlation, mean error
+    (relit minus truth: positive, the relit face brighter on top than the truth) and mean
+    absolute error. Where a network's up/down goes wrong: with the input's light, or with the
+    target's."""
+    rows = [r for r in rows if len(r) > 4]
+    if not rows:
+        return {}
+    truth = np.array([r[3]["ground_truth"][1] for r in rows], np.float64)
+    elev = np.array([r[4] for r in rows], np.float64)
+    bins = {}
+    for side, col in (("input", 0), ("target", 1)):
+        e = elev[:, col]
+        bins[f"{side} above"] = e > ELEVATION_BAND
+        bins[f"{side} level"] = np.abs(e) <= ELEVATION_BAND
+        bins[f"{side} below"] = e < -ELEVATION_BAND
+    out = {}
+    for m in rows[0][3]:
+        if m == "ground_truth":
+            continue
+        pred = np.array([r[3][m][1] for r in rows], np.float64)
+        res = {}
+        for name, sel in bins.items():
+            err = pred[sel] - truth[sel]
+            res[name] = {"pairs": int(sel.sum()),  # None: too few pairs for the figure
+                         "correlation": _correlation(pred[sel], truth[sel])
+                         if sel.sum() > 2 else None,
+                         "bias": float(err.mean()) if len(err) else None,
+                         "mae": float(np.abs(err).mean()) if len(err) else None}
+        out[m] = res
     return out
 
 
@@ -866,7 +915,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         for r in iter_pairs([s], relighters, n_pairs, seed, bank):
             bal = {name: balance(y, r.mask) for name, y in r.outputs.items()}
             bal["ground_truth"] = balance(r.gt, r.mask)
-            rows.append((r.kind, score_pair(r, gains), r.subject, bal))
+            rows.append((r.kind, score_pair(r, gains), r.subject, bal, r.elevations))
             if sheet_path and len(sheet) < sheet_rows and r.kind == KINDS[len(sheet) % 3]:
                 sheet.append(r)  # one pair of each kind in turn, from the first subjects
         progress(f"{name}: {len(rows)} pairs so far, {time.perf_counter() - t0:.0f} s")
@@ -889,6 +938,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         # difficulty cancels: a checkpoint against the shipped model)
         "balance_correlation": balance_correlation(rows, reference=models[0]
                                                    if len(models) > 1 else None),
+        "top_bottom_by_elevation": balance_by_elevation(rows),
         "data": {"dropped_failed_strobes": {k: v for k, v in dropped.items() if v},
                  "ambient": ambient},
         "seconds": round(time.perf_counter() - t0, 1),
@@ -935,6 +985,20 @@ def report_body(res: dict) -> str:
             lines.append(f"| {name} | " + " | ".join(
                 f"{c[k + '_gain']:+.3f} ({c[k + '_gain_90'][0]:+.3f} to "
                 f"{c[k + '_gain_90'][1]:+.3f})" for k in ("left_right", "top_bottom")) + " |")
+    by_elev = {n: c for n, c in res.get("top_bottom_by_elevation", {}).items()
+               if n in res["models"]}
+    if by_elev:
+        lines += ["", "Top/bottom balance by where the input's (A) and the target's (B) light "
+                  f"lies (above, level within {ELEVATION_BAND:g} degrees, below): correlation "
+                  "with the truth's, mean error (relit minus truth, + brighter on top), pairs.",
+                  "", "| | " + " | ".join(next(iter(by_elev.values()))) + " |",
+                  "|---|" + "---|" * len(next(iter(by_elev.values())))]
+        for name, c in by_elev.items():
+            lines.append(f"| {name} | " + " | ".join(
+                ("-" if b["correlation"] is None else f"{b['correlation']:.2f}") + ", "
+                + ("-" if b["bias"] is None else f"{b['bias']:+.3f}") + f", {b['pairs']}"
+                for b in c.values())
+                + " |")
     split = {n: c for n, c in res["balance_correlation"].items() if "top_bottom_from" in c}
     if split:
         lines += ["", "Each output's balance split by least squares into the truth's and the "
