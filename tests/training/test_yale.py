@@ -321,9 +321,10 @@ def test_one_pair_far_off_the_truth_carries_the_pearson_figure_but_not_the_rank_
 
 
 def test_top_bottom_by_elevation_says_which_lights_a_method_gets_wrong():
-    """A method exact under targets from above and pushed down under targets from below shows
-    it in the target bins alone: correlation 1 and no error above, a negative bias below; the
-    input bins mix both. Rows without elevations (yale_normals') are left out."""
+    """A method exact under targets from above and 0.1 too bright on top (balance is bottom
+    minus top) under targets from below shows it in the target bins alone: correlation 1 and no
+    error above, a bias of -0.1 below; the input bins mix both. Rows without elevations
+    (yale_normals') are left out."""
     rng = np.random.default_rng(0)
     rows = []
     for i in range(40):

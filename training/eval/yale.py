@@ -669,9 +669,10 @@ def balance_by_elevation(rows: list[tuple]) -> dict:
     """Per method, its top/bottom balance against the truth's over the pairs whose input (A) or
     target (B) light lies above, level with or below the face (ELEVATION_BAND; rows carry
     (elevation A, elevation B) as their fifth item): pairs, Pearson correlation, mean error
-    (relit minus truth: positive, the relit face brighter on top than the truth) and mean
-    absolute error. Where a network's up/down goes wrong: with the input's light, or with the
-    target's."""
+    (relit minus truth; the balance is bottom minus top, so positive: the relit face brighter
+    at the bottom than the truth is, as a light from above that the relit face answers too
+    weakly leaves it) and mean absolute error. Where a network's up/down goes wrong: with the
+    input's light, or with the target's."""
     rows = [r for r in rows if len(r) > 4]
     if not rows:
         return {}
@@ -990,7 +991,8 @@ def report_body(res: dict) -> str:
     if by_elev:
         lines += ["", "Top/bottom balance by where the input's (A) and the target's (B) light "
                   f"lies (above, level within {ELEVATION_BAND:g} degrees, below): correlation "
-                  "with the truth's, mean error (relit minus truth, + brighter on top), pairs.",
+                  "with the truth's, mean error (relit minus truth; +: brighter at the bottom), "
+                  "pairs.",
                   "", "| | " + " | ".join(next(iter(by_elev.values()))) + " |",
                   "|---|" + "---|" * len(next(iter(by_elev.values())))]
         for name, c in by_elev.items():
