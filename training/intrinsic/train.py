@@ -147,8 +147,9 @@ class StepBatches(torch.utils.data.IterableDataset):
         self.ds, self.a = ds, a
 
     def __iter__(self):
-        torch.set_num_threads(1)
         info = torch.utils.data.get_worker_info()
+        if info:  # a worker process: one thread each (the run's --threads stay the network's)
+            torch.set_num_threads(1)
         k, n = (info.id, info.num_workers) if info else (0, 1)
         step = k
         while True:
@@ -159,10 +160,8 @@ class StepBatches(torch.utils.data.IterableDataset):
 def batches(ds, a):
     """The run's batches in step order: made inline, or by --workers processes ahead of use."""
     if not a.workers:
-        step = 0
-        while True:
-            yield step_batch(ds, a, step)
-            step += 1
+        yield from StepBatches(ds, a)
+        return
     loader = torch.utils.data.DataLoader(StepBatches(ds, a), batch_size=None,
                                          num_workers=a.workers, prefetch_factor=4,
                                          persistent_workers=True,
