@@ -175,3 +175,52 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
             assert r["top_bottom_gain_90"][0] <= r["top_bottom_gain_90"][1]
     assert got["photometric"]["top_bottom"] >= got["network"]["top_bottom"] - 0.02
     assert len({round(r["all"], 6) for r in got.values()}) == 5  # five different relightings
+
+
+def test_the_crop_balance_reads_a_face_lit_from_below_as_positive():
+    img = np.ones((40, 30))
+    img[20:] = 3.0  # the lower half three times as bright
+    mask = np.zeros_like(img, bool)
+    mask[5:35, 5:25] = True  # its middle row is the image's
+    assert yn.crop_balance(img, mask) == pytest.approx(0.5)
+    assert yn.crop_balance(img[::-1], mask[::-1]) == pytest.approx(-0.5)
+    assert yn.crop_balance(img, mask & False) == 0.0
+
+
+def test_response_stats_read_a_half_strength_answer_per_band():
+    """A relit balance that follows the truth's at half its strength reads slope 0.5 and
+    correlation 1 in every band; one that ignores the truth in one band reads slope 0 there."""
+    rng = np.random.default_rng(0)
+    truth = rng.normal(0.0, 0.2, 90)
+    elevation = np.repeat([40.0, 0.0, -40.0], 30)  # above, level, below
+    r = yn.response_stats(0.5 * truth + 0.01, truth, elevation)
+    assert set(r) == {"all", "above", "level", "below"}
+    for band in r.values():
+        assert band["slope"] == pytest.approx(0.5) and band["corr"] == pytest.approx(1.0)
+    assert r["above"]["lights"] == r["level"]["lights"] == r["below"]["lights"] == 30
+    assert r["all"]["bias"] == pytest.approx(0.01 - 0.5 * truth.mean())
+    deaf_above = np.where(elevation > 0, 0.1, truth)
+    r = yn.response_stats(deaf_above, truth, elevation)
+    assert r["above"]["slope"] == 0.0 and r["level"]["slope"] == pytest.approx(1.0)
+    assert r["above"]["corr"] == 0.0  # nothing to correlate with a constant
+
+
+def test_response_of_a_real_subject_to_the_target_and_the_input(shared_data):
+    """On one real subject: every band is measured for both normals and both sides, and the real
+    normals answer the target's light at least about as strongly as the network's while keeping
+    less of the input's."""
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    got = yn.response("models/relight-portrait.onnx", root=root, names=["yaleB01"])
+    assert set(got) == {"target", "input"}
+    for side in got.values():
+        assert set(side) == {"network", "photometric"}
+        for r in side.values():
+            assert r["all"]["lights"] > 40
+            assert sum(r[b]["lights"] for b in ("above", "level", "below")) == r["all"]["lights"]
+            assert all(np.isfinite(v) for band in r.values() for v in band.values())
+    target, kept = got["target"], got["input"]
+    assert target["network"]["all"]["slope"] > 0.2  # the relit face follows the light at all
+    assert target["photometric"]["all"]["slope"] > target["network"]["all"]["slope"] - 0.05
+    assert kept["photometric"]["all"]["slope"] < kept["network"]["all"]["slope"] + 0.05

@@ -1,7 +1,7 @@
 """Real-face normals: the intrinsic network's normals against photometric stereo on CroppedYale.
 
     .venv/bin/python -m training.eval.yale_normals --onnx models/relight-portrait.onnx [--onnx ...]
-        [--split tune|test] [--relight [--pairs N] [--low-sigma S]]
+        [--split tune|test] [--relight [--pairs N] [--low-sigma S]] [--response]
 
 A subject's single-light images give its Lambertian normals by least squares per pixel over the
 images in which that pixel is lit and unclipped (photometric stereo, yale.photometric_fit: the
@@ -19,7 +19,10 @@ the face's large-scale shape, which a frontal light (shading ~ n_z) leaves ambig
 addon.relight_image twice, with the network's normals and with photometric stereo's in their
 place (photometric_buffers): what better normals alone would buy; with ``--low-sigma S`` also
 with only the low band (a Gaussian of S crop pixels) of one under the other's detail, which
-tells the face's large-scale shape from its fine detail.
+tells the face's large-scale shape from its fine detail. ``--response`` isolates the answer to
+the target's light (response): each subject's frontal image relit in its face crop to each of
+its single lights in turn, with the network's normals and with photometric stereo's, its
+top/bottom balance against the real photo's under that light, per target elevation.
 """
 
 from __future__ import annotations
@@ -215,6 +218,109 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
                     for k in (*yale.KINDS, "all")} | corr[which] for which in variants}
 
 
+def crop_balance(img: np.ndarray, mask: np.ndarray) -> float:
+    """Top/bottom balance of an (h, w) crop over ``mask``: (bottom - top) / (bottom + top) of the
+    two halves' means, split at the middle of the mask's rows (yale.balance's, in the crop)."""
+    rows = np.nonzero(mask.any(1))[0]
+    if len(rows) == 0:
+        return 0.0
+    below = (np.arange(img.shape[0]) >= (rows.min() + rows.max()) / 2)[:, None]
+    top, bottom = img[mask & ~below], img[mask & below]
+    a = float(top.mean()) if top.size else 0.0
+    b = float(bottom.mean()) if bottom.size else 0.0
+    return (b - a) / (a + b) if a + b > 0 else 0.0
+
+
+def response_stats(pred: np.ndarray, truth: np.ndarray, elevation: np.ndarray,
+                   reference: np.ndarray | None = None) -> dict:
+    """Per band of ``elevation`` (all; above, level, below: yale.ELEVATION_BAND) the lights, the
+    Pearson correlation of ``pred`` balances with ``truth``'s, their slope (least squares of pred
+    on truth: 1 when the relit face answers the light as strongly as the real one, 0 when not at
+    all) and the mean error against ``reference`` (default: the truth)."""
+    pred, truth, e = (np.asarray(v, np.float64) for v in (pred, truth, elevation))
+    ref = truth if reference is None else np.asarray(reference, np.float64)
+    band = yale.ELEVATION_BAND
+    out = {}
+    for name, sel in (("all", np.ones(len(e), bool)), ("above", e > band),
+                      ("level", np.abs(e) <= band), ("below", e < -band)):
+        p, t = pred[sel], truth[sel]
+        dp, dt = (p - p.mean(), t - t.mean()) if len(t) else (p, t)
+        var_t, var_p = float((dt * dt).sum()), float((dp * dp).sum())
+        ok = len(t) > 2 and var_t > 1e-12 and var_p > 1e-12
+        out[name] = {"lights": int(sel.sum()),
+                     "corr": float((dp * dt).sum() / np.sqrt(var_t * var_p)) if ok else 0.0,
+                     "slope": float((dp * dt).sum() / var_t) if ok else 0.0,
+                     "bias": float((p - ref[sel]).mean()) if len(t) else 0.0}
+    return out
+
+
+def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
+    """How strongly the relit face answers the target light's elevation, and how much of the
+    input light's it keeps, each with the other held fixed. "target": each subject's frontal
+    image (the product's face crop and buffers, portrait.face_buffers) relit by
+    intrinsic.shade to each of its single lights within yale.FRONT_AZIMUTH, the relit crop's
+    top/bottom balance (crop_balance over the face skin where photometric stereo fitted)
+    against the real photo's under that light in the same crop, per target band
+    (response_stats). "input": each of those single-light photos relit to the frontal light,
+    its balance against the input's, per input band: the slope is the share of the input's
+    balance left in the relit face (0: none), the mean error against the real frontal photo's.
+    Each with the network's normals (its light transport too, as the product) and with
+    photometric stereo's in their place (no transport: it holds the network's own normals'
+    cosine), over ``names`` (default: the split's subjects). Fewer confounds than the pairs'
+    balance (one lighting held, up to 60 of the other a subject)."""
+    root = root or yale.default_root()
+    if names is None:
+        _, names = yale.select_subjects(yale.subject_names(root), False, split)
+    sess = api.session(onnx_path, 1)
+    size = sess.card.working_size
+    rows = {"network": [], "photometric": []}
+    kept = {"network": [], "photometric": []}
+    truth, elevation, inputs, input_elevation, front_truth = [], [], [], [], []
+    for name in names:
+        s = yale.load_subject(root, name)
+        h, w = s.images.shape[1:]
+        real, ok = photometric_normals(s.images, s.dirs)
+        x = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, axis=0)
+        box = portrait.find_box(sess, x)
+        if box is None:
+            continue
+        crop, _, net = portrait.face_buffers(sess, x, box, size)
+        field = np.concatenate([np.where(ok, real, 0.0), ok[None]], 0).reshape(4, h, w)
+        t = framing.crop(np.ascontiguousarray(field.transpose(1, 2, 0), np.float32), box,
+                         size).transpose(2, 0, 1)
+        fitted = t[3] > 0.99
+        photo = intrinsic.Buffers(intrinsic.unit_normals(np.where(fitted, t[:3], net.normal)),
+                                  net.height, net.albedo, net.matte, net.face)
+        mask = fitted & (net.face > 0.5) & (net.matte > 0.5)
+        if mask.sum() < 64:
+            continue
+        front = int(np.argmin(np.abs(s.angles).sum(1)))
+        front_light = yale.light_vector(s.dirs[front:front + 1], np.ones(1))
+        for k in np.flatnonzero(np.abs(s.angles[:, 0]) <= yale.FRONT_AZIMUTH):
+            light = yale.light_vector(s.dirs[k:k + 1], np.ones(1))
+            truth.append(crop_balance(framing.crop(s.images[k], box, size), mask))
+            elevation.append(float(s.angles[k, 1]))
+            xk = np.repeat(s.images[k][None], 3, axis=0)
+            crop_k, _, net_k = portrait.face_buffers(sess, xk, box, size)
+            inputs.append(truth[-1])
+            input_elevation.append(elevation[-1])
+            front_truth.append(crop_balance(crop[0], mask))
+            photo_k = intrinsic.Buffers(photo.normal, net_k.height, net_k.albedo, net_k.matte,
+                                        net_k.face)
+            for which, bufs, bufs_k in (("network", net, net_k), ("photometric", photo, photo_k)):
+                sh = intrinsic.shade(crop, bufs, light)
+                rows[which].append(crop_balance(
+                    intrinsic.luminance(sh.ratio * crop + sh.highlight), mask))
+                sh = intrinsic.shade(crop_k, bufs_k, front_light)
+                kept[which].append(crop_balance(
+                    intrinsic.luminance(sh.ratio * crop_k + sh.highlight), mask))
+    out = {"target": {w: response_stats(v, truth, elevation) for w, v in rows.items()},
+           "input": {}}
+    for which, v in kept.items():  # the truth is the subject's frontal photo's balance
+        out["input"][which] = response_stats(v, inputs, input_elevation, front_truth)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--onnx", action="append", required=True, help="intrinsic model (repeatable)")
@@ -225,7 +331,19 @@ def main(argv=None):
     ap.add_argument("--pairs", type=int, default=PAIRS, help="with --relight, pairs per subject")
     ap.add_argument("--low-sigma", type=float, help="with --relight, also swap only the low "
                     "band (a Gaussian of this many crop pixels) one way and the other")
+    ap.add_argument("--response", action="store_true",
+                    help="also the relit face's top/bottom response to each single light, the "
+                         "input held fixed, per target elevation (response)")
     a = ap.parse_args(argv)
+    if a.response:
+        for p in a.onnx:
+            got = response(p, a.split)
+            for side, what in (("target", "the truth's"), ("input", "the input's")):
+                for which, r in got[side].items():
+                    print(f"{p}, {which} normals, top/bottom against {what} per {side} "
+                          "elevation (lights: correlation, slope, mean error): " + "; ".join(
+                              f"{band} {v['lights']}: {v['corr']:.2f}, {v['slope']:.2f}, "
+                              f"{v['bias']:+.3f}" for band, v in r.items()))
     if a.relight:
         for p in a.onnx:
             for which, r in relight(p, a.split, n_pairs=a.pairs, low_sigma=a.low_sigma).items():
