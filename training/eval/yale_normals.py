@@ -19,10 +19,12 @@ the face's large-scale shape, which a frontal light (shading ~ n_z) leaves ambig
 addon.relight_image twice, with the network's normals and with photometric stereo's in their
 place (photometric_buffers): what better normals alone would buy; with ``--low-sigma S`` also
 with only the low band (a Gaussian of S crop pixels) of one under the other's detail, which
-tells the face's large-scale shape from its fine detail. ``--response`` isolates the answer to
-the target's light (response): each subject's frontal image relit in its face crop to each of
-its single lights in turn, with the network's normals and with photometric stereo's, its
-top/bottom balance against the real photo's under that light, per target elevation.
+tells the face's large-scale shape from its fine detail. ``--response`` (response) holds one
+lighting and sweeps the other over each subject's single lights, in the face crop: the frontal
+photo relit to each light (how strongly the relit face answers the target's elevation) and each
+photo relit to the frontal light (how much of the input's light it keeps), the relit top/bottom
+balance against the real photo's, per elevation band, with the network's normals and with
+photometric stereo's.
 """
 
 from __future__ import annotations
@@ -280,7 +282,8 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
         s = yale.load_subject(root, name)
         h, w = s.images.shape[1:]
         real, ok = photometric_normals(s.images, s.dirs)
-        x = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, axis=0)
+        front = int(np.argmin(np.abs(s.angles).sum(1)))
+        x = np.repeat(s.images[front][None], 3, axis=0)
         box = portrait.find_box(sess, x)
         if box is None:
             continue
@@ -294,7 +297,6 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
         mask = fitted & (net.face > 0.5) & (net.matte > 0.5)
         if mask.sum() < 64:
             continue
-        front = int(np.argmin(np.abs(s.angles).sum(1)))
         front_light = yale.light_vector(s.dirs[front:front + 1], np.ones(1))
         for k in np.flatnonzero(np.abs(s.angles[:, 0]) <= yale.FRONT_AZIMUTH):
             light = yale.light_vector(s.dirs[k:k + 1], np.ones(1))
@@ -332,8 +334,9 @@ def main(argv=None):
     ap.add_argument("--low-sigma", type=float, help="with --relight, also swap only the low "
                     "band (a Gaussian of this many crop pixels) one way and the other")
     ap.add_argument("--response", action="store_true",
-                    help="also the relit face's top/bottom response to each single light, the "
-                         "input held fixed, per target elevation (response)")
+                    help="also the relit face's top/bottom answer to each single light (input "
+                         "held frontal) and what it keeps of each input's (target held "
+                         "frontal), per elevation band (response)")
     a = ap.parse_args(argv)
     if a.response:
         for p in a.onnx:
