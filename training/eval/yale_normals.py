@@ -118,6 +118,18 @@ def _low(n: np.ndarray, sigma: float) -> np.ndarray:
     return np.stack([intrinsic.gaussian_blur(np.ascontiguousarray(c), sigma) for c in n])
 
 
+def crop_normals(normals: np.ndarray, fitted: np.ndarray, hw: tuple[int, int], box,
+                 size: int) -> tuple[np.ndarray, np.ndarray]:
+    """((3, size, size) normals, (size, size) where fitted) of an (h, w) image's normals
+    (3, h*w) and their ``fitted`` mask (h*w,), cropped to ``box`` at ``size`` as the product
+    crops the image (framing.crop)."""
+    h, w = hw
+    field = np.concatenate([normals, fitted[None].astype(normals.dtype)], 0).reshape(4, h, w)
+    t = framing.crop(np.ascontiguousarray(field.transpose(1, 2, 0), np.float32), box,
+                     size).transpose(2, 0, 1)
+    return t[:3], t[3] > 0.99
+
+
 @contextlib.contextmanager
 def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: float | None = None,
                         low: str = "photometric"):
@@ -143,16 +155,13 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
         size = state.pop("size", None)  # the buffers of the crop just taken, no other image's
         if size is None or x.shape[1:] != (size, size):
             return out
-        h, w = state["hw"]
-        field = np.concatenate([normals, fitted[None].astype(normals.dtype)], 0).reshape(4, h, w)
-        t = framing.crop(np.ascontiguousarray(field.transpose(1, 2, 0), np.float32), state["box"],
-                         size).transpose(2, 0, 1)
-        real = np.where(t[3] > 0.99, t[:3], out.normal)
+        given, inside = crop_normals(normals, fitted, state["hw"], state["box"], size)
+        real = np.where(inside, given, out.normal)
         if low_sigma:
             base, detail = (real, out.normal) if low == "photometric" else (out.normal, real)
             sigma = low_sigma * size / session.card.working_size
             real = _low(base, sigma) + detail - _low(detail, sigma)
-        n = intrinsic.unit_normals(np.where(t[3] > 0.99, real, out.normal))
+        n = intrinsic.unit_normals(np.where(inside, real, out.normal))
         return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
 
     portrait.crop_planar, portrait.buffers = crop, swap
@@ -277,10 +286,9 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
     size = sess.card.working_size
     rows = {"network": [], "photometric": []}
     kept = {"network": [], "photometric": []}
-    truth, elevation, inputs, input_elevation, front_truth = [], [], [], [], []
+    truth, elevation, front_truth = [], [], []
     for name in names:
         s = yale.load_subject(root, name)
-        h, w = s.images.shape[1:]
         real, ok = photometric_normals(s.images, s.dirs)
         front = int(np.argmin(np.abs(s.angles).sum(1)))
         x = np.repeat(s.images[front][None], 3, axis=0)
@@ -288,25 +296,21 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
         if box is None:
             continue
         crop, _, net = portrait.face_buffers(sess, x, box, size)
-        field = np.concatenate([np.where(ok, real, 0.0), ok[None]], 0).reshape(4, h, w)
-        t = framing.crop(np.ascontiguousarray(field.transpose(1, 2, 0), np.float32), box,
-                         size).transpose(2, 0, 1)
-        fitted = t[3] > 0.99
-        photo = intrinsic.Buffers(intrinsic.unit_normals(np.where(fitted, t[:3], net.normal)),
+        given, fitted = crop_normals(np.where(ok, real, 0.0), ok, s.images.shape[1:], box, size)
+        photo = intrinsic.Buffers(intrinsic.unit_normals(np.where(fitted, given, net.normal)),
                                   net.height, net.albedo, net.matte, net.face)
         mask = fitted & (net.face > 0.5) & (net.matte > 0.5)
         if mask.sum() < 64:
             continue
         front_light = yale.light_vector(s.dirs[front:front + 1], np.ones(1))
+        front_balance = crop_balance(crop[0], mask)
         for k in np.flatnonzero(np.abs(s.angles[:, 0]) <= yale.FRONT_AZIMUTH):
             light = yale.light_vector(s.dirs[k:k + 1], np.ones(1))
             truth.append(crop_balance(framing.crop(s.images[k], box, size), mask))
             elevation.append(float(s.angles[k, 1]))
             xk = np.repeat(s.images[k][None], 3, axis=0)
             crop_k, _, net_k = portrait.face_buffers(sess, xk, box, size)
-            inputs.append(truth[-1])
-            input_elevation.append(elevation[-1])
-            front_truth.append(crop_balance(crop[0], mask))
+            front_truth.append(front_balance)
             photo_k = intrinsic.Buffers(photo.normal, net_k.height, net_k.albedo, net_k.matte,
                                         net_k.face)
             for which, bufs, bufs_k in (("network", net, net_k), ("photometric", photo, photo_k)):
@@ -318,8 +322,9 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
                     intrinsic.luminance(sh.ratio * crop_k + sh.highlight), mask))
     out = {"target": {w: response_stats(v, truth, elevation) for w, v in rows.items()},
            "input": {}}
-    for which, v in kept.items():  # the truth is the subject's frontal photo's balance
-        out["input"][which] = response_stats(v, inputs, input_elevation, front_truth)
+    for which, v in kept.items():  # against the input photos' balance (the target sweep's
+        # truths, the same photos); the mean error against the subject's frontal photo's
+        out["input"][which] = response_stats(v, truth, elevation, front_truth)
     return out
 
 
