@@ -213,8 +213,8 @@ def test_response_of_a_real_subject_to_the_target_and_the_input(shared_data):
     if not (root / "yaleB01").is_dir():
         pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
     got = yn.response("models/relight-portrait.onnx", root=root, names=["yaleB01"])
-    assert set(got) == {"target", "input"}
-    for side in got.values():
+    assert set(got) == {"target", "input", "subjects"}
+    for side in (got["target"], got["input"]):
         assert set(side) == {"network", "photometric"}
         for r in side.values():
             assert r["all"]["lights"] > 40
@@ -224,3 +224,16 @@ def test_response_of_a_real_subject_to_the_target_and_the_input(shared_data):
     assert target["network"]["all"]["slope"] > 0.2  # the relit face follows the light at all
     assert target["photometric"]["all"]["slope"] > target["network"]["all"]["slope"] - 0.05
     assert kept["photometric"]["all"]["slope"] < kept["network"]["all"]["slope"] + 0.05
+    # one subject: its own figures are the pooled ones
+    for side in ("target", "input"):
+        for which in ("network", "photometric"):
+            own, pooled = got["subjects"][side][which]["yaleB01"], got[side][which]["all"]
+            assert own == pytest.approx(pooled, rel=1e-9, abs=1e-12)
+
+
+def test_subject_spread_names_the_subjects_at_the_extremes():
+    per = {"a": {"slope": 0.6}, "b": {"slope": 0.1}, "c": {"slope": 0.9}, "d": {"slope": 0.5}}
+    sp = yn.subject_spread(per)
+    assert sp["median"] == pytest.approx(0.55)
+    assert sp["lowest"] == ("b", 0.1) and sp["highest"] == ("c", 0.9)
+    assert yn.subject_spread({}) == {}

@@ -278,7 +278,8 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
     Each with the network's normals (its light transport too, as the product) and with
     photometric stereo's in their place (no transport: it holds the network's own normals'
     cosine), over ``names`` (default: the split's subjects). Fewer confounds than the pairs'
-    balance (one lighting held, up to 60 of the other a subject)."""
+    balance (one lighting held, up to 60 of the other a subject). ``subjects``: the same
+    figures over all of each subject's lights, per side and normals (subject_spread)."""
     root = root or yale.default_root()
     if names is None:
         _, names = yale.select_subjects(yale.subject_names(root), False, split)
@@ -286,7 +287,7 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
     size = sess.card.working_size
     rows = {"network": [], "photometric": []}
     kept = {"network": [], "photometric": []}
-    truth, elevation, front_truth = [], [], []
+    truth, elevation, front_truth, subject = [], [], [], []
     for name in names:
         s = yale.load_subject(root, name)
         real, ok = photometric_normals(s.images, s.dirs)
@@ -308,6 +309,7 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
             light = yale.light_vector(s.dirs[k:k + 1], np.ones(1))
             truth.append(crop_balance(framing.crop(s.images[k], box, size), mask))
             elevation.append(float(s.angles[k, 1]))
+            subject.append(name)
             xk = np.repeat(s.images[k][None], 3, axis=0)
             crop_k, _, net_k = portrait.face_buffers(sess, xk, box, size)
             front_truth.append(front_balance)
@@ -321,11 +323,32 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
                 kept[which].append(crop_balance(
                     intrinsic.luminance(sh.ratio * crop_k + sh.highlight), mask))
     out = {"target": {w: response_stats(v, truth, elevation) for w, v in rows.items()},
-           "input": {}}
+           "input": {}, "subjects": {"target": {}, "input": {}}}
     for which, v in kept.items():  # against the input photos' balance (the target sweep's
         # truths, the same photos); the mean error against the subject's frontal photo's
         out["input"][which] = response_stats(v, truth, elevation, front_truth)
+    # Each subject's own figures over all its lights: a model that answers well on most faces
+    # and not at all on one shows it here, where the pooled figures average it away.
+    subject = np.asarray(subject)
+    for side, got, ref in (("target", rows, truth), ("input", kept, front_truth)):
+        for which, v in got.items():
+            v, t, e, r = (np.asarray(a, np.float64) for a in (v, truth, elevation, ref))
+            out["subjects"][side][which] = {
+                n: response_stats(v[subject == n], t[subject == n], e[subject == n],
+                                  r[subject == n])["all"]
+                for n in dict.fromkeys(subject.tolist())}
     return out
+
+
+def subject_spread(per_subject: dict) -> dict:
+    """The median, lowest and highest of the subjects' slopes (response's ``subjects``, one side
+    and normals), with the subjects that give the extremes."""
+    names = sorted(per_subject, key=lambda n: per_subject[n]["slope"])
+    if not names:
+        return {}
+    slopes = [per_subject[n]["slope"] for n in names]
+    return {"median": float(np.median(slopes)), "lowest": (names[0], slopes[0]),
+            "highest": (names[-1], slopes[-1])}
 
 
 def main(argv=None):
@@ -352,6 +375,11 @@ def main(argv=None):
                           "elevation (lights: correlation, slope, mean error): " + "; ".join(
                               f"{band} {v['lights']}: {v['corr']:.2f}, {v['slope']:.2f}, "
                               f"{v['bias']:+.3f}" for band, v in r.items()))
+                    sp = subject_spread(got["subjects"][side][which])
+                    if sp:
+                        print(f"  per subject, slope: median {sp['median']:.2f}, lowest "
+                              f"{sp['lowest'][1]:.2f} ({sp['lowest'][0]}), highest "
+                              f"{sp['highest'][1]:.2f} ({sp['highest'][0]})")
     if a.relight:
         for p in a.onnx:
             for which, r in relight(p, a.split, n_pairs=a.pairs, low_sigma=a.low_sigma).items():
