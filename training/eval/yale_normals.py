@@ -330,13 +330,15 @@ def response(onnx_path, split: str = "tune", root=None, names=None) -> dict:
     # Each subject's own figures over all its lights: a model that answers well on most faces
     # and not at all on one shows it here, where the pooled figures average it away.
     subject = np.asarray(subject)
-    for side, got, ref in (("target", rows, truth), ("input", kept, front_truth)):
+    own = {n: subject == n for n in dict.fromkeys(subject.tolist())}
+    t, e = np.asarray(truth, np.float64), np.asarray(elevation, np.float64)
+    for side, got, ref in (("target", rows, t), ("input", kept, front_truth)):
+        ref = np.asarray(ref, np.float64)
         for which, v in got.items():
-            v, t, e, r = (np.asarray(a, np.float64) for a in (v, truth, elevation, ref))
+            v = np.asarray(v, np.float64)
             out["subjects"][side][which] = {
-                n: response_stats(v[subject == n], t[subject == n], e[subject == n],
-                                  r[subject == n])["all"]
-                for n in dict.fromkeys(subject.tolist())}
+                n: response_stats(v[sel], t[sel], e[sel], ref[sel])["all"]
+                for n, sel in own.items()}
     return out
 
 
