@@ -237,3 +237,30 @@ def test_subject_spread_names_the_subjects_at_the_extremes():
     assert sp["median"] == pytest.approx(0.55)
     assert sp["lowest"] == ("b", 0.1) and sp["highest"] == ("c", 0.9)
     assert yn.subject_spread({}) == {}
+
+
+def test_shading_left_reads_the_share_of_the_light_an_albedo_keeps():
+    """An albedo that is the real one reads 0, one that is the photo itself (all the light
+    baked in) 1, one with the shading's square root 0.5, whatever its gain; an evenly lit photo
+    says nothing (None)."""
+    rng = np.random.default_rng(1)
+    real = rng.uniform(0.3, 0.7, (S, S))
+    shading = np.exp(rng.normal(0.0, 0.6, (S, S)))
+    photo = real * shading
+    mask = np.ones((S, S), bool)
+    assert abs(yn.shading_left(photo, real, 2.0 * real, mask)) < 1e-9
+    assert yn.shading_left(photo, real, photo, mask) == pytest.approx(1.0)
+    assert yn.shading_left(photo, real, 0.3 * real * np.sqrt(shading), mask) == pytest.approx(0.5)
+    assert yn.shading_left(real * 0.8, real, real, mask) is None
+
+
+def test_the_shipped_albedo_keeps_little_of_a_real_photo_s_light(shared_data):
+    """On one real subject, over its single-light photos: the shipped Portrait's albedo is far
+    closer to photometric stereo's than the photo is (which keeps all of its light: 1)."""
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    got = yn.albedo_light("models/relight-portrait.onnx", root=root, names=["yaleB01"])
+    assert got["photos"] > 30 and set(got["subjects"]) == {"yaleB01"}
+    assert got["subjects"]["yaleB01"]["photos"] == got["photos"]
+    assert -0.1 < got["slope"] < 0.25

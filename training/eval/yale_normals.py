@@ -1,7 +1,7 @@
 """Real-face normals: the intrinsic network's normals against photometric stereo on CroppedYale.
 
     .venv/bin/python -m training.eval.yale_normals --onnx models/relight-portrait.onnx [--onnx ...]
-        [--split tune|test] [--relight [--pairs N] [--low-sigma S]] [--response]
+        [--split tune|test] [--relight [--pairs N] [--low-sigma S]] [--response] [--albedo]
 
 A subject's single-light images give its Lambertian normals by least squares per pixel over the
 images in which that pixel is lit and unclipped (photometric stereo, yale.photometric_fit: the
@@ -24,7 +24,8 @@ lighting and sweeps the other over each subject's single lights, in the face cro
 photo relit to each light (how strongly the relit face answers the target's elevation) and each
 photo relit to the frontal light (how much of the input's light it keeps), the relit top/bottom
 balance against the real photo's, per elevation band, with the network's normals and with
-photometric stereo's.
+photometric stereo's. ``--albedo`` (albedo_light) asks how much of each single-light photo's
+light the network leaves in its albedo, against photometric stereo's albedo (0: none, 1: all).
 """
 
 from __future__ import annotations
@@ -353,6 +354,67 @@ def subject_spread(per_subject: dict) -> dict:
             "highest": (names[-1], slopes[-1])}
 
 
+ALBEDO_MIN_SPREAD = 0.1  # a photo whose shading over the face varies less (log std) says nothing
+
+
+def shading_left(photo: np.ndarray, real_albedo: np.ndarray, albedo: np.ndarray,
+                 mask: np.ndarray) -> float | None:
+    """The share of a photo's shading that an albedo keeps: the slope of log(``albedo`` /
+    ``real_albedo``) on log(``photo`` / ``real_albedo``) (the photo's shading) over ``mask``,
+    each about its median (the albedo's gain is free). 0: the albedo is free of the photo's
+    light; 1: all of it is there. None where the mask is small or the shading even."""
+    m = mask & (real_albedo > 0) & (albedo > 0) & (photo > 0)
+    if m.sum() < 64:
+        return None
+    x = np.log(photo[m] / real_albedo[m])
+    y = np.log(albedo[m] / real_albedo[m])
+    x, y = x - np.median(x), y - np.median(y)
+    if float(x.std()) < ALBEDO_MIN_SPREAD:
+        return None
+    return float((x * y).sum() / (x * x).sum())
+
+
+def albedo_light(onnx_path, split: str = "tune", root=None, names=None) -> dict:
+    """How much of each single-light photo's light the network leaves in its albedo, on real
+    faces: per photo, shading_left of the network's albedo (luminance, the product's face crop
+    and buffers, the box found on the subject's frontal photo) against photometric stereo's
+    (the length of yale.photometric_fit's albedo-times-normal) over the face skin where that
+    fitted and the photo is lit and unclipped (codes within 15 to 250, as the fit takes them).
+    ``photos``, ``slope``: the median over photos; ``subjects``: each subject's median
+    (subject_spread)."""
+    root = root or yale.default_root()
+    if names is None:
+        _, names = yale.select_subjects(yale.subject_names(root), False, split)
+    sess = api.session(onnx_path, 1)
+    size = sess.card.working_size
+    slopes, subjects = [], {}
+    for name in names:
+        s = yale.load_subject(root, name)
+        b, ok = yale.photometric_fit(s.images, s.dirs)
+        rho = np.linalg.norm(b, axis=0)
+        front = int(np.argmin(np.abs(s.angles).sum(1)))
+        box = portrait.find_box(sess, np.repeat(s.images[front][None], 3, axis=0))
+        if box is None:
+            continue
+        real, fitted = crop_normals(np.repeat(rho[None], 3, axis=0), ok, s.images.shape[1:],
+                                    box, size)
+        own = []
+        for k in range(len(s.images)):
+            photo = framing.crop(s.images[k], box, size)
+            codes = photo * 255.0
+            _, _, net = portrait.face_buffers(
+                sess, np.repeat(s.images[k][None], 3, axis=0), box, size)
+            mask = fitted & (codes > 15) & (codes < 250) & (net.face > 0.5) & (net.matte > 0.5)
+            got = shading_left(photo, real[0], intrinsic.luminance(net.albedo), mask)
+            if got is not None:
+                own.append(got)
+        if own:
+            slopes += own
+            subjects[name] = {"slope": float(np.median(own)), "photos": len(own)}
+    return {"photos": len(slopes), "slope": float(np.median(slopes)) if slopes else 0.0,
+            "subjects": subjects}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--onnx", action="append", required=True, help="intrinsic model (repeatable)")
@@ -367,7 +429,19 @@ def main(argv=None):
                     help="also the relit face's top/bottom answer to each single light (input "
                          "held frontal) and what it keeps of each input's (target held "
                          "frontal), per elevation band (response)")
+    ap.add_argument("--albedo", action="store_true",
+                    help="also how much of each single-light photo's light the network leaves "
+                         "in its albedo, against photometric stereo's albedo (albedo_light)")
     a = ap.parse_args(argv)
+    if a.albedo:
+        for p in a.onnx:
+            got = albedo_light(p, a.split)
+            sp = subject_spread(got["subjects"])
+            print(f"{p}: the albedo keeps {got['slope']:.2f} of the photo's shading (median over "
+                  f"{got['photos']} photos; 0: none, 1: all)" + (
+                      f"; per subject median {sp['median']:.2f}, lowest {sp['lowest'][1]:.2f} "
+                      f"({sp['lowest'][0]}), highest {sp['highest'][1]:.2f} "
+                      f"({sp['highest'][0]})" if sp else ""))
     if a.response:
         for p in a.onnx:
             got = response(p, a.split)
