@@ -440,17 +440,24 @@ def baselines(gray_a: np.ndarray, light_a: np.ndarray, light_b: np.ndarray) -> d
 
 
 FIT_MIN_LIT = 4  # a pixel's photometric fit needs this many images in which it is lit
+FIT_CODES = (15, 250)  # a pixel is lit and unclipped where its code lies strictly between these
+
+
+def lit_unclipped(images: np.ndarray) -> np.ndarray:
+    """Bool of the shape of ``images`` (linear, 1 at the top code): lit and unclipped pixels,
+    their codes within FIT_CODES."""
+    codes = np.asarray(images) * 255.0
+    return (codes > FIT_CODES[0]) & (codes < FIT_CODES[1])
 
 
 def photometric_fit(images: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """((3, h*w) albedo times unit normal, (h*w,) bool where fitted) from (K, h, w) linear images
     under distant lights ``dirs`` (K, 3): per pixel, least squares over the images in which that
-    pixel is lit and unclipped (codes within (15, 250)), so that the sides of the face and the
-    eye sockets, which some lights leave dark, are fitted from the lights that reach them."""
+    pixel is lit and unclipped (lit_unclipped), so that the sides of the face and the eye
+    sockets, which some lights leave dark, are fitted from the lights that reach them."""
     k = len(dirs)
     y = images.reshape(k, -1).astype(np.float64)
-    codes = y * 255.0
-    w = ((codes > 15) & (codes < 250)).astype(np.float64)
+    w = lit_unclipped(y).astype(np.float64)
     d = np.asarray(dirs, np.float64)
     gram = np.einsum("kp,ki,kj->pij", w, d, d) + 1e-9 * np.eye(3)
     rhs = np.einsum("kp,ki->pi", w * y, d)
@@ -843,7 +850,7 @@ def gamma_check(subject: Subject, gammas=(0.8, 1.0, 1.2, 1.8, 2.2)) -> dict:
     az, el = np.abs(subject.angles).T
     sel = np.flatnonzero((az <= 50) & (el <= 40))
     codes = subject.images[sel].reshape(len(sel), -1) * 255.0
-    ok = np.all((codes > 15) & (codes < 250), axis=0)
+    ok = np.all(lit_unclipped(subject.images[sel].reshape(len(sel), -1)), axis=0)
     lights, x = subject.dirs[sel], codes[:, ok]
     out = {}
     for g in gammas:

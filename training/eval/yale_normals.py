@@ -379,7 +379,7 @@ def albedo_light(onnx_path, split: str = "tune", root=None, names=None) -> dict:
     faces: per photo, shading_left of the network's albedo (luminance, the product's face crop
     and buffers, the box found on the subject's frontal photo) against photometric stereo's
     (the length of yale.photometric_fit's albedo-times-normal) over the face skin where that
-    fitted and the photo is lit and unclipped (codes within 15 to 250, as the fit takes them).
+    fitted and the photo is lit and unclipped (yale.lit_unclipped, as the fit takes them).
     ``photos``, ``slope``: the median over photos; ``subjects``: each subject's median
     (subject_spread)."""
     root = root or yale.default_root()
@@ -401,10 +401,10 @@ def albedo_light(onnx_path, split: str = "tune", root=None, names=None) -> dict:
         own = []
         for k in range(len(s.images)):
             photo = framing.crop(s.images[k], box, size)
-            codes = photo * 255.0
             _, _, net = portrait.face_buffers(
                 sess, np.repeat(s.images[k][None], 3, axis=0), box, size)
-            mask = fitted & (codes > 15) & (codes < 250) & (net.face > 0.5) & (net.matte > 0.5)
+            mask = (fitted & yale.lit_unclipped(photo) & (net.face > 0.5)
+                    & (net.matte > 0.5))
             got = shading_left(photo, real[0], intrinsic.luminance(net.albedo), mask)
             if got is not None:
                 own.append(got)
