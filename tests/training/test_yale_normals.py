@@ -153,15 +153,18 @@ def test_a_band_swap_keeps_one_shape_s_low_band_and_the_other_s_detail(shared_da
 
 
 def test_relight_with_swapped_bands_reports_every_variant(shared_data):
-    """--relight --low-sigma: the network's normals, the real ones, either's low band under the
-    other's detail and a template of the other subjects' real normals, each with its figures;
-    the real normals put the light where the truth has it at least as well as the network's."""
+    """--relight --low-sigma --no-shadows: the network's normals, the real ones, either's low band
+    under the other's detail, a template of the other subjects' real normals, and the network's
+    and the real normals without cast shadows, each with its figures; the real normals put the
+    light where the truth has it at least as well as the network's."""
     root = shared_data / "yale" / "CroppedYale"
     if not (root / "yaleB01").is_dir():
         pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
-    got = yn.relight("models/relight-portrait.onnx", "tune", root, n_pairs=3, low_sigma=4.0)
+    got = yn.relight("models/relight-portrait.onnx", "tune", root, n_pairs=3, low_sigma=4.0,
+                     shadowless=True)
     assert set(got) == {"network", "photometric", "photometric low band", "network low band",
-                        "template low band"}
+                        "template low band", "network" + yn.NO_SHADOWS,
+                        "photometric" + yn.NO_SHADOWS}
     for which, r in got.items():
         assert all(np.isfinite(r[k]) for k in ("all", "left_right", "top_bottom"))
         assert all(np.isfinite(r["top_bottom_from"][k]) for k in ("truth", "input"))
@@ -174,7 +177,25 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
             assert r["top_bottom_gain"] == pytest.approx(want, abs=1e-9)
             assert r["top_bottom_gain_90"][0] <= r["top_bottom_gain_90"][1]
     assert got["photometric"]["top_bottom"] >= got["network"]["top_bottom"] - 0.02
-    assert len({round(r["all"], 6) for r in got.values()}) == 5  # five different relightings
+    assert len({round(r["all"], 6) for r in got.values()}) == 7  # seven different relightings
+
+
+def test_without_cast_shadows_plans_none_and_then_steps_aside():
+    """Inside the context a lamp's plan keeps its component and highlight but no cast shadow;
+    after it, the product plans shadows again."""
+    from addon import intrinsic, lightvec
+    d = lightvec.directions()
+    lamp = np.zeros((16, 16, 3), np.float32)
+    lamp[np.unravel_index(np.argmax(d @ np.array([0.6, 0.5, 0.6])), d.shape[:2])] = 50.0
+    lamp += 0.01
+    before = intrinsic.plan(lamp)
+    assert before.shadows and before.specular and before.components
+    with yn.without_cast_shadows():
+        inside = intrinsic.plan(lamp)
+        assert not inside.shadows and inside.specular
+        assert len(inside.components) == len(before.components)
+    after = intrinsic.plan(lamp)
+    assert after.shadows and len(after.components) == len(before.components)
 
 
 def test_the_crop_balance_reads_a_face_lit_from_below_as_positive():
