@@ -22,13 +22,13 @@ place (photometric_buffers): what better normals alone would buy; with ``--low-s
 with only the low band (a Gaussian of S crop pixels) of one under the other's detail, which
 tells the face's large-scale shape from its fine detail; with ``--no-shadows`` also both without
 cast shadows (without_cast_shadows): the shadows march over the network's height, which real
-normals do not match. ``--response`` (response) holds one
-lighting and sweeps the other over each subject's single lights, in the face crop: the frontal
-photo relit to each light (how strongly the relit face answers the target's elevation) and each
-photo relit to the frontal light (how much of the input's light it keeps), the relit top/bottom
-balance against the real photo's, per elevation band, with the network's normals and with
-photometric stereo's. ``--albedo`` (albedo_light) asks how much of each single-light photo's
-light the network leaves in its albedo, against photometric stereo's albedo (0: none, 1: all).
+normals do not match. ``--response`` (response) holds one lighting and sweeps the other over
+each subject's single lights, in the face crop: the frontal photo relit to each light (how
+strongly the relit face answers the target's elevation) and each photo relit to the frontal
+light (how much of the input's light it keeps), the relit top/bottom balance against the real
+photo's, per elevation band, with the network's normals and with photometric stereo's.
+``--albedo`` (albedo_light) asks how much of each single-light photo's light the network leaves
+in its albedo, against photometric stereo's albedo (0: none, 1: all).
 """
 
 from __future__ import annotations
@@ -209,7 +209,7 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
     0.750 with 36 (0.869 by rank): one of the 360 pairs, a light from straight above, is far
     off, its cast shadows marched over the network's height, which the real normals do not
     match. Without cast shadows the real normals read 0.896 (0.87-0.92) and the network's 0.800
-    (0.807 with them): normals alone would clear 0.85."""
+    (0.807 with shadows): normals alone would clear 0.85."""
     root = root or yale.default_root()
     _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
     rel = {"model": yale.PipelineRelighter(onnx_path, 1)}
@@ -498,8 +498,8 @@ def main(argv=None):
                 gain = "" if "top_bottom_gain" not in r else (
                     f"; over the network's {r['top_bottom_gain']:+.3f} ("
                     f"{r['top_bottom_gain_90'][0]:+.3f} to {r['top_bottom_gain_90'][1]:+.3f})")
-                name = which.removesuffix(NO_SHADOWS) + " normals" + which[
-                    len(which.removesuffix(NO_SHADOWS)):]
+                normals = which.removesuffix(NO_SHADOWS)
+                name = f"{normals} normals{which[len(normals):]}"
                 print(f"{p}, {name}: scale-invariant PSNR {r['all']:.2f} dB ("
                       + ", ".join(f"{k} {r[k]:.2f}" for k in yale.KINDS)
                       + f"); balance {r['left_right']:.3f} / {tb:.3f} ({tb90[0]:.2f}-"
