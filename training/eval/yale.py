@@ -576,13 +576,18 @@ def balance(img: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     left) of the two halves' means (and bottom - top): where the light comes from, independent
     of the image's gain."""
     h, w = img.shape
-    out = []
-    for first, second in ((mask & (np.arange(w)[None, :] < w / 2), mask & (np.arange(w)[None, :] >= w / 2)),
-                          (mask & (np.arange(h)[:, None] < h / 2), mask & (np.arange(h)[:, None] >= h / 2))):
-        a = float(img[first].mean()) if first.any() else 0.0
-        b = float(img[second].mean()) if second.any() else 0.0
-        out.append((b - a) / (a + b) if a + b > 0 else 0.0)
-    return out[0], out[1]
+    right = np.arange(w)[None, :] >= w / 2
+    below = np.arange(h)[:, None] >= h / 2
+    return (half_balance(img, mask & ~right, mask & right),
+            half_balance(img, mask & ~below, mask & below))
+
+
+def half_balance(img: np.ndarray, first: np.ndarray, second: np.ndarray) -> float:
+    """(second - first) / (second + first) of ``img``'s means over two masks (a side with no
+    pixels counts as 0; 0 when both are 0): balance's, for any split."""
+    a = float(img[first].mean()) if first.any() else 0.0
+    b = float(img[second].mean()) if second.any() else 0.0
+    return (b - a) / (a + b) if a + b > 0 else 0.0
 
 
 BOOTSTRAP = 1000  # resamplings of the subjects for the balance correlations' intervals
@@ -672,6 +677,14 @@ def balance_correlation(rows: list[tuple], seed: int = 0, reference: str | None 
 ELEVATION_BAND = 15.0  # degrees: a lighting's centre above, within or below this of level
 
 
+def elevation_bands(elevation: np.ndarray) -> dict:
+    """{"above", "level", "below": bool masks} of lightings by their centre's ``elevation``
+    (degrees): more than ELEVATION_BAND above level, within it, more than it below."""
+    e = np.asarray(elevation, np.float64)
+    return {"above": e > ELEVATION_BAND, "level": np.abs(e) <= ELEVATION_BAND,
+            "below": e < -ELEVATION_BAND}
+
+
 def balance_by_elevation(rows: list[tuple]) -> dict:
     """Per method, its top/bottom balance against the truth's over the pairs whose input (A) or
     target (B) light lies above, level with or below the face (ELEVATION_BAND; rows carry
@@ -685,12 +698,8 @@ def balance_by_elevation(rows: list[tuple]) -> dict:
         return {}
     truth = np.array([r[3]["ground_truth"][1] for r in rows], np.float64)
     elev = np.array([r[4] for r in rows], np.float64)
-    bins = {}
-    for side, col in (("input", 0), ("target", 1)):
-        e = elev[:, col]
-        bins[f"{side} above"] = e > ELEVATION_BAND
-        bins[f"{side} level"] = np.abs(e) <= ELEVATION_BAND
-        bins[f"{side} below"] = e < -ELEVATION_BAND
+    bins = {f"{side} {band}": sel for side, col in (("input", 0), ("target", 1))
+            for band, sel in elevation_bands(elev[:, col]).items()}
     out = {}
     for m in rows[0][3]:
         if m == "ground_truth":
@@ -849,8 +858,9 @@ def gamma_check(subject: Subject, gammas=(0.8, 1.0, 1.2, 1.8, 2.2)) -> dict:
     decoding gamma, on pixels lit and unclipped in all of them: the true decoding predicts best."""
     az, el = np.abs(subject.angles).T
     sel = np.flatnonzero((az <= 50) & (el <= 40))
-    codes = subject.images[sel].reshape(len(sel), -1) * 255.0
-    ok = np.all(lit_unclipped(subject.images[sel].reshape(len(sel), -1)), axis=0)
+    images = subject.images[sel].reshape(len(sel), -1)
+    codes = images * 255.0
+    ok = np.all(lit_unclipped(images), axis=0)
     lights, x = subject.dirs[sel], codes[:, ok]
     out = {}
     for g in gammas:

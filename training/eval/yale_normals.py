@@ -268,24 +268,19 @@ def crop_balance(img: np.ndarray, mask: np.ndarray) -> float:
     if len(rows) == 0:
         return 0.0
     below = (np.arange(img.shape[0]) >= (rows.min() + rows.max()) / 2)[:, None]
-    top, bottom = img[mask & ~below], img[mask & below]
-    a = float(top.mean()) if top.size else 0.0
-    b = float(bottom.mean()) if bottom.size else 0.0
-    return (b - a) / (a + b) if a + b > 0 else 0.0
+    return yale.half_balance(img, mask & ~below, mask & below)
 
 
 def response_stats(pred: np.ndarray, truth: np.ndarray, elevation: np.ndarray,
                    reference: np.ndarray | None = None) -> dict:
-    """Per band of ``elevation`` (all; above, level, below: yale.ELEVATION_BAND) the lights, the
+    """Per band of ``elevation`` (all; above, level, below: yale.elevation_bands) the lights, the
     Pearson correlation of ``pred`` balances with ``truth``'s, their slope (least squares of pred
     on truth: 1 when the relit face answers the light as strongly as the real one, 0 when not at
     all) and the mean error against ``reference`` (default: the truth)."""
     pred, truth, e = (np.asarray(v, np.float64) for v in (pred, truth, elevation))
     ref = truth if reference is None else np.asarray(reference, np.float64)
-    band = yale.ELEVATION_BAND
     out = {}
-    for name, sel in (("all", np.ones(len(e), bool)), ("above", e > band),
-                      ("level", np.abs(e) <= band), ("below", e < -band)):
+    for name, sel in {"all": np.ones(len(e), bool), **yale.elevation_bands(e)}.items():
         p, t = pred[sel], truth[sel]
         dp, dt = (p - p.mean(), t - t.mean()) if len(t) else (p, t)
         var_t, var_p = float((dt * dt).sum()), float((dp * dp).sum())
