@@ -62,7 +62,12 @@ def fill(rep: np.ndarray, valid: np.ndarray, how: str) -> np.ndarray:
 @contextlib.contextmanager
 def product_fill(how: str):
     """Within this context the product's face crop (portrait.crop_planar) is filled with
-    ``how`` beyond the frame's edge."""
+    ``how`` beyond the frame's edge; "black" leaves the product's own crop in place."""
+    if how not in FILLS:
+        raise ValueError(f"unknown fill {how!r}; one of {FILLS}")
+    if how == "black":
+        yield
+        return
     original = portrait.crop_planar
 
     def crop_planar(x, box, size):

@@ -48,6 +48,8 @@ def test_fills_keep_the_frame_and_differ_only_beyond_it():
     assert blurred[:, ~inside].std() < 0.5 * copies[:, ~inside].std()
     with pytest.raises(ValueError):
         frame_cut.fill(rep, valid, "grey")
+    with pytest.raises(ValueError), frame_cut.product_fill("grey"):
+        pass
 
 
 def test_black_is_the_products_own_crop_and_the_context_steps_aside():
@@ -55,8 +57,11 @@ def test_black_is_the_products_own_crop_and_the_context_steps_aside():
     x = rng.random((3, 48, 40)).astype(np.float32)
     box = framing.Box(cx=20.0, cy=18.0, size=70.0)  # past the frame on every side
     want, want_valid = portrait.crop_planar(x, box, 32)
+    rep = np.stack([framing.crop(x[c], box, 32) for c in range(3)])
+    np.testing.assert_allclose(frame_cut.fill(rep, want_valid, "black"), want, atol=1e-6)
     original = portrait.crop_planar
     with frame_cut.product_fill("black"):
+        assert portrait.crop_planar is original
         got, valid = portrait.crop_planar(x, box, 32)
         np.testing.assert_allclose(got, want, atol=1e-6)
         np.testing.assert_array_equal(valid, want_valid)
