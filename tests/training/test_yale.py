@@ -424,13 +424,28 @@ def test_several_models_are_compared_pair_by_pair_with_the_first(toy, shared_dat
 
 
 def test_the_tune_split_reports_only_tune_subjects_and_never_overwrites_the_results(
-        toy, shared_data, yale_root, tmp_path, capsys):
+        toy, shared_data, yale_root, tmp_path, capsys, monkeypatch):
+    """... and relights a subject both fitted on and reported once: its pairs for the gains
+    are its pairs in the tables."""
+    calls = []
+    relight_pair = ye.relight_pair
+
+    def counted(subject, a, b, *args, **kwargs):
+        calls.append((subject.name, a.label, b.label))
+        return relight_pair(subject, a, b, *args, **kwargs)
+
+    monkeypatch.setattr(ye, "relight_pair", counted)
     out = tmp_path / "tune.json"
     assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--data", str(shared_data),
                     "--json", str(out), "--sheet", ""]) == 0
     res = json.loads(out.read_text())
     assert res["split"] == {"tune": ["yaleB01"], "test": ["yaleB01", "yaleB02"],
                             "reported": "tune"}
+    # three pairs each (--quick): yaleB01's for the gains and the tables, then yaleB02's
+    assert [c[0] for c in calls] == ["yaleB01"] * 3 + ["yaleB02"] * 3
+    assert len(set(calls)) == 6
+    assert sum(res["top_bottom_by_elevation"]["toy"][f"target {k}"]["pairs"]
+               for k in ("above", "level", "below")) == 6
     assert all(int(n[5:]) in ye.TUNE_SUBJECTS for n in res["split"]["test"])
     assert "tune subjects, not the held-out test subjects" in out.with_suffix(".md").read_text()
     with pytest.raises(SystemExit):  # the default --json holds the test subjects' results

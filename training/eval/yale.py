@@ -922,15 +922,26 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
     bank = HdriBank(data_root)
     t0 = time.perf_counter()
     tune = [load_subject(root, n) for n in tune_names]
-    gains = fit_gains(iter_pairs(tune, relighters, n_pairs, seed, bank))
+    # A reported subject that is also a tune one (--split tune) is relit once: its pairs are
+    # kept from the gains' fit for the tables (they are drawn per subject, so they are the same).
+    reported, kept = set(test_names), {}
+
+    def tune_pairs():
+        for r in iter_pairs(tune, relighters, n_pairs, seed, bank):
+            if r.subject in reported:
+                kept.setdefault(r.subject, []).append(r)
+            yield r
+
+    gains = fit_gains(tune_pairs())
     progress(f"gains from {len(tune)} tune subjects: "
              + ", ".join(f"{k} {v:.3f}" for k, v in gains.items()))
     rows, sheet, dropped, ambient = [], [], {}, {}
+    loaded = {s.name: s for s in tune}
     for name in test_names:
-        s = load_subject(root, name)
+        s = loaded.get(name) or load_subject(root, name)
         dropped[name] = [list(a) for a, _ in s.dropped]
         ambient[name] = s.ambient
-        for r in iter_pairs([s], relighters, n_pairs, seed, bank):
+        for r in kept.pop(name, None) or iter_pairs([s], relighters, n_pairs, seed, bank):
             bal = {name: balance(y, r.mask) for name, y in r.outputs.items()}
             bal["ground_truth"] = balance(r.gt, r.mask)
             rows.append((r.kind, score_pair(r, gains), r.subject, bal, r.elevations))
