@@ -721,7 +721,15 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     skin = fg & (bufs.face > 0.5)
     unit = float(np.median((lum / e_src)[skin])) if skin.sum() > 8 else float(
         np.median((lum / e_src)[fg])) if fg.any() else 1.0
-    highlight = spec * (unit * math.pi * SKIN_ALBEDO)  # GGX radiance scaled from skin albedo
+    # GGX's radiance in those units would be times unit * pi / SKIN_ALBEDO (as "physical"
+    # exposure converts, portrait.clip_gain); it is taken times unit * pi * SKIN_ALBEDO, 8.2
+    # times weaker. At SKIN_ROUGHNESS the physical scale measured worse (effects bench, key
+    # lamp from the left, exact buffers 0.1199 -> 0.1399; CroppedYale tune subjects 20.34 ->
+    # 20.21 dB); with the light stage's skin roughness, 0.5, better with exact buffers (both
+    # effects: key left 0.1203 -> 0.1145, top 0.1978 -> 0.1914) and on CroppedYale tune (20.37
+    # dB, top/bottom 0.809 against 0.807), a little worse with the network's buffers (key left
+    # 0.2224 -> 0.2252): the weaker scale stands in for a smoother skin's lobe.
+    highlight = spec * (unit * math.pi * SKIN_ALBEDO)
     level = level_colour(image_chw, lum, e_src, skin)
     if unlit is not None and skin.sum() > 8:
         share = (unlit * bufs.face)[None]
