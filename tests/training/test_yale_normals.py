@@ -285,3 +285,56 @@ def test_the_shipped_albedo_keeps_little_of_a_real_photo_s_light(shared_data):
     assert got["photos"] > 30 and set(got["subjects"]) == {"yaleB01"}
     assert got["subjects"]["yaleB01"]["photos"] == got["photos"]
     assert -0.1 < got["slope"] < 0.25
+
+
+def test_buffers_from_takes_the_named_buffers_and_optionally_the_framing_then_steps_aside():
+    """buffers_from: inside, the product's buffers carry the named fields from the other model
+    and keep their own for the rest; the portrait's box is the product's own unless asked for
+    the other model's framing; after it, the product's functions are back. (Two learned models,
+    the shipped Portrait and the research cut one, on the demo clip's first frame cut close.)"""
+    import pathlib
+
+    from addon import api, portrait
+    from training.lightstage.png import read_png
+
+    root = pathlib.Path(__file__).resolve().parents[2]
+    src = read_png(root / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
+    # cut close around the face on every side, as CroppedYale's photos are
+    x = np.ascontiguousarray(src[40:200, 30:230].transpose(2, 0, 1) ** 2.2)
+    own = api.session(str(root / "models" / "relight-portrait.onnx"), 1)
+    other = api.session(str(root / "models" / "research" / "portrait-cut.onnx"), 1)
+    box, other_box = portrait.find_box(own, x), portrait.find_box(other, x)
+    assert box != other_box  # the two models frame the portrait differently
+    crop, valid = portrait.crop_planar(x, box, own.card.working_size)
+    mine, theirs = portrait.buffers(own, crop, valid), portrait.buffers(other, crop, valid)
+    assert np.abs(mine.normal - theirs.normal).max() > 0.05
+    with yn.buffers_from(other, ("normal", "matte")):
+        got = portrait.buffers(own, crop, valid)
+        assert portrait.find_box(own, x) == box
+    np.testing.assert_array_equal(got.normal, theirs.normal)
+    np.testing.assert_array_equal(got.matte, theirs.matte)
+    for kept in ("height", "albedo", "face", "transfer"):
+        np.testing.assert_array_equal(getattr(got, kept), getattr(mine, kept))
+    with yn.buffers_from(other, (), framing=True):
+        assert portrait.find_box(own, x) == other_box
+        np.testing.assert_array_equal(portrait.buffers(own, crop, valid).normal, mine.normal)
+    assert portrait.buffers.__module__ == portrait.find_box.__module__ == "addon.portrait"
+    assert portrait.find_box(own, x) == box
+
+
+def test_relight_with_everything_of_another_model_is_that_model(shared_data):
+    """--swap: a variant per SWAPS entry, each with its figures; taking every buffer and the
+    framing from the other model relights exactly as that model does."""
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    other = "models/research/portrait-cut.onnx"
+    got = yn.relight("models/relight-portrait.onnx", "tune", root, n_pairs=2, other=other)
+    assert set(got) == {"network", "photometric"} | {f"{w} of portrait-cut" for w in yn.SWAPS}
+    for r in got.values():
+        assert all(np.isfinite(r[k]) for k in ("all", "left_right", "top_bottom"))
+    theirs = yn.relight(other, "tune", root, n_pairs=2)["network"]
+    mixed = got["everything of portrait-cut"]
+    for k in ("all", "left_right", "top_bottom"):
+        assert mixed[k] == pytest.approx(theirs[k], abs=1e-6)
+    assert got["network"]["all"] != pytest.approx(theirs["all"], abs=1e-3)

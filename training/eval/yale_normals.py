@@ -1,8 +1,8 @@
 """Real-face normals: the intrinsic network's normals against photometric stereo on CroppedYale.
 
     .venv/bin/python -m training.eval.yale_normals --onnx models/relight-portrait.onnx [--onnx ...]
-        [--split tune|test] [--relight [--pairs N] [--low-sigma S] [--no-shadows]] [--response]
-        [--albedo]
+        [--split tune|test] [--relight [--pairs N] [--low-sigma S] [--no-shadows] [--swap ONNX]]
+        [--response] [--albedo]
 
 A subject's single-light images give its Lambertian normals by least squares per pixel over the
 images in which that pixel is lit and unclipped (photometric stereo, yale.photometric_fit: the
@@ -22,7 +22,9 @@ place (photometric_buffers): what better normals alone would buy; with ``--low-s
 with only the low band (a Gaussian of S crop pixels) of one under the other's detail, which
 tells the face's large-scale shape from its fine detail; with ``--no-shadows`` also both without
 cast shadows (without_cast_shadows): the shadows march over the network's height, which real
-normals do not match. ``--response`` (response) holds one lighting and sweeps the other over
+normals do not match; with ``--swap ONNX`` also with each of another intrinsic model's buffers,
+and its framing, in the network's place (buffers_from): which of them make two networks' relit
+faces differ. ``--response`` (response) holds one lighting and sweeps the other over
 each subject's single lights, in the face crop: the frontal photo relit to each light (how
 strongly the relit face answers the target's elevation) and each photo relit to the frontal
 light (how much of the input's light it keeps), the relit top/bottom balance against the real
@@ -35,7 +37,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import functools
+import pathlib
 
 import numpy as np
 
@@ -188,6 +192,48 @@ def without_cast_shadows():
         intrinsic.plan = plan
 
 
+# What --swap takes from another intrinsic model (buffers_from), by name: the fields of its
+# buffers in the relighting pass, and whether its face and matte maps place the portrait's box.
+SWAPS = {"framing": ((), True), "normals": (("normal",), False), "height": (("height",), False),
+         "albedo": (("albedo",), False), "matte and skin": (("matte", "face"), False),
+         "transport": (("transfer",), False),
+         # the transport holds its own normals' cosine: the two belong together
+         "normals and transport": (("normal", "transfer"), False),
+         "all buffers": (("normal", "height", "albedo", "matte", "face", "transfer"), False),
+         "everything": (("normal", "height", "albedo", "matte", "face", "transfer"), True)}
+
+
+@contextlib.contextmanager
+def buffers_from(session, fields=(), framing: bool = False):
+    """Within this context the product's buffers (addon.portrait) carry ``fields`` (names of
+    intrinsic.Buffers' fields) from another intrinsic model's ``session`` in the relighting
+    pass, the face crop's finer sampling included; the portrait's box is still found on the
+    product's own buffers unless ``framing``, when that model finds it (find_box on its face
+    and matte maps). Which of a second network's buffers make its relit faces differ."""
+    buffers, find_box = portrait.buffers, portrait.find_box
+    boxing = []
+
+    def swap(own, x, valid=None, mirror=False):
+        out = buffers(own, x, valid, mirror)
+        if boxing or not fields:
+            return out
+        other = buffers(session, x, valid, mirror)
+        return dataclasses.replace(out, **{f: getattr(other, f) for f in fields})
+
+    def box(own, *args, **kwargs):
+        boxing.append(True)
+        try:
+            return find_box(session if framing else own, *args, **kwargs)
+        finally:
+            boxing.pop()
+
+    portrait.buffers, portrait.find_box = swap, box
+    try:
+        yield
+    finally:
+        portrait.buffers, portrait.find_box = buffers, find_box
+
+
 NO_SHADOWS = ", no cast shadows"  # the suffix of relight's variants without them
 
 
@@ -195,7 +241,8 @@ PAIRS = 36  # pairs per subject for --relight, as the tune subjects' evaluation 
 
 
 def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, seed: int = 2021,
-            low_sigma: float | None = None, shadowless: bool = False) -> dict:
+            low_sigma: float | None = None, shadowless: bool = False,
+            other: str | None = None) -> dict:
     """The split's pairs (training/eval/yale.py's) relit through addon.relight_image with the
     network's normals and with photometric stereo's (and, with ``low_sigma``, with either's low
     band under the other's detail: photometric_buffers; and with the low band of the other
@@ -209,7 +256,9 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
     0.750 with 36 (0.869 by rank): one of the 360 pairs, a light from straight above, is far
     off, its cast shadows marched over the network's height, which the real normals do not
     match. Without cast shadows the real normals read 0.896 (0.87-0.92) and the network's 0.800
-    (0.807 with shadows): normals alone would clear 0.85."""
+    (0.807 with shadows): normals alone would clear 0.85. With ``other`` (another intrinsic
+    model), also with each of SWAPS taken from it (buffers_from), named "<what> of <model>":
+    which of its buffers, or its framing, make its relit faces differ."""
     root = root or yale.default_root()
     _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
     rel = {"model": yale.PipelineRelighter(onnx_path, 1)}
@@ -222,6 +271,12 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
     variants = ("network", *swaps)
     if shadowless:
         variants += ("network" + NO_SHADOWS, "photometric" + NO_SHADOWS)
+    taken = {}  # variant: buffers_from's arguments
+    if other is not None:
+        session = api.session(other, 1)
+        stem = pathlib.Path(other).stem
+        taken = {f"{what} of {stem}": (session, *how) for what, how in SWAPS.items()}
+        variants += tuple(taken)
     psnr = {k: [] for k in variants}
     rows = []  # (kind, None, subject, balances), as yale.balance_correlation takes them
     real = {}
@@ -248,6 +303,8 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
                             *given.get(normals, (truth, ok)), **swaps[normals]))
                     if normals != which:
                         stack.enter_context(without_cast_shadows())
+                    if which in taken:
+                        stack.enter_context(buffers_from(*taken[which]))
                     r = yale.relight_pair(s, a, b, rel, shading)
                 y = r.outputs["model"]
                 gain = yale.ls_gain(y, r.gt, r.mask)
@@ -453,6 +510,9 @@ def main(argv=None):
                     "band (a Gaussian of this many crop pixels) one way and the other")
     ap.add_argument("--no-shadows", action="store_true", help="with --relight, also relight "
                     "with the network's and the real normals without cast shadows")
+    ap.add_argument("--swap", metavar="ONNX", help="with --relight, also relight with each of "
+                    "this other intrinsic model's buffers, and its framing, in place of the "
+                    "network's (which of them make the two models' relit faces differ)")
     ap.add_argument("--response", action="store_true",
                     help="also the relit face's top/bottom answer to each single light (input "
                          "held frontal) and what it keeps of each input's (target held "
@@ -487,14 +547,14 @@ def main(argv=None):
     if a.relight:
         for p in a.onnx:
             got = relight(p, a.split, n_pairs=a.pairs, low_sigma=a.low_sigma,
-                          shadowless=a.no_shadows)
+                          shadowless=a.no_shadows, other=a.swap)
             for which, r in got.items():
                 tb, tb90 = r["top_bottom"], r["top_bottom_90"]
                 gain = "" if "top_bottom_gain" not in r else (
                     f"; over the network's {r['top_bottom_gain']:+.3f} ("
                     f"{r['top_bottom_gain_90'][0]:+.3f} to {r['top_bottom_gain_90'][1]:+.3f})")
                 normals = which.removesuffix(NO_SHADOWS)
-                name = f"{normals} normals{which[len(normals):]}"
+                name = which if " of " in which else f"{normals} normals{which[len(normals):]}"
                 print(f"{p}, {name}: scale-invariant PSNR {r['all']:.2f} dB ("
                       + ", ".join(f"{k} {r[k]:.2f}" for k in yale.KINDS)
                       + f"); balance {r['left_right']:.3f} / {tb:.3f} ({tb90[0]:.2f}-"
