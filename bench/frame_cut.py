@@ -37,6 +37,7 @@ import torch
 from addon import framing, intrinsic, lightvec, portrait
 
 from .intrinsic_effects import lamp, render, write_report
+from .normals_by_light import angles
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 FILLS = ("black", "edge copies", "edge copies, blurred")
@@ -114,10 +115,8 @@ def edge_distance(inside: np.ndarray) -> np.ndarray:
 def band_scores(pred: np.ndarray, truth: np.ndarray, sel: np.ndarray) -> tuple[float, float]:
     """(mean angle in degrees, mean up/down bias) of the normals ``pred`` against ``truth``
     (3, h, w) over ``sel`` (h, w) bool."""
-    p, t = pred[:, sel].astype(np.float64), truth[:, sel].astype(np.float64)
-    p = p / np.maximum(np.linalg.norm(p, axis=0), 1e-9)
-    cos = np.clip((p * t).sum(0), -1.0, 1.0)
-    return float(np.degrees(np.arccos(cos)).mean()), float((p[1] - t[1]).mean())
+    p, t, deg = angles(pred, truth, sel)
+    return float(deg.mean()), float((p[1] - t[1]).mean())
 
 
 def band_name(lo, hi) -> str:

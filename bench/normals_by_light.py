@@ -34,15 +34,21 @@ LAMPS = {"above": (0.0, 1.0, 0.6), "level": (0.0, 0.0, 1.0), "below": (0.0, -1.0
 MIN_FACE = 50  # face-skin pixels a frame needs to count
 
 
+def angles(pred: np.ndarray, truth: np.ndarray, sel: np.ndarray):
+    """(predicted normals made unit, the truth's, the angle between them in degrees), each over
+    ``sel`` (h, w) bool of the normals (3, h, w), in float64."""
+    p, t = pred[:, sel].astype(np.float64), truth[:, sel].astype(np.float64)
+    p = p / np.maximum(np.linalg.norm(p, axis=0), 1e-9)
+    return p, t, np.degrees(np.arccos(np.clip((p * t).sum(0), -1.0, 1.0)))
+
+
 def face_scores(pred: np.ndarray, truth: np.ndarray, face: np.ndarray) -> dict:
     """Over ``face`` (h, w) bool: the correlation of the normals' up/down (y) and left/right (x)
     components (3, h, w) with the truth's, and their mean angle in degrees."""
-    p, t = pred[:, face].astype(np.float64), truth[:, face].astype(np.float64)
-    p = p / np.maximum(np.linalg.norm(p, axis=0), 1e-9)
-    cos = np.clip((p * t).sum(0), -1.0, 1.0)
+    p, t, deg = angles(pred, truth, face)
     return {"corr_y": float(np.corrcoef(p[1], t[1])[0, 1]),
             "corr_x": float(np.corrcoef(p[0], t[0])[0, 1]),
-            "angle_deg": float(np.degrees(np.arccos(cos)).mean())}
+            "angle_deg": float(deg.mean())}
 
 
 def run(models: list[str], n_frames: int = 24) -> dict:
