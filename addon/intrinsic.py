@@ -94,6 +94,13 @@ SSS_SIGMA_CM = (0.30, 0.14, 0.07)
 # stage's, chosen on the CroppedYale tune subjects (it also softens the terminator that the
 # predicted normals draw too sharp).
 SSS_FACE_CM = 6.0
+# The diffusion's colour (red against blue) keeps the light stage's own scale: its skin's square
+# root area over its pixels per centimetre, median 13.4 cm over the val frames (the network's
+# skin map 13.4). At SSS_FACE_CM's scale the new shadows on skin turned three to four times as
+# warm as the light stage's (bench/intrinsic_effects.py's shadow warmth, exact buffers, a key
+# lamp from the left: +0.15 against +0.04), a red-brown band at a white lamp's terminator on
+# real footage.
+SSS_CHROMA_FACE_CM = 13.4
 # A luminance's diffusion in one channel: the channels' shares and widths weighted by LUMA (the
 # green channel's, nearly), for a shading that is luminance only.
 SSS_LUMINANCE = ((sum(a * w for a, w in zip(SSS_ALPHA, LUMA)),),
@@ -548,13 +555,34 @@ def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
                sigmas_cm=SSS_SIGMA_CM) -> np.ndarray:
     """(3, h, w) irradiance diffused under the skin: per channel, SSS_ALPHA of it replaced by its
     Gaussian average over the skin (weights ``skin`` (h, w), normalised, so hair and eyes do not
-    bleed in), SSS_SIGMA_CM wide at the scale SSS_FACE_CM gives the skin's size. A terminator
-    and a cast shadow's edge turn soft and warm, as on skin; off the skin nothing changes.
-    ``alphas``, ``sigmas_cm``: other channels' (SSS_LUMINANCE: one luminance channel)."""
+    bleed in), SSS_SIGMA_CM wide at the scale SSS_FACE_CM gives the skin's size; with three
+    channels, the colour is the one diffusion gives at the scale SSS_CHROMA_FACE_CM gives, and
+    the light the wider scale adds beyond it has the light's colour (the luminance stays
+    SSS_FACE_CM's). A terminator and a cast shadow's edge turn soft and a little warm, as on
+    skin; off the skin nothing changes. ``alphas``, ``sigmas_cm``: other channels'
+    (SSS_LUMINANCE: one luminance channel)."""
     area = float(skin.sum())
     if area < 16:
         return irr
-    px_per_cm = math.sqrt(area) / SSS_FACE_CM
+    out = _diffuse(irr, skin, alphas, sigmas_cm, math.sqrt(area) / SSS_FACE_CM)
+    if irr.shape[0] != 3:
+        return out
+    hue = _diffuse(irr, skin, alphas, sigmas_cm, math.sqrt(area) / SSS_CHROMA_FACE_CM)
+    y_out, y_hue = luminance(out), luminance(hue)
+    # The light the wider diffusion adds beyond the narrower one stands in for the terminator the
+    # predicted normals draw too sharp, not for light that travelled under the skin: it takes
+    # the light's colour on the skin (scaled to the narrower colour's, past its reach a pure red
+    # line drew the outline of a white lamp's shadow side on real footage).
+    sk = skin > 0
+    tone = irr[:, sk].mean(1)
+    tone = tone / max(float(luminance(tone)), 1e-12)
+    extra = y_out - y_hue
+    return np.where(extra[None] >= 0, hue + extra[None] * tone[:, None, None],
+                    hue * (y_out / np.maximum(y_hue, 1e-12))[None]).astype(irr.dtype)
+
+
+def _diffuse(irr: np.ndarray, skin: np.ndarray, alphas, sigmas_cm, px_per_cm: float) -> np.ndarray:
+    """subsurface's diffusion at one scale."""
     sigmas = [c * px_per_cm for c in sigmas_cm]
     # Only the skin's bounding box changes: work there (a wide frame's grid is mostly not skin).
     rows, cols = np.nonzero(skin > 0)

@@ -12,8 +12,12 @@ crop takes them (the product's error; its finer sampling of the box is left out:
 frames are 128 pixels). Error: relative RMSE over the subject after one least-squares gain
 (exposure is the artist's choice), so it measures where the light falls. Effects: diffuse only,
 + cast shadows, + highlights, and "auto" (``intrinsic.plan``: shadows and highlights only for
-compact, strong components). Time: the renderer's milliseconds per 128 x 128 crop, median over
-the frames, on this machine. Writes ``bench/results/intrinsic_effects.{md,json}``.
+compact, strong components). Shadow warmth: the median change of log(red / blue) from the
+source frame over the face skin the target light darkens to under half (after one gain), the
+relit frame's against the light stage's (a new shadow on skin is a little warm at its edges, from
+light diffusing under the skin; too warm reads as a red-brown band). Time: the renderer's
+milliseconds per 128 x 128 crop, median over the frames, on this machine. Writes
+``bench/results/intrinsic_effects.{md,json}``.
 """
 
 from __future__ import annotations
@@ -92,6 +96,28 @@ def error(out: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(((gain * o - g) ** 2).mean()) / np.sqrt((g ** 2).mean()))
 
 
+def darkened(src: np.ndarray, gt: np.ndarray, skin: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the skin that ``gt`` shows at under half of ``src``'s luminance, after one
+    gain over the skin (where a new shadow falls)."""
+    y_src, y_gt = intrinsic.luminance(src), intrinsic.luminance(gt)
+    if not skin.any():
+        return skin
+    gain = np.median(y_src[skin]) / max(float(np.median(y_gt[skin])), 1e-12)
+    return skin & (y_gt * gain < 0.5 * y_src)
+
+
+def warmth(out: np.ndarray, src: np.ndarray, where: np.ndarray) -> float | None:
+    """The median change of log(red / blue) from ``src`` to ``out`` over ``where``; None when
+    fewer than 20 pixels."""
+    if where.sum() < 20:
+        return None
+
+    def log_rb(x):
+        return np.log(np.maximum(x[0], 1e-8) / np.maximum(x[2], 1e-8))
+
+    return float(np.median((log_rb(out) - log_rb(src))[where]))
+
+
 def run(n_frames: int, model=None) -> dict:
     torch.set_num_threads(1)
     ds = data.IntrinsicFrames("val", 128, 0, varied_backdrops=False)
@@ -111,6 +137,8 @@ def run(n_frames: int, model=None) -> dict:
             kinds["network buffers"] = predicted_buffers(session, src)
         for lname, light in lights.items():
             gt = render(a, light)
+            dark = darkened(src, gt, a["mask"] & (kinds["exact buffers"].face > 0.5))
+            truth_warmth = warmth(gt, src, dark)
             auto = intrinsic.plan(light)
             for kind, bufs in kinds.items():
                 for ename, flags in EFFECTS.items():
@@ -120,25 +148,36 @@ def run(n_frames: int, model=None) -> dict:
                     sh = intrinsic.shade(src, bufs, light, p)
                     ms = (time.perf_counter() - t0) * 1000
                     out = src * sh.ratio + sh.highlight
-                    r = rows.setdefault((kind, lname, ename), {"err": [], "ms": [], "components": len(auto.components)})
+                    r = rows.setdefault((kind, lname, ename),
+                                        {"err": [], "ms": [], "components": len(auto.components),
+                                         "warm": [], "warm_truth": []})
                     r["err"].append(error(out, gt, a["mask"]))
                     r["ms"].append(ms)
+                    if truth_warmth is not None:
+                        r["warm"].append(warmth(out, src, dark))
+                        r["warm_truth"].append(truth_warmth)
             r = rows.setdefault(("input (no relighting)", lname, "-"), {"err": [], "ms": [], "components": 0})
             r["err"].append(error(src, gt, a["mask"]))
             r["ms"].append(0.0)
-    return {f"{k[0]} | {k[1]} | {k[2]}": {"rel_rmse": float(np.mean(v["err"])),
-                                           "ms_median": float(np.median(v["ms"])),
-                                           "components": v["components"], "frames": len(v["err"])}
-            for k, v in rows.items()}
+    return {f"{k[0]} | {k[1]} | {k[2]}": {
+        "rel_rmse": float(np.mean(v["err"])), "ms_median": float(np.median(v["ms"])),
+        "components": v["components"], "frames": len(v["err"]),
+        "shadow_warmth": float(np.mean(v["warm"])) if v.get("warm") else None,
+        "shadow_warmth_truth": float(np.mean(v["warm_truth"])) if v.get("warm") else None}
+        for k, v in rows.items()}
 
 
 def markdown(res: dict, command: str, machine: str) -> str:
     lines = [f"Produced by `{command}` on {machine}.", "",
-             "| buffers | target light | effects | relative RMSE (gain-fitted) | renderer ms / crop | compact components |",
-             "| --- | --- | --- | --- | --- | --- |"]
+             "| buffers | target light | effects | relative RMSE (gain-fitted) "
+             "| shadow warmth (light stage's) | renderer ms / crop | compact components |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
     for k, v in res.items():
         kind, light, eff = k.split(" | ")
-        lines.append(f"| {kind} | {light} | {eff} | {v['rel_rmse']:.4f} | {v['ms_median']:.1f} | {v['components']} |")
+        w = ("-" if v.get("shadow_warmth") is None
+             else f"{v['shadow_warmth']:+.3f} ({v['shadow_warmth_truth']:+.3f})")
+        lines.append(f"| {kind} | {light} | {eff} | {v['rel_rmse']:.4f} | {w} "
+                     f"| {v['ms_median']:.1f} | {v['components']} |")
     return "\n".join(lines) + "\n"
 
 

@@ -622,3 +622,49 @@ def test_batches_made_by_workers_are_the_batches_made_inline(frames, shared_data
     assert not torch.equal(first[0][0], first[1][0])
     again = train.step_batch(ds, a, 1)
     torch.testing.assert_close(again[0], first[1][0], rtol=0, atol=0)
+
+
+def test_new_shadows_on_skin_are_as_warm_as_the_light_stage_s(frames, monkeypatch):
+    """A lamp's new shadows on skin take the light stage's colour: over the face skin the lamp
+    darkens, log(red / blue) changes from the source as in the light stage's render, within
+    0.06 on average; with the diffusion's colour at its luminance's wider scale they turn warm
+    (red-brown) by several times more."""
+    from bench.intrinsic_effects import darkened, exact_buffers, lamp, render, warmth
+
+    errors = {}
+    for f in range(2):
+        a = frames.frame(f)
+        source = 0.7 * lightvec.uniform() + lamp([0.3, 0.5, 1.0], 1.0, 0.0)
+        src = render(a, source.astype(np.float32))
+        bufs = exact_buffers(a)
+        for d in ([-1, 0.3, 0.5], [1, 0.2, 0.6], [0, 1, 0.35]):
+            light = lamp(d)
+            gt = render(a, light)
+            dark = darkened(src, gt, a["mask"] & (bufs.face > 0.5))
+            truth = warmth(gt, src, dark)
+            assert truth is not None
+            for cm in (intrinsic.SSS_CHROMA_FACE_CM, intrinsic.SSS_FACE_CM):
+                monkeypatch.setattr(intrinsic, "SSS_CHROMA_FACE_CM", cm)
+                sh = intrinsic.shade(src, bufs, light)
+                relit = src * sh.ratio + sh.highlight
+                errors.setdefault(cm, []).append(abs(warmth(relit, src, dark) - truth))
+            monkeypatch.undo()
+    ours = np.mean(errors[intrinsic.SSS_CHROMA_FACE_CM])
+    wide = np.mean(errors[intrinsic.SSS_FACE_CM])
+    assert ours < 0.06 and ours < 0.5 * wide, (ours, wide)
+
+
+def test_diffusion_colour_at_its_own_scale_keeps_the_luminance():
+    """subsurface's three channels: their luminance is the diffusion's at SSS_FACE_CM's scale
+    (what the shading's level was chosen with), their colour the narrower physical one's."""
+    yy, xx = np.mgrid[0:64, 0:64].astype(np.float32)
+    skin = (((yy - 32) ** 2 + (xx - 32) ** 2) < 28 ** 2).astype(np.float32)
+    irr = np.repeat(0.2 + 2.0 * (xx < 32).astype(np.float32)[None], 3, 0)  # a terminator
+    out = intrinsic.subsurface(irr, skin)
+    px = np.sqrt(skin.sum())
+    wide = intrinsic._diffuse(irr, skin, intrinsic.SSS_ALPHA, intrinsic.SSS_SIGMA_CM,
+                              px / intrinsic.SSS_FACE_CM)
+    np.testing.assert_allclose(intrinsic.luminance(out), intrinsic.luminance(wide), atol=1e-5)
+    dark = (skin > 0) & (xx >= 33) & (xx < 38)  # just past the terminator
+    warm = lambda x: np.log(x[0][dark] / x[2][dark]).mean()  # noqa: E731
+    assert 0 < warm(out) < 0.6 * warm(wide)
