@@ -571,8 +571,9 @@ def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
     y_out, y_hue = luminance(out), luminance(hue)
     # The light the wider diffusion adds beyond the narrower one stands in for the terminator the
     # predicted normals draw too sharp, not for light that travelled under the skin: it takes
-    # the light's colour on the skin (scaled to the narrower colour's, past its reach a pure red
-    # line drew the outline of a white lamp's shadow side on real footage).
+    # the light's colour on the skin. (The narrower diffusion's colour scaled up to the wider
+    # one's luminance drew a pure red line along a white lamp's shadow side on real footage,
+    # where only red reaches at the narrower scale.)
     sk = skin > 0
     tone = irr[:, sk].mean(1)
     tone = tone / max(float(luminance(tone)), 1e-12)
