@@ -564,17 +564,19 @@ def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
     area = float(skin.sum())
     if area < 16:
         return irr
-    out = _diffuse(irr, skin, alphas, sigmas_cm, math.sqrt(area) / SSS_FACE_CM)
+    sk = skin > 0
+    rows, cols = np.nonzero(sk)
+    bounds = (rows.min(), rows.max() + 1, cols.min(), cols.max() + 1)
+    out = _diffuse(irr, skin, bounds, alphas, sigmas_cm, math.sqrt(area) / SSS_FACE_CM)
     if irr.shape[0] != 3:
         return out
-    hue = _diffuse(irr, skin, alphas, sigmas_cm, math.sqrt(area) / SSS_CHROMA_FACE_CM)
+    hue = _diffuse(irr, skin, bounds, alphas, sigmas_cm, math.sqrt(area) / SSS_CHROMA_FACE_CM)
     y_out, y_hue = luminance(out), luminance(hue)
     # The light the wider diffusion adds beyond the narrower one stands in for the terminator the
     # predicted normals draw too sharp, not for light that travelled under the skin: it takes
     # the light's colour on the skin. (The narrower diffusion's colour scaled up to the wider
     # one's luminance drew a pure red line along a white lamp's shadow side on real footage,
     # where only red reaches at the narrower scale.)
-    sk = skin > 0
     tone = irr[:, sk].mean(1)
     tone = tone / max(float(luminance(tone)), 1e-12)
     extra = y_out - y_hue
@@ -582,15 +584,16 @@ def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
                     hue * (y_out / np.maximum(y_hue, 1e-12))[None]).astype(irr.dtype)
 
 
-def _diffuse(irr: np.ndarray, skin: np.ndarray, alphas, sigmas_cm, px_per_cm: float) -> np.ndarray:
-    """subsurface's diffusion at one scale."""
+def _diffuse(irr: np.ndarray, skin: np.ndarray, bounds, alphas, sigmas_cm,
+             px_per_cm: float) -> np.ndarray:
+    """subsurface's diffusion at one scale; ``bounds``: the skin's bounding box (row start,
+    row end, column start, column end)."""
     sigmas = [c * px_per_cm for c in sigmas_cm]
     # Only the skin's bounding box changes: work there (a wide frame's grid is mostly not skin).
-    rows, cols = np.nonzero(skin > 0)
     r = blur_radius(max(sigmas))
     h, w = skin.shape
-    y0, y1 = max(rows.min() - r, 0), min(rows.max() + 1 + r, h)
-    x0, x1 = max(cols.min() - r, 0), min(cols.max() + 1 + r, w)
+    y0, y1 = max(bounds[0] - r, 0), min(bounds[1] + r, h)
+    x0, x1 = max(bounds[2] - r, 0), min(bounds[3] + r, w)
     win = (slice(None), slice(y0, y1), slice(x0, x1))
     sk = skin[win[1:]].astype(np.float32)
     out = irr.copy()
