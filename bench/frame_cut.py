@@ -34,9 +34,9 @@ import pathlib
 import numpy as np
 import torch
 
-from addon import framing, intrinsic, lightvec, portrait
+from addon import framing, intrinsic, portrait
 
-from .intrinsic_effects import lamp, render, write_report
+from .intrinsic_effects import render, source_light, write_report
 from .normals_by_light import angles
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -131,7 +131,7 @@ def synthetic(model: str, n_frames: int) -> dict:
     torch.set_num_threads(1)
     ds = data.IntrinsicFrames("val", 128, 0, varied_backdrops=False)
     session = api.session(model, 1)
-    source = (0.7 * lightvec.uniform() + lamp([0.3, 0.5, 1.0], 1.0, 0.0)).astype(np.float32)
+    source = source_light()
     gen = torch.Generator().manual_seed(0)
     acc: dict = {}
     for f in range(min(n_frames, ds.n)):

@@ -48,6 +48,11 @@ def lamp(direction, power=3.0, fill=0.03) -> np.ndarray:
             + fill * lightvec.uniform()).astype(np.float32)
 
 
+def source_light() -> np.ndarray:
+    """The frames' own light before relighting: a soft world and a dim lamp above the camera."""
+    return (0.7 * lightvec.uniform() + lamp([0.3, 0.5, 1.0], 1.0, 0.0)).astype(np.float32)
+
+
 def targets(bank) -> dict:
     """Three lamps, the softest and the most sun-like HDRI of the val split's bank (by the share
     of power in the brightest 3 x 3 cells), and a uniform world."""
@@ -128,7 +133,7 @@ def run(n_frames: int, model=None) -> dict:
 
         session = api.session(model, 1)
     rows: dict = {}
-    source = (0.7 * lightvec.uniform() + lamp([0.3, 0.5, 1.0], 1.0, 0.0)).astype(np.float32)
+    source = source_light()
     for f in range(min(n_frames, ds.n)):
         a = ds.frame(f)
         src = render(a, source)

@@ -108,10 +108,10 @@ def test_the_flip_mirrors_normals(frames):
 
 
 def test_renderer_with_exact_buffers_puts_the_light_where_the_light_stage_does(frames):
-    from bench.intrinsic_effects import error, exact_buffers, lamp, render
+    from bench.intrinsic_effects import error, exact_buffers, lamp, render, source_light
 
     a = frames.frame(0)
-    src = render(a, (0.7 * lightvec.uniform() + lamp([0.3, 0.5, 1.0], 1.0, 0.0)).astype(np.float32))
+    src = render(a, source_light())
     for d in ([-1, 0.3, 0.5], [1, 0.2, 0.6]):
         light = lamp(d)
         gt = render(a, light)
@@ -629,13 +629,13 @@ def test_new_shadows_on_skin_are_as_warm_as_the_light_stage_s(frames, monkeypatc
     darkens, log(red / blue) changes from the source as in the light stage's render, within
     0.06 on average; with the diffusion's colour at its luminance's wider scale they turn warm
     (red-brown) by several times more."""
-    from bench.intrinsic_effects import darkened, exact_buffers, lamp, render, warmth
+    from bench.intrinsic_effects import (darkened, exact_buffers, lamp, render, source_light,
+                                         warmth)
 
     errors = {}
     for f in range(2):
         a = frames.frame(f)
-        source = 0.7 * lightvec.uniform() + lamp([0.3, 0.5, 1.0], 1.0, 0.0)
-        src = render(a, source.astype(np.float32))
+        src = render(a, source_light())
         bufs = exact_buffers(a)
         for d in ([-1, 0.3, 0.5], [1, 0.2, 0.6], [0, 1, 0.35]):
             light = lamp(d)
