@@ -6,9 +6,13 @@ where they show the background (a green screen beside the hair, a wall beside a 
 background takes the change: a bright or dark line along the outline. Here the fade's weight is
 refitted to the footage's colours, a colour guided filter (He et al., "Guided Image Filtering",
 2010) of the weight against the grid's footage, evaluated at full resolution where the footage's
-own edges are; each pixel of the fade keeps the share of the change its colour says is subject,
-never more than it had. A run that writes a matte strip refits the matte the same way, both ways
-(``refine_matte``), so the strip follows the footage's edges too.
+own edges are; each pixel of the fade takes the share of the change its colour says is subject.
+Mostly that takes change away (the background beside the outline); it also gives it back where
+the fade, a working pixel or two wide when enlarged, lay over something thin the subject holds
+(an ear against a screen, lit as the footage was beside a cheek the key lamp left dark), though
+never where the enlarged weight was below UP_FLOOR, nor beyond the subject's own full change. A
+run that writes a matte strip refits the matte the same way (``refine_matte``), so the strip
+follows the footage's edges too.
 
 Only the fade is touched: the fit runs on the grid samples whose windows meet it, and the
 correction on the full-resolution pixels whose bilinear samples do (a few percent of a frame).
@@ -27,6 +31,10 @@ RADIUS = 1     # the fit's window: (2 RADIUS + 1)^2 grid samples
 EPS = 1e-3     # the fit's ridge, in units of the guide normalised to its LEVEL percentile
 LEVEL = 99     # the percentile of the fade's guide samples that normalises the guide
 FLOOR = 1e-3   # below this enlarged weight the change is nil and nothing is corrected
+# The refit adds change (up to the subject's full change) only where the enlarged weight is at
+# least this: within the fade's reach, so it never draws change far out onto the background, and
+# the full change it scales up to (the relit value over the weight) stays well conditioned.
+UP_FLOOR = 0.15
 
 
 @dataclass
@@ -176,23 +184,32 @@ def _refit(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
     return (e[0] * x[0] + e[1] * x[1] + e[2] * x[2]) * np.float32(1.0 / level) + e[3]
 
 
+def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
+    """(P,) the share of its enlarged change each fade pixel keeps (1: as it was): the refitted
+    weight over the enlarged one, clipped to [0, 1] as a weight, and not raised where the enlarged
+    weight is below UP_FLOOR (``e``, ``x``: _at_pixels')."""
+    refit = np.clip(_refit(e, x, level), 0.0, 1.0)
+    w = np.maximum(e[4], FLOOR)
+    share = refit / w
+    return np.where(e[4] >= UP_FLOOR, share, np.minimum(share, 1.0)).astype(np.float32)
+
+
 def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
           fullres: detail.FullRes | None = None) -> np.ndarray:
     """``y`` (3, H, W) half, the relit frame of ``x_full`` (3, H, W) (the footage over
     ``scale``: ``scale * x_full`` is the frame unchanged), with the change on the fade's pixels
-    scaled by the refitted weight over the enlarged one, clipped to [0, 1]. In place; returns
-    ``y``. ``fullres``: its graphs do the half-float mixing (built once if not given)."""
+    scaled by the refitted weight over the enlarged one (``shares``). In place; returns ``y``.
+    ``fullres``: its graphs do the half-float mixing (built once if not given)."""
     if f is None:
         return y
     pix, e, x = _at_pixels(f, x_full, *y.shape[1:])
-    share = _refit(e, x, f.level)
-    share /= np.maximum(e[4], FLOOR)
-    # Only where the refit takes some of the change away (the rest keeps its value exactly).
-    cut = np.flatnonzero((share < 1.0) & (e[4] > FLOOR) & (e[4] < 1.0))
+    share = shares(e, x, f.level)
+    # Only where the refit changes the share (the rest keeps its value exactly).
+    cut = np.flatnonzero((share != 1.0) & (e[4] > FLOOR) & (e[4] < 1.0))
     pix = np.take(pix, cut)
     flat = y.reshape(3, -1)
     mixed = (fullres or _fullres()).mix_half(np.take(flat, pix, axis=1), np.take(x, cut, axis=1),
-                                             np.maximum(np.take(share, cut), 0.0), scale)
+                                             np.take(share, cut), scale)
     for c in range(3):
         flat[c][pix] = mixed[c]
     return y

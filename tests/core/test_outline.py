@@ -96,13 +96,15 @@ def test_sparse_correction_equals_the_dense_one(shape, grid, scale):
     fit = outline.fit(g, weight)
     sparse = outline.apply(fit, x, y.copy(), scale=scale).astype(np.float32)
     up = detail.enlarge_planar(np.concatenate([fit.coef, fit.weight[None]], 0), h, w)
-    refit = (up[:3] * x).sum(0) / fit.level + up[3]
-    share = np.clip(refit / np.maximum(up[4], outline.FLOOR), 0.0, 1.0)
+    refit = np.clip((up[:3] * x).sum(0) / fit.level + up[3], 0.0, 1.0)
+    share = refit / np.maximum(up[4], outline.FLOOR)
+    share = np.where(up[4] >= outline.UP_FLOOR, share, np.minimum(share, 1.0))
     share = np.where((up[4] > outline.FLOOR) & (up[4] < 1.0), share, 1.0)
     yf = y.astype(np.float32)
     dense = (scale * x + share * (yf - scale * x)).astype(np.float16).astype(np.float32)
     np.testing.assert_allclose(sparse, dense, rtol=2e-3, atol=1e-5)
-    assert (share < 0.99).sum() > 50  # the comparison covers pixels the refit does change
+    # the comparison covers pixels the refit takes change from and pixels it gives change to
+    assert (share < 0.99).sum() > 50 and (share > 1.01).sum() > 50
 
 
 def test_fit_is_the_guided_filter_where_its_windows_are_whole():
@@ -136,16 +138,63 @@ def test_fit_is_the_guided_filter_where_its_windows_are_whole():
     assert np.all(fit.coef[:3, ~fade] == 0) and np.all(fit.coef[3, ~fade] == weight[~fade])
 
 
-def test_a_pixel_stays_between_the_footage_and_its_relit_value():
+def test_a_pixel_stays_between_the_footage_and_the_subject_s_full_change():
+    """The refit moves a fade pixel's share of the change, never past the footage on one side
+    nor past the subject's own full change (the change at weight 1) on the other; where the
+    enlarged weight is below UP_FLOOR it never adds change."""
     x, cover = scene(90, 120, 28.0, seed=7)
     g = grid_of(x, 3)
     weight = soft_weight(grid_of(cover[None], 3)[0], 1.5)
+    up = detail.enlarge_planar(weight[None], *x.shape[1:])[0]
     for gain in (0.2, 3.0):
         y = finish(x, weight, gain)
         fixed = outline.apply(outline.fit(g, weight), x, y.copy()).astype(np.float32)
-        lo = np.minimum(x, y.astype(np.float32)) - 1e-3
-        hi = np.maximum(x, y.astype(np.float32)) + 1e-3
+        full = gain * x
+        lo = np.minimum(x, full) - 1e-3
+        hi = np.maximum(x, full) + 1e-3
         assert np.all((fixed >= lo) & (fixed <= hi))
+        faint = up < outline.UP_FLOOR
+        yf = y.astype(np.float32)
+        assert np.all(np.abs(fixed - x)[:, faint] <= np.abs(yf - x)[:, faint] + 1e-3)
+
+
+def test_an_ear_in_the_fade_takes_more_of_the_subject_s_change():
+    """A skin-coloured strip six pixels wide beside the disc (an ear against a screen): the
+    matte holds it, but the weight's fade (the matte's core, soft_weight) reaches only part of
+    it, so enlarged it kept much of the footage's light beside a subject the new light leaves
+    dark. Refitted to colour it takes more of the subject's change, while the screen beside it
+    keeps the footage."""
+    h, w, k = 160, 200, 5
+    x, cover = scene(h, w, 45.0, seed=2)
+    ear = np.zeros((h, w), bool)
+    ear[60:100, 145:151] = True  # the disc reaches x = 145 at its equator
+    rng = np.random.default_rng(4)
+    skin = SKIN[:, None] * (1 + 0.08 * rng.standard_normal((1, int(ear.sum())))).astype(np.float32)
+    x[:, ear] = skin
+    cover = np.maximum(cover, ear.astype(np.float32))
+    g = grid_of(x, k)
+    weight = soft_weight(grid_of(cover[None], k)[0], 1.2)
+    gain = 0.2  # a key lamp from the other side leaves the subject dark
+    y = finish(x, weight, gain).astype(np.float32)
+    fixed = outline.apply(outline.fit(g, weight), x, y.astype(np.float16)).astype(np.float32)
+
+    def change(img, where):  # share of the full change, 1 - img / x, over ``where``
+        return float((1.0 - img[:, where] / x[:, where]).mean() / (1.0 - gain))
+
+    before, after = change(y, ear), change(fixed, ear)
+    assert before < 0.45, before  # enlarged, the fade left the ear more than half lit
+    assert after > before + 0.1, (before, after)
+    screen = (cover == 0.0) & ~_near(ear, 2)
+    assert change(fixed, screen) <= change(y, screen) + 1e-4
+    assert change(fixed, screen) < 2e-3
+
+
+def _near(mask: np.ndarray, r: int) -> np.ndarray:
+    out = mask.copy()
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            out |= np.roll(np.roll(mask, dy, 0), dx, 1)
+    return out
 
 
 def test_half_mixing_graph_matches_numpy():
