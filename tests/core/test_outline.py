@@ -184,17 +184,9 @@ def test_an_ear_in_the_fade_takes_more_of_the_subject_s_change():
     before, after = change(y, ear), change(fixed, ear)
     assert before < 0.45, before  # enlarged, the fade left the ear more than half lit
     assert after > before + 0.1, (before, after)
-    screen = (cover == 0.0) & ~_near(ear, 2)
+    screen = (cover == 0.0) & ~outline._dilate(ear, 2)
     assert change(fixed, screen) <= change(y, screen) + 1e-4
     assert change(fixed, screen) < 2e-3
-
-
-def _near(mask: np.ndarray, r: int) -> np.ndarray:
-    out = mask.copy()
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            out |= np.roll(np.roll(mask, dy, 0), dx, 1)
-    return out
 
 
 def test_half_mixing_graph_matches_numpy():
