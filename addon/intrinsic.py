@@ -565,8 +565,7 @@ def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
     if area < 16:
         return irr
     sk = skin > 0
-    rows, cols = np.nonzero(sk)
-    bounds = (rows.min(), rows.max() + 1, cols.min(), cols.max() + 1)
+    bounds = skin_bounds(sk)
     out = _diffuse(irr, skin, bounds, alphas, sigmas_cm, math.sqrt(area) / SSS_FACE_CM)
     if irr.shape[0] != 3:
         return out
@@ -584,10 +583,16 @@ def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
                     hue * (y_out / np.maximum(y_hue, 1e-12))[None]).astype(irr.dtype)
 
 
+def skin_bounds(sk: np.ndarray) -> tuple[int, int, int, int]:
+    """The bounding box of ``sk`` (h, w) bool, not empty: (row start, row end, column start,
+    column end), ends exclusive."""
+    rows, cols = np.nonzero(sk)
+    return int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
+
+
 def _diffuse(irr: np.ndarray, skin: np.ndarray, bounds, alphas, sigmas_cm,
              px_per_cm: float) -> np.ndarray:
-    """subsurface's diffusion at one scale; ``bounds``: the skin's bounding box (row start,
-    row end, column start, column end)."""
+    """subsurface's diffusion at one scale; ``bounds``: the skin's bounding box (skin_bounds)."""
     sigmas = [c * px_per_cm for c in sigmas_cm]
     # Only the skin's bounding box changes: work there (a wide frame's grid is mostly not skin).
     r = blur_radius(max(sigmas))
