@@ -10,7 +10,10 @@ own edges are; each pixel of the fade takes the share of the change its colour s
 Mostly that takes change away (the background beside the outline); it also gives it back where
 the fade, a working pixel or two wide when enlarged, lay over something thin the subject holds
 (an ear against a screen, lit as the footage was beside a cheek the key lamp left dark), though
-never where the enlarged weight was below UP_FLOOR, nor beyond the subject's own full change. A
+never where the enlarged weight was below UP_FLOOR, nor beyond the subject's own full change.
+How much it gives back comes from the subject's own matte refitted the same way: the weight is
+the matte's core, so its refit reads skin at the outline as partly background, and a jaw against
+a screen kept a lit line beside a cheek the lamp left dark. A
 run that writes a matte strip refits the matte the same way (``refine_matte``), so the strip
 follows the footage's edges too.
 
@@ -35,16 +38,24 @@ FLOOR = 1e-3   # below this enlarged weight the change is nil and nothing is cor
 # least this: within the fade's reach, so it never draws change far out onto the background, and
 # the full change it scales up to (the relit value over the weight) stays well conditioned.
 UP_FLOOR = 0.15
+# Where the subject's own matte is fitted too (fit's ``subject``), a fade pixel takes the change
+# as much as its colour surely says subject: the matte's refit faded in over SURE (smoothstep),
+# never beyond the network's matte there. Below SURE[0] (a colour the subject shares with the
+# background: auburn hair against a pink wall) it adds nothing: given back linearly, such pixels
+# darkened the wall beside the hair (dev footage, outline's darkest tenth 0.91 -> 0.88).
+SURE = (0.5, 0.9)
 
 
 @dataclass
 class Fit:
     """The fade's weight refitted to colour, on the grid: at each sample w ~ alpha . x / level
-    + beta (outside the fade alpha = 0 and beta = the weight itself)."""
-    coef: np.ndarray     # (4, gh, gw) float32: alpha (3) and beta
+    + beta (outside the fade alpha = 0 and beta = the weight itself); the subject's matte the
+    same way where it was given."""
+    coef: np.ndarray     # (4, gh, gw) float32: alpha (3) and beta; (8, ...): the matte's after
     weight: np.ndarray   # (gh, gw) float32 in [0, 1]: what was fitted (a weight, a matte)
     cells: np.ndarray    # (gh, gw) bool: grid cells whose bilinear corners meet the fade
     level: float         # the guide's normalisation, in the units of the footage
+    subject: np.ndarray | None = None  # (gh, gw) the subject's matte, where it was given
 
 
 def _window(shape, flat: np.ndarray, r: int) -> np.ndarray:
@@ -86,10 +97,12 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
 
 
 def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float = EPS,
-        tol: float = 0.0) -> Fit | None:
+        tol: float = 0.0, subject: np.ndarray | None = None) -> Fit | None:
     """The colour guided filter of ``weight`` (gh, gw) in [0, 1] against ``grid`` (3, gh, gw),
     the footage on the grid, on the fade (tol < weight < 1 - tol) only; None when there is no
-    fade."""
+    fade. ``subject`` (gh, gw): the subject's own matte, of which the weight is the core; its
+    filter over the same windows says how much of the subject a fade pixel's colour is (the
+    share the refit gives back, ``shares``)."""
     weight = np.clip(np.asarray(weight, np.float32), 0.0, 1.0)
     fade = (weight > tol) & (weight < 1.0 - tol)
     if not fade.any():
@@ -103,29 +116,31 @@ def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float =
     level = float(np.percentile(g[:, win.shape[0] // 2].mean(0), LEVEL))
     level = level if level > 1e-12 else 1.0
     g *= np.float32(1.0 / level)
-    p = weight.reshape(-1)[win]  # (K, N)
-    mg, mp = g.sum(1) * k, p.sum(0) * k
-    cov = (g * p[None]).sum(1) * k - mg * mp
+    mg = g.sum(1) * k
     pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
     sigma = np.stack([(g[i] * g[j]).sum(0) * k - mg[i] * mg[j] + (eps if i == j else 0.0)
                       for i, j in pairs]).astype(np.float32)
-    alpha = _solve3(sigma, cov)  # (3, N)
-    beta = mp - (alpha * mg).sum(0)
-    coef = np.zeros((4, h * w), np.float32)
-    coef[3] = weight.reshape(-1)
-    coef[:3, src], coef[3, src] = alpha, beta
+    targets = [weight] if subject is None else [
+        weight, np.clip(np.asarray(subject, np.float32), 0.0, 1.0)]
+    coef = np.zeros((4 * len(targets), h * w), np.float32)
+    for t, target in enumerate(targets):
+        p = target.reshape(-1)[win]  # (K, N)
+        mp = p.sum(0) * k
+        alpha = _solve3(sigma, (g * p[None]).sum(1) * k - mg * mp)  # (3, N)
+        coef[4 * t:4 * t + 3, src], coef[4 * t + 3, src] = alpha, mp - (alpha * mg).sum(0)
     # The filter's second step: the coefficients averaged over each fade sample's window.
     dst = np.flatnonzero(fade)
-    mean = coef[:, _window((h, w), dst, radius)].sum(1) * k
-    out = np.zeros((4, h * w), np.float32)
-    out[3] = weight.reshape(-1)
-    out[:, dst] = mean
+    out = np.zeros_like(coef)
+    for t, target in enumerate(targets):
+        out[4 * t + 3] = target.reshape(-1)
+    out[:, dst] = coef[:, _window((h, w), dst, radius)].sum(1) * k
     # Cells (top-left corners of a bilinear stencil) whose four corners meet the fade.
     cells = fade.copy()
     cells[:-1] |= fade[1:]
     cells[:, :-1] |= fade[:, 1:]
     cells[:-1, :-1] |= fade[1:, 1:]
-    return Fit(out.reshape(4, h, w), weight, cells, level)
+    return Fit(out.reshape(-1, h, w), weight, cells, level,
+               None if subject is None else targets[1])
 
 
 def _axis(n: int, big: int):
@@ -158,26 +173,30 @@ def pixels(f: Fit, height: int, width: int):
 
 def _at_pixels(f: Fit, x_full: np.ndarray, height: int, width: int):
     """At the fit's full-resolution pixels (``pixels``): their flat indices, (5, P) alpha (3),
-    beta and the enlarged weight there (bilinear, as the finish enlarges), and (3, P) x_full."""
+    beta and the enlarged weight there (bilinear, as the finish enlarges), then the subject's
+    matte's alpha (3) and beta where the fit has them ((9, P)), and (3, P) x_full."""
     pix, n, ty, tx = pixels(f, height, width)
     h, w = f.weight.shape
     # Each cell's stencil as a bilinear polynomial in the pixel's (tx, ty), per channel (alpha 3,
     # beta, the weight): c00 + tx d1 + ty (d2 + tx d3).
     cy, cx = np.nonzero(f.cells)
     cy1, cx1 = np.minimum(cy + 1, h - 1), np.minimum(cx + 1, w - 1)
-    stack = np.concatenate([f.coef, f.weight[None]], 0).reshape(5, -1)
+    extra = [] if f.subject is None else [f.coef[4:], f.subject[None]]
+    stack = np.concatenate([f.coef[:4], f.weight[None]] + extra, 0)
+    c = stack.shape[0]
+    stack = stack.reshape(c, -1)
     c00, c01 = np.take(stack, cy * w + cx, axis=1), np.take(stack, cy * w + cx1, axis=1)
     c10, c11 = np.take(stack, cy1 * w + cx, axis=1), np.take(stack, cy1 * w + cx1, axis=1)
-    poly = np.concatenate([c00, c01 - c00, c10 - c00, c11 - c10 - c01 + c00], 0)  # (20, K)
-    e = np.repeat(poly, n, axis=1)  # (20, P): the pixels come cell after cell
-    e[5:10] *= tx
-    e[0:5] += e[5:10]
-    e[15:20] *= tx
-    e[10:15] += e[15:20]
-    e[10:15] *= ty
-    e[0:5] += e[10:15]
+    poly = np.concatenate([c00, c01 - c00, c10 - c00, c11 - c10 - c01 + c00], 0)  # (4c, K)
+    e = np.repeat(poly, n, axis=1)  # (4c, P): the pixels come cell after cell
+    e[c:2 * c] *= tx
+    e[0:c] += e[c:2 * c]
+    e[3 * c:] *= tx
+    e[2 * c:3 * c] += e[3 * c:]
+    e[2 * c:3 * c] *= ty
+    e[0:c] += e[2 * c:3 * c]
     x = np.take(np.asarray(x_full, np.float32).reshape(3, -1), pix, axis=1)
-    return pix, e[:5], x
+    return pix, e[:c], x
 
 
 def _refit(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
@@ -187,11 +206,16 @@ def _refit(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
 def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
     """(P,) the share of its enlarged change each fade pixel keeps (1: as it was): the refitted
     weight over the enlarged one, clipped to [0, 1] as a weight, and not raised where the enlarged
-    weight is below UP_FLOOR (``e``, ``x``: _at_pixels')."""
+    weight is below UP_FLOOR; where the fit has the subject's matte, a pixel at least UP_FLOOR
+    in takes the larger of the two refits (``e``, ``x``: _at_pixels')."""
     refit = np.clip(_refit(e, x, level), 0.0, 1.0)
     w = np.maximum(e[4], FLOOR)
-    share = refit / w
-    return np.where(e[4] >= UP_FLOOR, share, np.minimum(share, 1.0)).astype(np.float32)
+    if len(e) >= 10:
+        sure = np.clip((_refit(e[5:], x, level) - SURE[0]) / (SURE[1] - SURE[0]), 0.0, 1.0)
+        up = np.maximum(refit, np.minimum(sure * sure * (3.0 - 2.0 * sure), e[9]))
+    else:
+        up = refit
+    return np.where(e[4] >= UP_FLOOR, up / w, np.minimum(refit / w, 1.0)).astype(np.float32)
 
 
 def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,

@@ -359,5 +359,5 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     matte = np.clip(mix[7], 0.0, 1.0)  # the portrait's matte, for the matte strip
     return FrameResult(np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32),
                        np.ascontiguousarray(matte, np.float32), True, plan, lum_in, lum_out,
-                       unit, outline.fit(grid, mix[6]) if outline_fit else None,
+                       unit, outline.fit(grid, mix[6], subject=mix[7]) if outline_fit else None,
                        outline.fit(grid, matte, tol=outline.MATTE_TOL) if matte_fit else None)

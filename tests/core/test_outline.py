@@ -80,24 +80,32 @@ def test_the_screen_beside_the_subject_keeps_the_footage():
     assert kept > 0.9, kept  # the subject's own pixels keep (nearly all) their change
 
 
-@pytest.mark.parametrize("shape,grid,scale", [((101, 137), (23, 31), 1.0),
-                                               ((120, 160), (24, 32), 2.5)])
-def test_sparse_correction_equals_the_dense_one(shape, grid, scale):
+@pytest.mark.parametrize("shape,grid,scale,with_matte", [((101, 137), (23, 31), 1.0, False),
+                                                          ((120, 160), (24, 32), 2.5, False),
+                                                          ((101, 137), (23, 31), 1.0, True)])
+def test_sparse_correction_equals_the_dense_one(shape, grid, scale, with_matte):
     """apply touches only the fade's pixels; the result equals the same correction computed on
     every pixel from the fit enlarged with detail.enlarge_planar (bilinear taps as the finish's),
-    including on grids that do not divide the frame, and for footage ``scale`` times x_full (the
-    pipeline's normalisation: the unchanged frame is scale * x_full)."""
+    including on grids that do not divide the frame, for footage ``scale`` times x_full (the
+    pipeline's normalisation: the unchanged frame is scale * x_full), and with the subject's
+    matte fitted too."""
     h, w = shape
     x, cover = scene(h, w, 0.3 * min(h, w), seed=3)
     g = detail.resize(x.transpose(1, 2, 0), *grid).transpose(2, 0, 1).astype(np.float32)
     cg = detail.resize(cover[..., None], *grid)[..., 0]
     weight = soft_weight(cg, 1.0)
     y = (finish(x, weight, 0.4).astype(np.float32) * scale).astype(np.float16)
-    fit = outline.fit(g, weight)
+    fit = outline.fit(g, weight, subject=cg if with_matte else None)
     sparse = outline.apply(fit, x, y.copy(), scale=scale).astype(np.float32)
-    up = detail.enlarge_planar(np.concatenate([fit.coef, fit.weight[None]], 0), h, w)
+    extra = [fit.coef[4:], fit.subject[None]] if with_matte else []
+    up = detail.enlarge_planar(np.concatenate([fit.coef[:4], fit.weight[None]] + extra, 0), h, w)
     refit = np.clip((up[:3] * x).sum(0) / fit.level + up[3], 0.0, 1.0)
-    share = refit / np.maximum(up[4], outline.FLOOR)
+    given = refit
+    if with_matte:
+        lo, hi = outline.SURE
+        sure = np.clip(((up[5:8] * x).sum(0) / fit.level + up[8] - lo) / (hi - lo), 0.0, 1.0)
+        given = np.maximum(refit, np.minimum(sure * sure * (3.0 - 2.0 * sure), up[9]))
+    share = np.where(up[4] >= outline.UP_FLOOR, given, refit) / np.maximum(up[4], outline.FLOOR)
     share = np.where(up[4] >= outline.UP_FLOOR, share, np.minimum(share, 1.0))
     share = np.where((up[4] > outline.FLOOR) & (up[4] < 1.0), share, 1.0)
     yf = y.astype(np.float32)
@@ -187,6 +195,71 @@ def test_an_ear_in_the_fade_takes_more_of_the_subject_s_change():
     screen = (cover == 0.0) & ~outline._dilate(ear, 2)
     assert change(fixed, screen) <= change(y, screen) + 1e-4
     assert change(fixed, screen) < 2e-3
+
+
+def test_skin_at_the_outline_takes_the_change_its_matte_says():
+    """With the subject's own matte fitted too, a fade pixel whose colour surely says subject
+    takes the subject's full change where the weight's core under-reads it (the ear of the test
+    above, and the disc's own rim, which enlarged kept part of the footage's light), while the
+    screen still keeps the footage."""
+    h, w, k = 160, 200, 5
+    x, cover = scene(h, w, 45.0, seed=2)
+    ear = np.zeros((h, w), bool)
+    ear[60:100, 145:151] = True
+    rng = np.random.default_rng(4)
+    skin = SKIN[:, None] * (1 + 0.08 * rng.standard_normal((1, int(ear.sum())))).astype(np.float32)
+    x[:, ear] = skin
+    cover = np.maximum(cover, ear.astype(np.float32))
+    g = grid_of(x, k)
+    matte = grid_of(cover[None], k)[0]
+    weight = soft_weight(matte, 1.2)
+    gain = 0.2
+    y = finish(x, weight, gain)
+
+    def change(img, where):
+        img = img.astype(np.float32)
+        return float((1.0 - img[:, where] / x[:, where]).mean() / (1.0 - gain))
+
+    core = outline.apply(outline.fit(g, weight), x, y.copy())
+    both = outline.apply(outline.fit(g, weight, subject=matte), x, y.copy())
+    assert change(both, ear) > max(change(core, ear) + 0.1, 0.65), (
+        change(core, ear), change(both, ear))
+    rim = (cover == 1.0) & ~ear & (np.abs(y.astype(np.float32) / x - gain).max(0) > 0.01)
+    assert rim.sum() > 500
+    assert change(both, rim) > 0.9 > change(core, rim), (change(core, rim), change(both, rim))
+    screen = (cover == 0.0) & ~outline._dilate(ear, 2)
+    assert change(both, screen) < 2e-3
+
+
+def test_a_wall_of_the_subject_s_colour_is_given_no_change():
+    """Where the background's colour is nearly the subject's (auburn hair against a pink wall)
+    the matte's refit is unsure (well below SURE's upper end) and gives back nothing: the wall
+    beside the subject takes no more change than the weight's refit alone leaves it; given back
+    as the refit reads it (SURE (0, 1)), it would take more."""
+    h, w, k = 160, 200, 5
+    x, cover = scene(h, w, 45.0, seed=6)
+    rng = np.random.default_rng(6)
+    wall = np.array([0.50, 0.33, 0.28], np.float32)[:, None, None] * (
+        1 + 0.08 * rng.standard_normal((1, h, w))).astype(np.float32)
+    x = (cover * x + (1 - cover) * wall).astype(np.float32)
+    g = grid_of(x, k)
+    matte = grid_of(cover[None], k)[0]
+    weight = soft_weight(matte, 1.2)
+    near = (cover == 0.0) & (detail.enlarge_planar(weight[None], h, w)[0] >= outline.UP_FLOOR)
+    assert near.sum() > 200
+    for gain in (0.2, 3.0):
+        y = finish(x, weight, gain)
+
+        def change(f):
+            img = outline.apply(f, x, y.copy()).astype(np.float32)
+            return float(np.abs(img[:, near] - x[:, near]).mean())
+
+        core, both = change(outline.fit(g, weight)), change(outline.fit(g, weight, subject=matte))
+        assert both <= core + 1e-6, (gain, core, both)
+        linear = pytest.MonkeyPatch.context()
+        with linear as mp:
+            mp.setattr(outline, "SURE", (0.0, 1.0))
+            assert change(outline.fit(g, weight, subject=matte)) > core + 1e-6
 
 
 def test_half_mixing_graph_matches_numpy():
