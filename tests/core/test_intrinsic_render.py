@@ -315,7 +315,7 @@ def test_a_bump_shadows_the_side_away_from_the_light():
 
 
 def test_a_cast_shadow_has_a_penumbra_in_the_relit_frame():
-    """The march decides whole pixels; the shading softens its edge over SHADOW_PENUMBRA: across
+    """The march decides whole pixels; the shading softens its edge (penumbra): across
     the bump's shadow the ratio falls over several pixels, no step between neighbours taking
     more than half of the way (and the umbra stays dark)."""
     normal = np.zeros((3, S, S), np.float32)
@@ -330,6 +330,28 @@ def test_a_cast_shadow_has_a_penumbra_in_the_relit_frame():
     span = float(row.max() - row.min())
     assert span > 0.5 * float(row.max())  # there is a shadow
     assert float(np.abs(np.diff(row)).max()) < 0.5 * span
+
+
+def test_a_shadow_s_edge_softens_with_the_distance_to_its_occluder():
+    """A light of some size draws a shadow sharp beside its occluder and softer further away:
+    ``shadow`` reports how far each shadowed pixel's occluder lies (the same visibility as
+    without it), and ``penumbra`` widens the edge with that distance (the bump's shadow's upper
+    edge spans more rows 21 pixels from the bump than beside it), leaving a frame without
+    shadow as it was."""
+    ones = np.ones((S, S), np.float32)
+    vis, dist = intrinsic.shadow(bump_field(), ones, RAKING_RIGHT, distance=True)
+    assert np.array_equal(vis, intrinsic.shadow(bump_field(), ones, RAKING_RIGHT))
+    assert np.all(dist[vis == 1.0] == 0.0)
+    assert dist[32, 5] > dist[32, 25] > 0.0
+    soft = intrinsic.penumbra(vis, dist)
+
+    def edge_rows(col):  # rows of the shadow's upper edge part way between lit and dark
+        c = soft[10:32, col]
+        return int(((c > 0.1) & (c < 0.9)).sum())
+
+    assert edge_rows(5) >= edge_rows(26) + 3, (edge_rows(5), edge_rows(26))
+    assert soft[32, 20] < 0.5  # the umbra stays dark
+    assert np.all(intrinsic.penumbra(ones, np.zeros_like(ones)) == 1.0)
 
 
 def test_a_light_from_above_shadows_below():
