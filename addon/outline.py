@@ -173,8 +173,9 @@ def pixels(f: Fit, height: int, width: int):
 
 def _at_pixels(f: Fit, x_full: np.ndarray, height: int, width: int):
     """At the fit's full-resolution pixels (``pixels``): their flat indices, (5, P) alpha (3),
-    beta and the enlarged weight there (bilinear, as the finish enlarges), then the subject's
-    matte's alpha (3) and beta where the fit has them ((9, P)), and (3, P) x_full."""
+    beta and the enlarged weight there (bilinear, as the finish enlarges), followed where the
+    fit has the subject's matte by its alpha (3), beta and the enlarged matte ((10, P) in all),
+    and (3, P) x_full."""
     pix, n, ty, tx = pixels(f, height, width)
     h, w = f.weight.shape
     # Each cell's stencil as a bilinear polynomial in the pixel's (tx, ty), per channel (alpha 3,
@@ -207,7 +208,8 @@ def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
     """(P,) the share of its enlarged change each fade pixel keeps (1: as it was): the refitted
     weight over the enlarged one, clipped to [0, 1] as a weight, and not raised where the enlarged
     weight is below UP_FLOOR; where the fit has the subject's matte, a pixel at least UP_FLOOR
-    in takes the larger of the two refits (``e``, ``x``: _at_pixels')."""
+    in takes the larger of the weight's refit and the matte's, the latter faded in over SURE and
+    at most the enlarged matte (``e``, ``x``: _at_pixels')."""
     refit = np.clip(_refit(e, x, level), 0.0, 1.0)
     w = np.maximum(e[4], FLOOR)
     if len(e) >= 10:
