@@ -630,9 +630,8 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
     dx, dy, dz = (float(v) for v in direction)
     lat = math.hypot(dx, dy)
     vis = np.ones((h, w), np.float32)
-    dist = np.zeros((h, w), np.float32)
     if lat < 1e-3:  # light along the view axis: its shadows hide behind the subject
-        return (vis, dist) if distance else vis
+        return (vis, np.zeros_like(vis)) if distance else vis
     ux, uy = dx / lat, -dy / lat         # image x right, image y down
     rise = dz / lat                       # height gained per pixel travelled toward the light
     # Heights on a canvas padded past the march's reach: the pad (and everything off the
@@ -660,6 +659,7 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
     vis[yy, xx] = 1.0 - np.clip(occl / np.float32(SHADOW_SOFTNESS), 0.0, 1.0)
     if not distance:
         return vis
+    dist = np.zeros_like(vis)
     dist[yy, xx] = at
     return vis, dist
 
@@ -676,7 +676,10 @@ def penumbra(vis: np.ndarray, dist: np.ndarray) -> np.ndarray:
     num, den = gaussian_blur(np.stack([dist * dark, dark]), PENUMBRA_REACH)
     lo, per, hi = PENUMBRA
     sigma = np.clip(lo + per * num / np.maximum(den, 1e-6), lo, hi)
-    levels = PENUMBRA_LEVELS
+    # Only the levels the widest sigma reaches: a pair's upper blur counts above its lower sigma.
+    widest = float(sigma.max())
+    levels = PENUMBRA_LEVELS[:1 + next((i for i, s in enumerate(PENUMBRA_LEVELS) if s >= widest),
+                                       len(PENUMBRA_LEVELS) - 1)]
     blurred = [gaussian_blur(vis, s) for s in levels]
     out = blurred[0]
     for a, b, sa, sb in zip(blurred[:-1], blurred[1:], levels[:-1], levels[1:]):

@@ -662,8 +662,8 @@ def test_diffusion_colour_at_its_own_scale_keeps_the_luminance():
     irr = np.repeat(0.2 + 2.0 * (xx < 32).astype(np.float32)[None], 3, 0)  # a terminator
     out = intrinsic.subsurface(irr, skin)
     px = np.sqrt(skin.sum())
-    wide = intrinsic._diffuse(irr, skin, intrinsic.skin_bounds(skin > 0), intrinsic.SSS_ALPHA, intrinsic.SSS_SIGMA_CM,
-                              px / intrinsic.SSS_FACE_CM)
+    wide = intrinsic._diffuse(irr, skin, intrinsic.skin_bounds(skin > 0), intrinsic.SSS_ALPHA,
+                              intrinsic.SSS_SIGMA_CM, px / intrinsic.SSS_FACE_CM)
     np.testing.assert_allclose(intrinsic.luminance(out), intrinsic.luminance(wide), atol=1e-5)
     dark = (skin > 0) & (xx >= 33) & (xx < 38)  # just past the terminator
     warm = lambda x: np.log(x[0][dark] / x[2][dark]).mean()  # noqa: E731
