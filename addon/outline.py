@@ -40,10 +40,15 @@ FLOOR = 1e-3   # below this enlarged weight the change is nil and nothing is cor
 UP_FLOOR = 0.15
 # Where the subject's own matte is fitted too (fit's ``subject``), a fade pixel takes the change
 # as much as its colour surely says subject: the matte's refit faded in over SURE (smoothstep),
-# never beyond the network's matte there. Below SURE[0] (a colour the subject shares with the
+# never beyond the network's matte there (MATTE_WHOLE). Below SURE[0] (a colour the subject shares with the
 # background: auburn hair against a pink wall) it adds nothing: given back linearly, such pixels
 # darkened the wall beside the hair (dev footage, outline's darkest tenth 0.91 -> 0.88).
 SURE = (0.5, 0.9)
+# ... and at most the network's matte over this: whole where that matte, a sigmoid, says the
+# subject at least half (where it draws the outline). Held to the matte itself, skin at the
+# outline kept the footage's light in proportion to the matte's fade, a working pixel or two
+# wide: a lit line along a jaw and a shoulder on the side a key lamp left dark (dev footage).
+MATTE_WHOLE = 0.5
 
 
 @dataclass
@@ -209,12 +214,13 @@ def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
     weight over the enlarged one, clipped to [0, 1] as a weight, and not raised where the enlarged
     weight is below UP_FLOOR; where the fit has the subject's matte, a pixel at least UP_FLOOR
     in takes the larger of the weight's refit and the matte's, the latter faded in over SURE and
-    at most the enlarged matte (``e``, ``x``: _at_pixels')."""
+    at most the enlarged matte over MATTE_WHOLE (``e``, ``x``: _at_pixels')."""
     refit = np.clip(_refit(e, x, level), 0.0, 1.0)
     w = np.maximum(e[4], FLOOR)
     if len(e) >= 10:
         sure = np.clip((_refit(e[5:], x, level) - SURE[0]) / (SURE[1] - SURE[0]), 0.0, 1.0)
-        up = np.maximum(refit, np.minimum(sure * sure * (3.0 - 2.0 * sure), e[9]))
+        cap = np.minimum(e[9] * np.float32(1.0 / MATTE_WHOLE), 1.0)
+        up = np.maximum(refit, np.minimum(sure * sure * (3.0 - 2.0 * sure), cap))
     else:
         up = refit
     return np.where(e[4] >= UP_FLOOR, up / w, np.minimum(refit / w, 1.0)).astype(np.float32)
