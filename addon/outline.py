@@ -39,10 +39,10 @@ FLOOR = 1e-3   # below this enlarged weight the change is nil and nothing is cor
 # the full change it scales up to (the relit value over the weight) stays well conditioned.
 UP_FLOOR = 0.15
 # Where the subject's own matte is fitted too (fit's ``subject``), a fade pixel takes the change
-# as much as its colour surely says subject: the matte's refit faded in over SURE (smoothstep),
-# never beyond the network's matte there (MATTE_WHOLE). Below SURE[0] (a colour the subject shares with the
-# background: auburn hair against a pink wall) it adds nothing: given back linearly, such pixels
-# darkened the wall beside the hair (dev footage, outline's darkest tenth 0.91 -> 0.88).
+# as much as its colour surely says subject: the matte's refit faded in over SURE (smoothstep).
+# Below SURE[0] (a colour the subject shares with the background: auburn hair against a pink
+# wall) it adds nothing: given back linearly, such pixels darkened the wall beside the hair (dev
+# footage, outline's darkest tenth 0.91 -> 0.88).
 SURE = (0.5, 0.9)
 # ... and at most the network's matte over this: whole where that matte, a sigmoid, says the
 # subject at least half (where it draws the outline). Held to the matte itself, skin at the
