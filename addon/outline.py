@@ -13,9 +13,8 @@ the fade, a working pixel or two wide when enlarged, lay over something thin the
 never where the enlarged weight was below UP_FLOOR, nor beyond the subject's own full change.
 How much it gives back comes from the subject's own matte refitted the same way: the weight is
 the matte's core, so its refit reads skin at the outline as partly background, and a jaw against
-a screen kept a lit line beside a cheek the lamp left dark. A
-run that writes a matte strip refits the matte the same way (``refine_matte``), so the strip
-follows the footage's edges too.
+a screen kept a lit line beside a cheek the lamp left dark. A run that writes a matte strip
+refits the matte the same way (``refine_matte``), so the strip follows the footage's edges too.
 
 Only the fade is touched: the fit runs on the grid samples whose windows meet it, and the
 correction on the full-resolution pixels whose bilinear samples do (a few percent of a frame).

@@ -111,16 +111,17 @@ def darkened(src: np.ndarray, gt: np.ndarray, skin: np.ndarray) -> np.ndarray:
     return skin & (y_gt * gain < 0.5 * y_src)
 
 
-def warmth(out: np.ndarray, src: np.ndarray, where: np.ndarray) -> float | None:
-    """The median change of log(red / blue) from ``src`` to ``out`` over ``where``; None when
-    fewer than 20 pixels."""
+def log_rb(x: np.ndarray) -> np.ndarray:
+    """(h, w) log(red / blue) of a (3, h, w) image."""
+    return np.log(np.maximum(x[0], 1e-8) / np.maximum(x[2], 1e-8))
+
+
+def warmth(out: np.ndarray, src_rb: np.ndarray, where: np.ndarray) -> float | None:
+    """The median change of log(red / blue) from the source (``src_rb``: its log_rb) to ``out``
+    over ``where``; None when fewer than 20 pixels."""
     if where.sum() < 20:
         return None
-
-    def log_rb(x):
-        return np.log(np.maximum(x[0], 1e-8) / np.maximum(x[2], 1e-8))
-
-    return float(np.median((log_rb(out) - log_rb(src))[where]))
+    return float(np.median((log_rb(out) - src_rb)[where]))
 
 
 def run(n_frames: int, model=None) -> dict:
@@ -137,13 +138,14 @@ def run(n_frames: int, model=None) -> dict:
     for f in range(min(n_frames, ds.n)):
         a = ds.frame(f)
         src = render(a, source)
+        src_rb = log_rb(src)
         kinds = {"exact buffers": exact_buffers(a)}
         if session is not None:
             kinds["network buffers"] = predicted_buffers(session, src)
         for lname, light in lights.items():
             gt = render(a, light)
             dark = darkened(src, gt, a["mask"] & (kinds["exact buffers"].face > 0.5))
-            truth_warmth = warmth(gt, src, dark)
+            truth_warmth = warmth(gt, src_rb, dark)
             auto = intrinsic.plan(light)
             for kind, bufs in kinds.items():
                 for ename, flags in EFFECTS.items():
@@ -159,7 +161,7 @@ def run(n_frames: int, model=None) -> dict:
                     r["err"].append(error(out, gt, a["mask"]))
                     r["ms"].append(ms)
                     if truth_warmth is not None:
-                        r["warm"].append(warmth(out, src, dark))
+                        r["warm"].append(warmth(out, src_rb, dark))
                         r["warm_truth"].append(truth_warmth)
             r = rows.setdefault(("input (no relighting)", lname, "-"), {"err": [], "ms": [], "components": 0})
             r["err"].append(error(src, gt, a["mask"]))

@@ -629,25 +629,26 @@ def test_new_shadows_on_skin_are_as_warm_as_the_light_stage_s(frames, monkeypatc
     darkens, log(red / blue) changes from the source as in the light stage's render, within
     0.06 on average; with the diffusion's colour at its luminance's wider scale they turn warm
     (red-brown) by several times more."""
-    from bench.intrinsic_effects import (darkened, exact_buffers, lamp, render, source_light,
-                                         warmth)
+    from bench.intrinsic_effects import (darkened, exact_buffers, lamp, log_rb, render,
+                                         source_light, warmth)
 
     errors = {}
     for f in range(2):
         a = frames.frame(f)
         src = render(a, source_light())
+        src_rb = log_rb(src)
         bufs = exact_buffers(a)
         for d in ([-1, 0.3, 0.5], [1, 0.2, 0.6], [0, 1, 0.35]):
             light = lamp(d)
             gt = render(a, light)
             dark = darkened(src, gt, a["mask"] & (bufs.face > 0.5))
-            truth = warmth(gt, src, dark)
+            truth = warmth(gt, src_rb, dark)
             assert truth is not None
             for cm in (intrinsic.SSS_CHROMA_FACE_CM, intrinsic.SSS_FACE_CM):
                 monkeypatch.setattr(intrinsic, "SSS_CHROMA_FACE_CM", cm)
                 sh = intrinsic.shade(src, bufs, light)
                 relit = src * sh.ratio + sh.highlight
-                errors.setdefault(cm, []).append(abs(warmth(relit, src, dark) - truth))
+                errors.setdefault(cm, []).append(abs(warmth(relit, src_rb, dark) - truth))
             monkeypatch.undo()
     ours = np.mean(errors[intrinsic.SSS_CHROMA_FACE_CM])
     wide = np.mean(errors[intrinsic.SSS_FACE_CM])
