@@ -13,6 +13,10 @@ frames, each step replacing an estimate with the light stage's truth:
   the whole 128-pixel frame (the mean with the mirror image's, as the face crop takes them);
 * ``renderer, exact buffers``: the same renderer on the light stage's own normals, height,
   albedo, matte, face skin and light transport: what a perfect network would score;
+* ``renderer, network buffers (no framing), exact X``: the network's buffers with one of them
+  (normals, height, albedo, matte and face skin, transfer) the light stage's, over the subject
+  it renders (the matte and face skin whole): which buffer the gap between the two rows above
+  waits on, so training knows where its effort pays;
 * ``, the true source shading`` (and ``per channel``): either renderer given the light stage's
   own diffuse irradiance of the footage in place of its estimate from the footage
   (intrinsic.shade's ``source``; luminance, or with its colour): what the estimate costs. On
@@ -34,6 +38,7 @@ Writes ``bench/results/renderer_ceiling.{md,json}``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pathlib
 
 import numpy as np
@@ -53,9 +58,14 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # float16, as the intrinsic cache keeps it): largest difference over the picture's peak.
 MATCH = 2e-3
 TRUE_SOURCE = (", the true source shading", ", the true source shading per channel")
+NETWORK = "renderer, network buffers (no framing)"
+# The buffers made exact one at a time in the network's: Buffers fields each stands for.
+EXACT_ONE = {"normals": ("normal",), "height": ("height",), "albedo": ("albedo",),
+             "matte and face skin": ("matte", "face"), "transfer": ("transfer",)}
 STEPS = ("input unchanged", "the product",
          *(f"renderer, {b}{t}" for b in ("network buffers (no framing)", "exact buffers")
            for t in ("", *TRUE_SOURCE)),
+         *(f"{NETWORK}, exact {k}" for k in EXACT_ONE),
          "ratio of the true diffuse shading",
          "ratio of the true diffuse shading, per channel",
          "ratio of the true diffuse shading, per channel, specular exact")
@@ -70,6 +80,21 @@ def stage_parts(a: dict, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     h, wd = s.mask.shape
     spec = spec.view(3, h, wd) * (1.0 if s.cover is None else s.cover[None])
     return irr.view(3, h, wd).numpy(), spec.numpy()
+
+
+def with_exact(net: intrinsic.Buffers, exact: intrinsic.Buffers, fields,
+               cover: np.ndarray) -> intrinsic.Buffers:
+    """The network's buffers ``net`` with ``fields`` (Buffers field names) taken from the light
+    stage's ``exact``: the matte and face skin whole (the light stage says where the subject is
+    not, too), the others where the subject is (``cover`` > 0; beyond it the light stage has no
+    normals, height, albedo or transport, and the network's stay)."""
+    on = cover > 0
+    got = {}
+    for f in fields:
+        e, n = getattr(exact, f), getattr(net, f)
+        got[f] = e if f in ("matte", "face") or n is None else np.where(on, e, n).astype(
+            np.float32)
+    return dataclasses.replace(net, **got)
 
 
 def ladder(sample: dict, a: dict, product=None, session=None) -> dict:
@@ -91,13 +116,19 @@ def ladder(sample: dict, a: dict, product=None, session=None) -> dict:
                 (src - s_s) * per_channel + s_t}
     if product is not None:
         outs["the product"] = product(sample)[0]
-    kinds = {"renderer, exact buffers": exact_buffers(a)}
+    exact = exact_buffers(a)
+    kinds = {"renderer, exact buffers": exact}
     if session is not None:
-        kinds["renderer, network buffers (no framing)"] = predicted_buffers(session, src)
+        kinds[NETWORK] = net = predicted_buffers(session, src)
     for name, bufs in kinds.items():
         for suffix, source in (("", None), (TRUE_SOURCE[0], e_lum[0]), (TRUE_SOURCE[1], e_s)):
             sh = intrinsic.shade(src, bufs, light, source=source)
             outs[name + suffix] = src * sh.ratio + sh.highlight
+    if session is not None:
+        cover = np.asarray(a["cover"], np.float32)
+        for k, fields in EXACT_ONE.items():
+            sh = intrinsic.shade(src, with_exact(net, exact, fields, cover), light)
+            outs[f"{NETWORK}, exact {k}"] = src * sh.ratio + sh.highlight
     return {k: level_fit_rmse(v, gt, mask) for k, v in outs.items()}
 
 

@@ -598,6 +598,40 @@ def test_renderer_ceiling_ladder_rests_on_the_light_stages_own_terms(frames):
     assert got["renderer, exact buffers"] < 0.7 * got["input unchanged"]
 
 
+def test_renderer_ceiling_swaps_one_exact_buffer_in_where_the_light_stage_has_it():
+    """bench.renderer_ceiling.with_exact: the named buffer is the light stage's over its subject
+    and the network's beyond it (the matte and face skin the light stage's whole); every other
+    buffer stays the network's."""
+    from addon import intrinsic
+    from bench.renderer_ceiling import EXACT_ONE, with_exact
+
+    rng = np.random.default_rng(0)
+
+    def bufs(fill):
+        n = rng.normal(size=(3, 8, 8)).astype(np.float32)
+        return intrinsic.Buffers(n / np.linalg.norm(n, axis=0), np.full((8, 8), fill, np.float32),
+                                 np.full((3, 8, 8), fill, np.float32),
+                                 np.full((8, 8), fill, np.float32),
+                                 np.full((8, 8), fill, np.float32),
+                                 np.full((16, 8, 8), fill, np.float32))
+
+    net, exact = bufs(0.25), bufs(0.75)
+    cover = np.zeros((8, 8), np.float32)
+    cover[2:6, 1:5] = 0.5
+    on = cover > 0
+    for fields in EXACT_ONE.values():
+        got = with_exact(net, exact, fields, cover)
+        for f in ("normal", "height", "albedo", "matte", "face", "transfer"):
+            g, e, n = getattr(got, f), getattr(exact, f), getattr(net, f)
+            if f not in fields:
+                assert g is n
+            elif f in ("matte", "face"):
+                np.testing.assert_array_equal(g, e)
+            else:
+                np.testing.assert_array_equal(g[..., on], e[..., on])
+                np.testing.assert_array_equal(g[..., ~on], n[..., ~on])
+
+
 def test_batches_made_by_workers_are_the_batches_made_inline(frames, shared_data, tmp_path):
     """--workers: a step's batch is a pure function of (seed, step), so batches made ahead in
     worker processes (reading frames from the disk cache, not keeping them) are the inline ones,
