@@ -549,6 +549,48 @@ def test_up_weight_counts_the_up_down_error_more(frames):
             assert float(weighted) > 1.3 * float(plain)
 
 
+def test_albedo_weight_sets_the_albedo_terms_share_of_the_total(frames):
+    """--albedo-weight: the total changes by the albedo loss times the change of its weight;
+    the default is the weight the shipped network trained with."""
+    from training.intrinsic.model import ALBEDO_WEIGHT, losses
+
+    b = frames.batch(range(2))
+    t, fg = b["target"], b["fg"]
+    pred = (t[:, 0:3], t[:, 3:4], (t[:, 4:7] * 1.3).clamp(0, 1), t[:, 7:9], t[:, 9:25])
+    base, heavy = losses(pred, t, fg), losses(pred, t, fg, albedo_weight=2.0)
+    assert float(base["albedo"]) > 0.01
+    assert float(heavy["total"] - base["total"]) == pytest.approx(
+        (2.0 - ALBEDO_WEIGHT) * float(base["albedo"]), rel=1e-4)
+    assert float(losses(pred, t, fg, albedo_weight=ALBEDO_WEIGHT)["total"]) == pytest.approx(
+        float(base["total"]))
+
+
+def test_train_only_last_keeps_the_rest_of_the_network_as_it_was():
+    """--train-only last: a training step changes the full-resolution decoder block and the
+    head, and leaves every other weight and batch statistic as it was; "all" freezes nothing."""
+    from training.intrinsic.model import IntrinsicNet
+    from training.intrinsic.train import frozen_modules, training_mode
+
+    torch.manual_seed(0)
+    model = IntrinsicNet("small")
+    assert frozen_modules(IntrinsicNet("small"), "all") == []
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    frozen = frozen_modules(model, "last")
+    training_mode(model, frozen)
+    opt = torch.optim.SGD([p for p in model.parameters() if p.requires_grad], lr=0.1)
+    for _ in range(2):
+        out = model(torch.rand(2, 3, 32, 32))
+        loss = sum(o.float().square().mean() for o in out)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    changed = {k for k, v in model.state_dict().items()
+               if v.dtype.is_floating_point and not torch.equal(v, before[k])}
+    assert changed and all(k.startswith(("dec.0.", "head.")) for k in changed)
+    assert any(k.startswith("head.") for k in changed)
+    assert any(k.startswith("dec.0.") and "running_mean" in k for k in changed)
+
+
 def test_normals_by_light_scores_the_up_down_and_left_right_shape_apart(frames):
     """bench.normals_by_light's scores: the light stage's own normals score correlation 1 and no
     angle; noise on the up/down component (a network that cannot read that shape) lowers the

@@ -107,6 +107,7 @@ def load_weights(net: IntrinsicNet, state_dict: dict) -> None:
 
 
 TRANSFER_WEIGHT = 2.0  # the transfer's L1 (its coefficients are about 0.1-1) in the total
+ALBEDO_WEIGHT = 0.5    # the albedo's log L1 (up to a gain per channel) in the total
 GRADIENT_SCALES = (2, 4, 8)  # block sizes the normals are pooled over before their differences
 
 
@@ -136,7 +137,8 @@ def normal_gradient(normal: torch.Tensor, t_n: torch.Tensor, face: torch.Tensor)
 
 
 def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.0,
-           gradient_weight: float = 0.0, up_weight: float = 1.0) -> dict:
+           gradient_weight: float = 0.0, up_weight: float = 1.0,
+           albedo_weight: float = ALBEDO_WEIGHT) -> dict:
     """Per-buffer losses against the light stage's exact buffers (data.TARGETS order: normal 3,
     height 1, albedo 3, matte 1, face 1, transfer 16); ``fg`` (B, 1, H, W) where the subject's
     buffers exist.
@@ -145,7 +147,8 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
     normals' differences between neighbours on the face skin (normal_gradient) join the normal
     loss; ``up_weight``: the up/down component's absolute error counts this many times the
     others' (a face varies less up and down than across, so a flattened up/down shape costs
-    little in the angle, yet it sets the balance of a light from above or below)."""
+    little in the angle, yet it sets the balance of a light from above or below);
+    ``albedo_weight``: the albedo loss's weight in the total."""
     normal, height, albedo, parsing, *transfer = pred
     n = fg.sum((2, 3)).clamp(min=1.0)  # (B, 1)
 
@@ -178,7 +181,7 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
     l_face = tf.binary_cross_entropy(p[:, 1:2], t_f)
     l_transfer = (mean_fg((transfer[0] - target[:, 9:9 + TRANSFER_CHANNELS]).abs()).mean()
                   if transfer else normal.new_zeros(()))
-    total = (l_normal + l_height + 0.5 * l_albedo + 0.5 * l_matte + 0.5 * l_face
+    total = (l_normal + l_height + albedo_weight * l_albedo + 0.5 * l_matte + 0.5 * l_face
              + TRANSFER_WEIGHT * l_transfer)
     with torch.no_grad():
         ang = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))

@@ -32,7 +32,7 @@ import torch
 from addon import intrinsic as renderer
 
 from . import camera, data
-from .model import IntrinsicNet, load_weights, losses
+from .model import ALBEDO_WEIGHT, IntrinsicNet, load_weights, losses
 
 
 def normalise_batch(img: torch.Tensor) -> torch.Tensor:
@@ -184,6 +184,37 @@ class EMA:
                 self.shadow[k].copy_(v)
 
 
+# What --train-only leaves to train (module name prefixes): the rest keeps its weights and its
+# batch statistics. "last": the full-resolution decoder block and the output head, which see
+# only a few pixels around each one, so the network's reading of a face's large-scale shape
+# (its top/bottom balance on real faces) stays as it was.
+TRAIN_ONLY = {"all": None, "decoder": ("dec", "head"), "last": ("dec.0", "head")}
+
+
+def frozen_modules(model: torch.nn.Module, which: str) -> list:
+    """The leaf modules --train-only ``which`` keeps as they are, their parameters set not to
+    need gradients."""
+    keep = TRAIN_ONLY[which]
+    if keep is None:
+        return []
+    frozen = []
+    for name, m in model.named_modules():
+        if next(m.children(), None) is not None:
+            continue
+        if not any(name == p or name.startswith(p + ".") for p in keep):
+            m.requires_grad_(False)
+            frozen.append(m)
+    return frozen
+
+
+def training_mode(model: torch.nn.Module, frozen: list) -> None:
+    """The model in training mode, but the frozen modules in evaluation mode (a batch
+    normalisation keeps its running statistics)."""
+    model.train()
+    for m in frozen:
+        m.eval()
+
+
 @torch.no_grad()
 def validate(model: torch.nn.Module, val: dict, inputs: torch.Tensor) -> dict:
     model.eval()
@@ -234,7 +265,10 @@ def train(a) -> pathlib.Path:
     if a.init:
         load_weights(model, torch.load(a.init, map_location="cpu")["state_dict"])
     model.to(device)
-    opt = torch.optim.AdamW(model.parameters(), lr=a.lr, weight_decay=1e-4)
+    frozen = frozen_modules(model, a.train_only)
+    training_mode(model, frozen)
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=a.lr,
+                            weight_decay=1e-4)
     ema = EMA(model, a.ema)
     feed = batches(ds, a)
     t0 = time.time()
@@ -251,7 +285,8 @@ def train(a) -> pathlib.Path:
         inp, target, fg = (t.to(device, non_blocking=True) for t in next(feed))
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=a.bf16):
             pred = model(inp)
-        ls = losses(pred, target, fg, a.face_weight, a.gradient_weight, a.up_weight)
+        ls = losses(pred, target, fg, a.face_weight, a.gradient_weight, a.up_weight,
+                    a.albedo_weight)
         opt.zero_grad(set_to_none=True)
         ls["total"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
@@ -265,6 +300,7 @@ def train(a) -> pathlib.Path:
             live = {k: v.clone() for k, v in model.state_dict().items()}
             model.load_state_dict(ema.shadow)
             v = validate(model, val, val_in)
+            training_mode(model, frozen)
             score = v["normal_deg"] + 10 * v["albedo"] + 10 * v["height"] + 10 * v["transfer"]
             log.append({"step": step, "seconds": round(time.time() - t0), **v, "score": score})
             print("val", json.dumps(log[-1]), flush=True)
@@ -317,6 +353,10 @@ def parser() -> argparse.ArgumentParser:
                     "that are one near-white lamp from the front (data.studio_lamp)")
     ap.add_argument("--up-weight", type=float, default=1.0, help="the normals' up/down "
                     "component's error counts this many times the others' (model.losses)")
+    ap.add_argument("--albedo-weight", type=float, default=ALBEDO_WEIGHT, help="the albedo "
+                    "loss's weight in the total (model.losses)")
+    ap.add_argument("--train-only", default="all", choices=sorted(TRAIN_ONLY), help="train "
+                    "only these layers (TRAIN_ONLY), the rest kept as --init has them")
     ap.add_argument("--start-step", type=int, default=0, help="batch index to start at (a "
                     "continued run sees new samples)")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false")
