@@ -63,8 +63,7 @@ NETWORK = "renderer, network buffers (no framing)"
 EXACT_ONE = {"normals": ("normal",), "height": ("height",), "albedo": ("albedo",),
              "matte and face skin": ("matte", "face"), "transfer": ("transfer",)}
 STEPS = ("input unchanged", "the product",
-         *(f"renderer, {b}{t}" for b in ("network buffers (no framing)", "exact buffers")
-           for t in ("", *TRUE_SOURCE)),
+         *(f"{b}{t}" for b in (NETWORK, "renderer, exact buffers") for t in ("", *TRUE_SOURCE)),
          *(f"{NETWORK}, exact {k}" for k in EXACT_ONE),
          "ratio of the true diffuse shading",
          "ratio of the true diffuse shading, per channel",

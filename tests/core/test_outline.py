@@ -167,13 +167,10 @@ def test_a_pixel_stays_between_the_footage_and_the_subject_s_full_change():
         assert np.all(np.abs(fixed - x)[:, faint] <= np.abs(yf - x)[:, faint] + 1e-3)
 
 
-def test_an_ear_in_the_fade_takes_more_of_the_subject_s_change():
-    """A skin-coloured strip six pixels wide beside the disc (an ear against a screen): the
-    matte holds it, but the weight's fade (the matte's core, soft_weight) reaches only part of
-    it, so enlarged it kept much of the footage's light beside a subject the new light leaves
-    dark. Refitted to colour it takes more of the subject's change, while the screen beside it
-    keeps the footage."""
-    h, w, k = 160, 200, 5
+def ear_scene(h: int = 160, w: int = 200, k: int = 5):
+    """The disc with a skin-coloured strip six pixels wide beside it (an ear against a screen):
+    (footage, cover, the ear's pixels, the footage on the grid, the matte on the grid, the
+    weight: the matte's core)."""
     x, cover = scene(h, w, 45.0, seed=2)
     ear = np.zeros((h, w), bool)
     ear[60:100, 145:151] = True  # the disc reaches x = 145 at its equator
@@ -181,8 +178,17 @@ def test_an_ear_in_the_fade_takes_more_of_the_subject_s_change():
     skin = SKIN[:, None] * (1 + 0.08 * rng.standard_normal((1, int(ear.sum())))).astype(np.float32)
     x[:, ear] = skin
     cover = np.maximum(cover, ear.astype(np.float32))
-    g = grid_of(x, k)
-    weight = soft_weight(grid_of(cover[None], k)[0], 1.2)
+    matte = grid_of(cover[None], k)[0]
+    return x, cover, ear, grid_of(x, k), matte, soft_weight(matte, 1.2)
+
+
+def test_an_ear_in_the_fade_takes_more_of_the_subject_s_change():
+    """A skin-coloured strip six pixels wide beside the disc (an ear against a screen): the
+    matte holds it, but the weight's fade (the matte's core, soft_weight) reaches only part of
+    it, so enlarged it kept much of the footage's light beside a subject the new light leaves
+    dark. Refitted to colour it takes more of the subject's change, while the screen beside it
+    keeps the footage."""
+    x, cover, ear, g, _, weight = ear_scene()
     gain = 0.2  # a key lamp from the other side leaves the subject dark
     y = finish(x, weight, gain).astype(np.float32)
     fixed = outline.apply(outline.fit(g, weight), x, y.astype(np.float16)).astype(np.float32)
@@ -205,17 +211,8 @@ def test_skin_at_the_outline_takes_the_change_its_matte_says():
     the network's matte itself fades (the disc's outermost pixels: held to that matte, they kept
     a fifth of the footage's light, a lit line along the outline), while the screen still keeps
     the footage."""
-    h, w, k = 160, 200, 5
-    x, cover = scene(h, w, 45.0, seed=2)
-    ear = np.zeros((h, w), bool)
-    ear[60:100, 145:151] = True
-    rng = np.random.default_rng(4)
-    skin = SKIN[:, None] * (1 + 0.08 * rng.standard_normal((1, int(ear.sum())))).astype(np.float32)
-    x[:, ear] = skin
-    cover = np.maximum(cover, ear.astype(np.float32))
-    g = grid_of(x, k)
-    matte = grid_of(cover[None], k)[0]
-    weight = soft_weight(matte, 1.2)
+    x, cover, ear, g, matte, weight = ear_scene()
+    h, w = x.shape[1:]
     gain = 0.2
     y = finish(x, weight, gain)
 
