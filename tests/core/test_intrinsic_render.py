@@ -628,6 +628,59 @@ def test_hair_away_from_the_face_takes_the_wrapped_lobe():
     assert below[v > -0.45].max() == 0.0  # below the chin: neck and clothes stay Lambert
 
 
+def head_in_hair(radius=14.0):
+    """(Buffers, u, v) a face of skin (a sphere of ``radius``) framed by hair over the whole
+    crop, camera-facing, at one flat height, as the network puts real hair level with the cheeks:
+    a height march alone casts no shadow here. u, v as sphere's."""
+    normal, _, face, u, v = sphere(radius=radius)
+    alb = np.broadcast_to(SKIN[:, None, None], (3, S, S)).copy()
+    flat = np.zeros((S, S), np.float32)
+    return intrinsic.Buffers(normal, flat, alb, np.ones((S, S), np.float32), face), u, v
+
+
+SIDE_LAMP = unit([1.0, 0.0, 1.0])  # from the image's right, 45 degrees off the view axis
+
+
+def test_hair_behind_the_far_cheek_is_in_the_head_s_shadow():
+    """A lamp from the right: the hair beside the left cheek, which faces away from it, is in
+    the head's shadow; the hair beside the right cheek, above the head and the face itself are
+    not; a lamp on the view axis shadows no hair."""
+    bufs, u, v = head_in_hair()
+    wrap = intrinsic.hair_share(bufs)
+    vis = intrinsic.behind_head(bufs.normal, bufs.face, wrap, SIDE_LAMP)
+    row = np.abs(v) < 0.3  # level with the face's middle, well above its chin
+    far = row & (u < -1.6) & (u > -2.2)  # hair beyond the left cheek
+    near = row & (u > 1.6) & (u < 2.2)
+    assert wrap[far].min() > 0.9 and wrap[near].min() > 0.9  # hair, lit by the wrapped lobe
+    assert vis[far].max() < 0.1
+    assert vis[near].min() == 1.0
+    assert vis[(v < -1.4) & (np.abs(u) < 0.3)].min() == 1.0  # above the head: the lamp's beside
+    assert vis[bufs.face > 0.5].min() == 1.0  # skin: shadow's march and its own n.l
+    frontal = intrinsic.behind_head(bufs.normal, bufs.face, wrap, np.array([0.0, 0.0, 1.0]))
+    assert frontal.min() == 1.0
+
+
+def test_a_lamp_leaves_the_hair_behind_the_head_dark_in_the_relit_frame():
+    """Relit by a lamp from the right with shadows, the hair beyond the left cheek keeps under a
+    fifth of what the same light gives it without them, while the hair beyond the right cheek
+    keeps what it had; a soft sky plans no shadows and leaves it lit."""
+    bufs, u, v = head_in_hair()
+    image = (bufs.albedo * exact_irradiance(lightvec.uniform(1.0), bufs.normal) / math.pi
+             ).astype(np.float32)
+    light = lamp(SIDE_LAMP, 20.0, 0.0)
+    effects = intrinsic.plan(light)
+    assert effects.components and effects.shadows
+    row = np.abs(v) < 0.3
+    far, near = row & (u < -1.6) & (u > -2.2), row & (u > 1.6) & (u < 2.2)
+    shadowed = intrinsic.shade(image, bufs, light, effects, keep_exposure=False).ratio[1]
+    unshadowed = intrinsic.shade(image, bufs, light, intrinsic.Plan(effects.components, False,
+                                                                    False), keep_exposure=False)
+    assert shadowed[far].mean() < 0.2 * unshadowed.ratio[1][far].mean()
+    assert shadowed[near].mean() == pytest.approx(unshadowed.ratio[1][near].mean(), rel=0.02)
+    sky = intrinsic.shade(image, bufs, smooth_sky(), keep_exposure=False).ratio[1]
+    assert sky[far].mean() > 0.5 * sky[near].mean()
+
+
 @pytest.mark.parametrize("light", ["lamp", "sky", "dim"])
 def test_keep_exposure_keeps_the_mean_luminance(light):
     """keep_exposure: the matte-weighted mean luminance of image * ratio + highlight equals the
