@@ -797,7 +797,10 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         tint = source_chroma(image_chw, bufs)
     elif source.ndim == 3:
         e_src = luminance(source).astype(np.float32)
-        tint = np.where(e_src > 0, source / np.maximum(e_src, 1e-30), 1.0).astype(np.float32)
+        # a channel the source leaves dark keeps a tiny share: its ratio meets RATIO_MAX
+        # rather than a division by zero
+        tint = np.where(e_src > 0, np.maximum(source, 1e-6 * e_src) / np.maximum(e_src, 1e-30),
+                        1.0).astype(np.float32)
     else:
         e_src = np.asarray(source, np.float32)
     fg = bufs.matte > 0.5

@@ -490,6 +490,24 @@ def test_a_known_source_shading_replaces_the_estimate():
     assert red_over_blue(grey, left) - red_over_blue(grey, right) > 0.9 * split
 
 
+def test_a_known_source_with_a_dark_channel_bounds_that_channel_s_ratio():
+    """A given source shading with no blue at all (a pure yellow lamp): the blue ratio meets
+    the ratio's bound without a division by zero, and the other channels' stay as with a
+    trace of blue."""
+    image, bufs = portrait()
+    true = exact_irradiance(lamp([0.3, 0.2, 1.0]), bufs.normal).astype(np.float32)
+    yellow = true * np.array([1.0, 1.0, 0.0], np.float32)[:, None, None]
+    trace = true * np.array([1.0, 1.0, 1e-3], np.float32)[:, None, None]
+    white = lightvec.uniform(1.0)
+    with np.errstate(divide="raise", invalid="raise"):
+        ratio = intrinsic.shade(image, bufs, white, source=yellow, keep_exposure=False).ratio
+    fg = bufs.matte > 0.5
+    assert np.isfinite(ratio).all()
+    norm = intrinsic.shade(image, bufs, white, source=trace, keep_exposure=False).ratio
+    np.testing.assert_allclose(ratio[:2][:, fg], norm[:2][:, fg], rtol=1e-3)
+    assert ratio[2][fg].min() >= norm[2][fg].min()
+
+
 def test_a_faces_own_colour_gradient_is_not_read_as_light():
     """Skin redder toward the chin (red up 35% from brow to chin) under a white lamp, and a grey
     photo of it: no light colour is read from either."""
