@@ -671,8 +671,8 @@ DARK_SKIN_COS = 0.2
 
 def behind_head(normal: np.ndarray, face: np.ndarray, wrap: np.ndarray, direction: np.ndarray,
                 steps: int = SHADOW_STEPS) -> np.ndarray:
-    """(h, w) visibility of the hair (``wrap``: hair_share) to a distant light behind the head:
-    march from each hair pixel toward the light in the image plane; where the march crosses face
+    """(h, w) visibility of the hair (``wrap``: hair_share) to a distant light where the head
+    stands between them: march from each hair pixel toward the light in the image plane; where the march crosses face
     skin turned away from the light (DARK_SKIN_COS), the head stands between that hair and the
     light, and the hair's share of the pixel is in its shadow. Hair framing a face sits behind
     the cheeks, deeper than the network's height and transport put it on real footage, so
