@@ -619,6 +619,25 @@ def _diffuse(irr: np.ndarray, skin: np.ndarray, bounds, alphas, sigmas_cm,
     return out
 
 
+def march(field: np.ndarray, fill: float, yy: np.ndarray, xx: np.ndarray, step, first: int,
+          last: int):
+    """Yield (t, ``field``'s values t pixels from each of the pixels (``yy``, ``xx``) along the
+    image-plane unit ``step`` (x right, y down)) for t from ``first`` to ``last``; beyond the
+    field the values are ``fill``. The field sits on a canvas padded past the march's reach, so
+    each step is one flat offset; pixels are whole numbers, so rounding the step (half up)
+    rounds the sample's position."""
+    h, w = field.shape
+    pad = last + 1
+    canvas = np.full((h + 2 * pad, w + 2 * pad), fill, np.float32)
+    canvas[pad:pad + h, pad:pad + w] = field
+    flat = canvas.reshape(-1)
+    base = (yy + pad) * canvas.shape[1] + (xx + pad)
+    ux, uy = step
+    for t in range(first, last + 1):
+        off = math.floor(uy * t + 0.5) * canvas.shape[1] + math.floor(ux * t + 0.5)
+        yield t, flat[base + off]
+
+
 def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
            steps: int = SHADOW_STEPS, lit: np.ndarray | None = None, distance: bool = False):
     """(h, w) visibility in [0, 1] toward a distant light: march from each subject pixel toward
@@ -634,24 +653,17 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
         return (vis, np.zeros_like(vis)) if distance else vis
     ux, uy = dx / lat, -dy / lat         # image x right, image y down
     rise = dz / lat                       # height gained per pixel travelled toward the light
-    # Heights on a canvas padded past the march's reach: the pad (and everything off the
-    # subject) is far below any ray, so it never occludes, and a step is one flat offset.
-    pad = steps + 1
-    hh = np.full((h + 2 * pad, w + 2 * pad), -1e6, np.float32)
-    hh[pad:pad + h, pad:pad + w] = np.where(matte > 0.5, height, -1e6)
+    # Off the subject (and off the crop) the height is far below any ray: it never occludes.
+    field = np.where(matte > 0.5, height, -1e6)
     yy, xx = np.nonzero(matte > 0.5)  # only the subject receives shadows here
     if lit is not None:
         keep = lit[yy, xx] > 0
         yy, xx = yy[keep], xx[keep]
-    flat = hh.reshape(-1)
-    base = (yy + pad) * hh.shape[1] + (xx + pad)
-    ray0 = flat[base] + np.float32(SHADOW_BIAS[0])
-    occl = np.zeros(len(base), np.float32)
-    at = np.zeros(len(base), np.float32)
-    for t in range(2, steps + 1):
-        # pixels are whole numbers, so rounding the step (half up) rounds the sample's position
-        off = math.floor(uy * t + 0.5) * hh.shape[1] + math.floor(ux * t + 0.5)
-        above = flat[base + off] - ray0
+    ray0 = field[yy, xx] + np.float32(SHADOW_BIAS[0])
+    occl = np.zeros(len(yy), np.float32)
+    at = np.zeros(len(yy), np.float32)
+    for t, sample in march(field, -1e6, yy, xx, (ux, uy), 2, steps):
+        above = sample - ray0
         above -= np.float32(rise * t + SHADOW_BIAS[1] * t)
         if distance:
             at[above > occl] = t
@@ -669,37 +681,29 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
 DARK_SKIN_COS = 0.2
 
 
-def behind_head(normal: np.ndarray, face: np.ndarray, wrap: np.ndarray, direction: np.ndarray,
+def behind_head(cos: np.ndarray, face: np.ndarray, wrap: np.ndarray, direction: np.ndarray,
                 steps: int = SHADOW_STEPS) -> np.ndarray:
     """(h, w) visibility of the hair (``wrap``: hair_share) to a distant light where the head
-    stands between them: march from each hair pixel toward the light in the image plane; where the march crosses face
-    skin turned away from the light (DARK_SKIN_COS), the head stands between that hair and the
-    light, and the hair's share of the pixel is in its shadow. Hair framing a face sits behind
-    the cheeks, deeper than the network's height and transport put it on real footage, so
-    shadow's march passed over the face and the hair's wrapped lobe (HAIR_WRAP) lit the far
-    side's hair beside a cheek in shadow: a bright curtain beside a black stripe. On the light
-    stage's renders the network's transport already occludes such hair, so there this changes
-    little: the card's test set rmse_level_fit 0.0573 -> 0.0572 (training.eval.evaluate);
-    CroppedYale's crops, which hold little hair, unchanged."""
-    h, w = face.shape
-    out = np.ones((h, w), np.float32)
+    stands between them (``cos``: n.l toward it, per pixel): march from each hair pixel toward
+    the light in the image plane; where the march crosses face skin turned away from the light
+    (DARK_SKIN_COS), the head stands between that hair and the light, and the hair's share of
+    the pixel is in its shadow. Hair framing a face sits behind the cheeks, deeper than the
+    network's height and transport put it on real footage, so shadow's march passed over the
+    face and the hair's wrapped lobe (HAIR_WRAP) lit the far side's hair beside a cheek in
+    shadow: a bright curtain beside a black stripe. On the light stage's renders the network's
+    transport already occludes such hair, so there this changes little: the card's test set
+    rmse_level_fit 0.0573 -> 0.0572 (training.eval.evaluate); CroppedYale's crops, which hold
+    little hair, unchanged."""
+    out = np.ones(face.shape, np.float32)
     dx, dy = float(direction[0]), float(direction[1])
     lat = math.hypot(dx, dy)
     yy, xx = np.nonzero(wrap > 0.01)
     if lat < 1e-3 or len(yy) == 0:
         return out
-    ux, uy = dx / lat, -dy / lat  # image x right, image y down
-    cos = np.tensordot(np.asarray(direction, np.float32), normal, axes=(0, 0))
-    pad = steps + 1  # a step off the crop lands on the pad: nothing there
-    dark = np.zeros((h + 2 * pad, w + 2 * pad), np.float32)
-    dark[pad:pad + h, pad:pad + w] = np.clip(face, 0.0, 1.0) * np.clip(
-        1.0 - cos / np.float32(DARK_SKIN_COS), 0.0, 1.0)
-    flat = dark.reshape(-1)
-    base = (yy + pad) * dark.shape[1] + (xx + pad)
-    occl = np.zeros(len(base), np.float32)
-    for t in range(1, steps + 1):
-        off = math.floor(uy * t + 0.5) * dark.shape[1] + math.floor(ux * t + 0.5)
-        np.maximum(occl, flat[base + off], out=occl)
+    dark = np.clip(face, 0.0, 1.0) * np.clip(1.0 - cos / np.float32(DARK_SKIN_COS), 0.0, 1.0)
+    occl = np.zeros(len(yy), np.float32)
+    for _, sample in march(dark, 0.0, yy, xx, (dx / lat, -dy / lat), 1, steps):
+        np.maximum(occl, sample, out=occl)
     out[yy, xx] = 1.0 - wrap[yy, xx] * occl
     return out
 
@@ -819,12 +823,13 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     spec = np.zeros_like(e_t)
     height = bufs.height / height_scale(bufs) if effects.shadows and effects.components else None
     for comp in effects.components:
-        lam = lobe(np.tensordot(comp.direction, bufs.normal, axes=(0, 0)), wrap)
+        cos = np.tensordot(comp.direction, bufs.normal, axes=(0, 0))
+        lam = lobe(cos, wrap)
         e_c = comp.irradiance[:, None, None] * lam[None]
         vis = None
         if effects.shadows:
             vis = penumbra(*shadow(height, bufs.matte, comp.direction, lit=lam, distance=True))
-            vis = vis * behind_head(bufs.normal, bufs.face, wrap, comp.direction)
+            vis = vis * behind_head(cos, bufs.face, wrap, comp.direction)
             e_t = e_t - (1.0 - vis)[None] * e_c * (1.0 if occl is None else occl[None])
         if effects.specular:
             s = specular(bufs.normal, comp.direction) * (vis if vis is not None else 1.0)

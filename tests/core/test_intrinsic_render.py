@@ -665,7 +665,8 @@ def test_hair_behind_the_far_cheek_is_in_the_head_s_shadow():
     not; a lamp on the view axis shadows no hair."""
     bufs, u, v = head_in_hair()
     wrap = intrinsic.hair_share(bufs)
-    vis = intrinsic.behind_head(bufs.normal, bufs.face, wrap, SIDE_LAMP)
+    cos = np.tensordot(SIDE_LAMP, bufs.normal, axes=(0, 0))
+    vis = intrinsic.behind_head(cos, bufs.face, wrap, SIDE_LAMP)
     row = np.abs(v) < 0.3  # level with the face's middle, well above its chin
     far = row & (u < -1.6) & (u > -2.2)  # hair beyond the left cheek
     near = row & (u > 1.6) & (u < 2.2)
@@ -674,7 +675,7 @@ def test_hair_behind_the_far_cheek_is_in_the_head_s_shadow():
     assert vis[near].min() == 1.0
     assert vis[(v < -1.4) & (np.abs(u) < 0.3)].min() == 1.0  # above the head: the lamp's beside
     assert vis[bufs.face > 0.5].min() == 1.0  # skin: shadow's march and its own n.l
-    frontal = intrinsic.behind_head(bufs.normal, bufs.face, wrap, np.array([0.0, 0.0, 1.0]))
+    frontal = intrinsic.behind_head(bufs.normal[2], bufs.face, wrap, np.array([0.0, 0.0, 1.0]))
     assert frontal.min() == 1.0
 
 
