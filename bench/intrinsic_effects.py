@@ -26,7 +26,6 @@ import argparse
 import json
 import os
 import pathlib
-import platform
 import sys
 import time
 
@@ -35,6 +34,7 @@ import torch
 
 from addon import intrinsic, lightvec
 from training.data import lighting_sampling
+from training.eval import report
 from training.intrinsic import data
 from training.lightstage import layout, shading
 from training.lightstage.scene import stage_dirs
@@ -202,7 +202,7 @@ def write_report(out: str, module: str, argv, res: dict, markdown) -> None:
     one-thread accuracy benches' results with the command that made them and the machine."""
     command = f"python -m bench.{module} " + " ".join(argv if argv is not None
                                                       else sys.argv[1:])
-    machine = (f"{platform.machine()} {os.cpu_count()}-core CPU (one thread), load "
+    machine = (f"{report.cpu_name()}, {os.cpu_count()} cores (one thread), load "
                f"{os.getloadavg()[0]:.1f}")
     md = markdown(res, command.strip(), machine)
     print(md)

@@ -23,7 +23,6 @@ import argparse
 import json
 import os
 import pathlib
-import platform
 import statistics
 import sys
 import time
@@ -32,7 +31,7 @@ import numpy as np
 
 from addon import (api, blas, detail, intrinsic, lightvec, outline, pipeline, portrait,
                    temporal)
-from training.eval import yale
+from training.eval import report, yale
 
 from .intrinsic_speed import demo_frame, frame_1080p, frame_ms
 
@@ -170,7 +169,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     acc = {size: real_faces(a.model, size, 1, a.quick) for size in a.sizes}
     speed = timings(a.model, a.sizes, a.threads, 2 if a.quick else a.repeats)
-    machine = (f"{platform.machine()} {os.cpu_count()}-core CPU, {a.threads} thread(s) for the "
+    machine = (f"{report.cpu_name()}, {os.cpu_count()} cores, {a.threads} thread(s) for the "
                f"timings, load {load:.1f} before / {os.getloadavg()[0]:.1f} after")
     cmd = "python -m bench.intrinsic_frontier " + " ".join(argv if argv is not None
                                                            else sys.argv[1:])

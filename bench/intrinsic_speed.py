@@ -25,7 +25,6 @@ import dataclasses
 import json
 import os
 import pathlib
-import platform
 import statistics
 import time
 
@@ -33,6 +32,7 @@ import numpy as np
 
 from addon import (api, blas, colour, detail, intrinsic, lightvec, outline, pipeline, portrait,
                    temporal)
+from training.eval import report
 from training.lightstage.png import read_png
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -213,7 +213,7 @@ def main(argv=None):
         if max(blas.threads(), default=1) > 1:
             with blas.left_alone():  # the same clip, numpy's BLAS left on its own threads
                 res["clip_blas_left_alone"] = run_clip(a.model, a.threads, a.clip)
-    machine = (f"{platform.machine()} {os.cpu_count()}-core CPU, {a.threads} thread(s), load "
+    machine = (f"{report.cpu_name()}, {os.cpu_count()} cores, {a.threads} thread(s), load "
                f"{load:.1f} before / {os.getloadavg()[0]:.1f} after")
     cmd = "python -m bench.intrinsic_speed " + " ".join(argv if argv is not None else
                                                          __import__("sys").argv[1:])

@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     n = args.frames
     print = report.Lines()  # noqa: A001 - to stdout and to the report
-    print(f"machine: {platform.machine()} {platform.processor() or ''}, {os.cpu_count()} cores, "
+    print(f"machine: {report.cpu_name()}, {os.cpu_count()} cores, "
           f"python {platform.python_version()}, load average {os.getloadavg()[0]:.1f} "
           "(other processes share these cores: compare runs at similar load)")
     with tempfile.TemporaryDirectory(prefix="relight_bench_") as tmp:
