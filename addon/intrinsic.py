@@ -146,6 +146,7 @@ class Buffers:
     matte: np.ndarray    # (h, w) portrait foreground in [0, 1]
     face: np.ndarray     # (h, w) face skin in [0, 1]
     transfer: np.ndarray | None = None  # (16, h, w) light transport (TRANSFER_ORDER), if predicted
+    hair: np.ndarray | None = None      # (h, w) hair in [0, 1], if the network has the class
 
 
 @dataclass(frozen=True)
@@ -288,11 +289,14 @@ def lobe(cos: np.ndarray, wrap: np.ndarray | None = None) -> np.ndarray:
 def hair_share(bufs: Buffers) -> np.ndarray:
     """(h, w) where the subject is lit as hair (``lobe``): the matte away from face skin (a
     Gaussian of HAIR_FACE_SIGMA over the skin map fades it to 0 on and next to the skin, so eyes,
-    brows and lips stay Lambert) and above the chin (the lowest row of face skin, fading over
-    two sigma): the network has no hair class, and below the chin are the neck and clothes,
-    which the light stage renders Lambert (taking them too cost 0.06 in relative error on its
-    key lights). Without it the far side of the hair under a lamp went black in a blob around
-    the face on real footage."""
+    brows and lips stay Lambert) above the chin (the lowest row of face skin, fading over two
+    sigma), and below it only where the network's hair class says hair (``bufs.hair``; without
+    the class, nothing): below the chin are the neck and clothes, which the light stage renders
+    Lambert (taking them too cost 0.06 in relative error on its key lights), and long hair
+    falling past the jaw to the shoulders. Without it the far side of the hair under a lamp went
+    black in a blob around the face on real footage; without the class below the chin, long
+    hair there kept the footage's light beside a cheek in shadow (behind_head takes only what
+    this shares)."""
     face = np.clip(bufs.face, 0.0, 1.0)
     near = gaussian_blur(face, HAIR_FACE_SIGMA)
     share = np.clip(bufs.matte, 0.0, 1.0) * np.clip(1.0 - 3.0 * near, 0.0, 1.0)
@@ -301,8 +305,10 @@ def hair_share(bufs: Buffers) -> np.ndarray:
         return np.zeros_like(share)
     chin = float(rows.max())
     y = np.arange(face.shape[0], dtype=np.float32)
-    above = np.clip((chin - y) / (2.0 * HAIR_FACE_SIGMA), 0.0, 1.0)
-    return (share * above[:, None]).astype(np.float32)
+    above = np.clip((chin - y) / (2.0 * HAIR_FACE_SIGMA), 0.0, 1.0)[:, None]
+    if bufs.hair is not None:
+        above = above + (1.0 - above) * np.clip(bufs.hair, 0.0, 1.0)
+    return (share * above).astype(np.float32)
 
 
 def irradiance(light: np.ndarray, normal: np.ndarray, exact_cells: int = EXACT_CELLS,

@@ -114,9 +114,11 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
     names = session.card.classes
     matte = res.parsing[names.index("foreground")]
     face = res.parsing[names.index("skin")] if "skin" in names else np.zeros_like(matte)
+    hair = res.parsing[names.index("hair")] if "hair" in names else None
     if valid is not None:  # the dark backdrop beyond the frame is not the subject
         matte, face = matte * valid, face * valid
-    return intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face, res.transfer)
+        hair = None if hair is None else hair * valid
+    return intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face, res.transfer, hair)
 
 
 # The face crop's buffers are also the mean with the network's on a finer sampling of the same
@@ -135,12 +137,16 @@ def shrunk(bufs: intrinsic.Buffers, size: int,
     the normals renormalised, the height in the smaller crop's pixels), all channels in one
     pass of the full-resolution graphs' shrink (FullRes.shrink_planar)."""
     planes = [bufs.normal, bufs.height[None], bufs.albedo, bufs.matte[None], bufs.face[None]]
+    if bufs.hair is not None:
+        planes.append(bufs.hair[None])
     if bufs.transfer is not None:
         planes.append(bufs.transfer)
     small = shared_fullres(fullres).shrink_planar(np.concatenate(planes, 0), size, size)
     k = np.float32(size / bufs.height.shape[0])
+    rest = 9 if bufs.hair is None else 10
     return intrinsic.Buffers(intrinsic.unit_normals(small[0:3]), small[3] * k, small[4:7],
-                             small[7], small[8], small[9:] if bufs.transfer is not None else None)
+                             small[7], small[8], small[rest:] if bufs.transfer is not None else None,
+                             None if bufs.hair is None else small[9])
 
 
 def mean_buffers(a: intrinsic.Buffers, b: intrinsic.Buffers) -> intrinsic.Buffers:
@@ -149,7 +155,8 @@ def mean_buffers(a: intrinsic.Buffers, b: intrinsic.Buffers) -> intrinsic.Buffer
     return intrinsic.Buffers(
         intrinsic.unit_normals(a.normal + b.normal), half * (a.height + b.height),
         half * (a.albedo + b.albedo), half * (a.matte + b.matte), half * (a.face + b.face),
-        None if a.transfer is None or b.transfer is None else half * (a.transfer + b.transfer))
+        None if a.transfer is None or b.transfer is None else half * (a.transfer + b.transfer),
+        None if a.hair is None or b.hair is None else half * (a.hair + b.hair))
 
 
 def fit_in_frame(box: framing.Box, frame_hw: tuple[int, int]) -> framing.Box:

@@ -5,6 +5,7 @@ on a disc matte, and flat height fields with a bump. numpy only, no model.
 and two test modules of one basename break collecting the whole suite in one pytest run.)
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -698,6 +699,51 @@ def test_a_lamp_leaves_the_hair_behind_the_head_dark_in_the_relit_frame():
     assert shadowed[near].mean() == pytest.approx(unshadowed[near].mean(), rel=0.02)
     sky = intrinsic.shade(image, bufs, smooth_sky(), keep_exposure=False).ratio[1]
     assert sky[far].mean() > 0.5 * sky[near].mean()
+
+
+def long_hair(bufs, u):
+    """head_in_hair's buffers with the network's hair class: long hair in two curtains either
+    side of the face (|u| > 1.3) down the whole crop, the rest below the chin (the neck, the
+    clothes) not hair."""
+    hair = (np.abs(u) > 1.3).astype(np.float32)
+    return dataclasses.replace(bufs, hair=hair)
+
+
+def test_the_hair_class_lets_hair_below_the_chin_be_lit_as_hair():
+    """With the network's hair class, hair_share is what it was above the chin and, below it,
+    the hair the class finds (long hair past the jaw), not the neck and clothes beside it; a
+    class that finds no hair changes nothing."""
+    bufs, u, v = head_in_hair()
+    plain = intrinsic.hair_share(bufs)
+    none = intrinsic.hair_share(dataclasses.replace(bufs, hair=np.zeros_like(bufs.matte)))
+    np.testing.assert_array_equal(none, plain)
+    share = intrinsic.hair_share(long_hair(bufs, u))
+    above = v < 1.0 - 2.0 * intrinsic.HAIR_FACE_SIGMA / 14.0  # above the fade under the chin
+    np.testing.assert_array_equal(share[above], plain[above])
+    below = v > 1.6
+    assert plain[below].max() == 0.0
+    assert share[below & (np.abs(u) > 1.4)].min() > 0.99  # the curtains
+    assert share[below & (np.abs(u) < 1.2)].max() == 0.0  # the neck and clothes
+
+
+def test_a_lamp_leaves_long_hair_below_the_far_jaw_in_the_head_s_shadow():
+    """A lamp from the right and above: the curtain below the chin on the far (left) side, lit
+    by the lamp's n.l without the hair class, falls in the head's shadow with it; the neck and
+    clothes below the chin keep the same light either way."""
+    bufs, u, v = head_in_hair()
+    image = (bufs.albedo * exact_irradiance(lightvec.uniform(1.0), bufs.normal) / math.pi
+             ).astype(np.float32)
+    light = lamp(unit([1.0, 0.6, 1.0]), 20.0, 0.0)
+    effects = intrinsic.plan(light)
+    assert effects.components and effects.shadows
+    plain = intrinsic.shade(image, bufs, light, effects, keep_exposure=False).ratio[1]
+    with_hair = intrinsic.shade(image, long_hair(bufs, u), light, effects,
+                                keep_exposure=False).ratio[1]
+    far = (v > 1.2) & (v < 1.6) & (u < -1.5) & (u > -1.9)
+    neck = (v > 1.2) & (np.abs(u) < 0.5)
+    assert plain[far].mean() > 0.5 * plain[neck].mean()  # lit, without the class
+    assert with_hair[far].mean() < 0.2 * plain[far].mean()
+    np.testing.assert_allclose(with_hair[neck], plain[neck], rtol=1e-5)
 
 
 @pytest.mark.parametrize("light", ["lamp", "sky", "dim"])

@@ -40,10 +40,11 @@ def _c(name, value):
 
 
 def build_standin(normal_name: str = contract.OUTPUT_NORMAL,
-                  transfer: int = 0) -> onnx.ModelProto:
+                  transfer: int = 0, hair: bool = False) -> onnx.ModelProto:
     """The stand-in intrinsic network; ``normal_name`` renames its normal output (to break the
     contract); ``transfer``: that many channels of a ``transfer`` output, each the unoccluded
-    transfer of a camera-facing normal (a sixteenth of the light let through)."""
+    transfer of a camera-facing normal (a sixteenth of the light let through); ``hair``: a third
+    parsing class, hair, everywhere but the skin-coloured disc."""
     n = helper.make_node
     nodes = [
         n("Slice", [contract.INPUT_IMAGE, "i0", "i1", "ax1"], ["r"]),
@@ -52,7 +53,8 @@ def build_standin(normal_name: str = contract.OUTPUT_NORMAL,
         n("Sub", ["chroma", "t"], ["chroma_t"]),
         n("Mul", ["chroma_t", "k"], ["logit"]),
         n("Sigmoid", ["logit"], ["p"]),
-        n("Concat", ["p", "p"], [contract.OUTPUT_PARSING], axis=1),
+        n("Sub", ["one", "p"], ["not_p"]),
+        n("Concat", ["p", "p"] + (["not_p"] if hair else []), [contract.OUTPUT_PARSING], axis=1),
         # A plane of zeros and ones of the input's size ([N, 1, H, W]).
         n("Mul", ["r", "zero"], [contract.OUTPUT_HEIGHT]),
         n("Add", [contract.OUTPUT_HEIGHT, "one"], ["ones"]),
@@ -83,7 +85,7 @@ def build_standin(normal_name: str = contract.OUTPUT_NORMAL,
               _c("bulge", BULGE), _c("two_bulge", 2 * BULGE)]
     f = TensorProto.FLOAT
     outs = [(normal_name, 3), (contract.OUTPUT_HEIGHT, 1), (contract.OUTPUT_ALBEDO, 3),
-            (contract.OUTPUT_PARSING, 2)]
+            (contract.OUTPUT_PARSING, 3 if hair else 2)]
     if transfer:
         nodes += [n("Concat", [contract.OUTPUT_HEIGHT] * transfer, ["zeros_t"], axis=1),
                   n("Add", ["zeros_t", "facing"], [contract.OUTPUT_TRANSFER])]
@@ -102,14 +104,15 @@ def build_standin(normal_name: str = contract.OUTPUT_NORMAL,
 
 
 def write_standin(folder, name="standin", normal_name=contract.OUTPUT_NORMAL,
-                  transfer: int = 0) -> str:
+                  transfer: int = 0, hair: bool = False) -> str:
     """The stand-in and its card (contract relight-intrinsic/1, stride 16, working size 32)."""
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.onnx"
-    path.write_bytes(build_standin(normal_name, transfer).SerializeToString())
+    path.write_bytes(build_standin(normal_name, transfer, hair).SerializeToString())
+    classes = list(contract.INTRINSIC_CLASSES) + (["hair"] if hair else [])
     shapes = {contract.OUTPUT_NORMAL: 3, contract.OUTPUT_HEIGHT: 1, contract.OUTPUT_ALBEDO: 3,
-              contract.OUTPUT_PARSING: len(contract.INTRINSIC_CLASSES)}  # what the card promises
+              contract.OUTPUT_PARSING: len(classes)}  # what the card promises
     if transfer:
         shapes[contract.OUTPUT_TRANSFER] = contract.TRANSFER_CHANNELS
     card = {
@@ -119,7 +122,7 @@ def write_standin(folder, name="standin", normal_name=contract.OUTPUT_NORMAL,
         "outputs": [{"name": k, "shape": ["N", c, "H", "W"]} for k, c in shapes.items()],
         "stride": 16, "working_size": 32,
         "colour": {"space": "linear Rec.709 scene-referred, channels first"},
-        "classes": list(contract.INTRINSIC_CLASSES),
+        "classes": classes,
         "training": {"data": "none: a stand-in built by tests/core/test_portrait.py"},
         "metrics": {}, "cost": {"cpu": {"provider": "CPUExecutionProvider", "per_size": {}}},
     }
@@ -225,6 +228,24 @@ def test_a_model_with_the_transfer_gives_it_and_relights_with_it(tmp_path):
         engine.new_session(bad, providers=["CPUExecutionProvider"], threads=1)
 
 
+def test_a_model_with_the_hair_class_gives_the_renderer_its_hair(tmp_path, session):
+    """A card that lists a third class, hair: the buffers carry that channel as ``hair`` (zeroed
+    beyond the frame's edge, as the matte), the frame path relights with it; a model without
+    the class gives none."""
+    path = write_standin(tmp_path, "with_hair", hair=True)
+    sess = engine.new_session(path, providers=["CPUExecutionProvider"], threads=1, spin=False)
+    x = chw(frame(32, 32, (16.0, 16.0), 10.0))
+    bufs = portrait.buffers(sess, x)
+    np.testing.assert_allclose(bufs.hair, 1.0 - bufs.matte, atol=1e-6)
+    valid = np.ones((32, 32), np.float32)
+    valid[:, :8] = 0.0
+    assert portrait.buffers(sess, x, valid).hair[:, :8].max() == 0.0
+    assert portrait.buffers(session, x).hair is None
+    big = chw(frame(96, 96, (48.0, 48.0), 30.0))
+    r = portrait.relight_frame(sess, big, RIGHT_LAMP, portrait.find_box(sess, big), exposure=1.0)
+    assert np.isfinite(apply(big, r)).all()
+
+
 def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(tmp_path):
     """run_planar(mirror=True): each buffer is the mean of the image's and the mirror image's
     mirrored back, the normal's x and the transfer's x-odd coefficients negated; so mirroring
@@ -317,7 +338,7 @@ def test_shrunk_buffers_are_exact_area_means_of_every_channel():
     big = intrinsic.Buffers(n, rng.random((40, 40), np.float32) * 10,
                             rng.random((3, 40, 40), np.float32), rng.random((40, 40), np.float32),
                             rng.random((40, 40), np.float32), rng.normal(size=(16, 40, 40))
-                            .astype(np.float32))
+                            .astype(np.float32), rng.random((40, 40), np.float32))
 
     def area(a):  # (C, 40, 40) or (40, 40) -> (C, 32, 32)
         hwc = np.moveaxis(a.reshape((-1,) + a.shape[-2:]), 0, -1)
@@ -325,12 +346,19 @@ def test_shrunk_buffers_are_exact_area_means_of_every_channel():
 
     small = portrait.shrunk(big, 32)
     for got, full in ((small.albedo, big.albedo), (small.matte, big.matte),
-                      (small.face, big.face), (small.transfer, big.transfer)):
+                      (small.face, big.face), (small.transfer, big.transfer),
+                      (small.hair, big.hair)):
         np.testing.assert_allclose(got, area(full).reshape(got.shape), atol=1e-5)
     np.testing.assert_allclose(small.height, 0.8 * area(big.height)[0], atol=1e-5)
     mean_n = area(big.normal)
     np.testing.assert_allclose(small.normal, mean_n / np.linalg.norm(mean_n, axis=0), atol=1e-5)
     assert portrait.shrunk(dataclasses.replace(big, transfer=None), 32).transfer is None
+    plain = portrait.shrunk(dataclasses.replace(big, hair=None), 32)
+    assert plain.hair is None
+    np.testing.assert_array_equal(plain.transfer, small.transfer)
+    both = portrait.mean_buffers(small, dataclasses.replace(small, hair=1.0 - small.hair))
+    np.testing.assert_allclose(both.hair, 0.5, atol=1e-6)
+    assert portrait.mean_buffers(small, plain).hair is None
 
 
 def test_the_shared_full_resolution_graphs_are_built_once():

@@ -25,7 +25,7 @@ def test_samples_hold_the_exact_buffers(frames):
     from training.intrinsic import data
 
     s = frames[0]
-    assert s["image"].shape == (3, RES, RES) and s["target"].shape == (25, RES, RES)
+    assert s["image"].shape == (3, RES, RES) and s["target"].shape == (26, RES, RES)
     assert np.isfinite(s["image"]).all() and (s["image"] >= 0).all()
     fg = s["fg"][0] > 0
     assert fg.mean() > 0.1
@@ -37,8 +37,53 @@ def test_samples_hold_the_exact_buffers(frames):
     # Deterministic per index, different across indices.
     np.testing.assert_array_equal(frames[5]["image"], frames[5]["image"])
     assert not np.array_equal(frames[5]["image"], frames[6]["image"])
-    assert data.TARGETS == ("normal", "height", "albedo", "matte", "face", "transfer")
+    assert data.TARGETS == ("normal", "height", "albedo", "matte", "face", "transfer", "hair")
     assert (s["target"][data.TRANSFER][:, ~fg] == 0).all()
+
+
+def test_the_hair_label_follows_the_light_stage_s_and_the_mirror(frames):
+    """The target's last channel is the light stage's hair label, mirrored with the picture
+    when the sample is; it lies on the subject and never on face skin."""
+    from training.intrinsic import data
+    from training.intrinsic.model import HAIR_TARGET
+
+    assert HAIR_TARGET == data.TRANSFER.stop  # right after the transfer's channels
+    truths = [(frames.frame(k)["label"] == data.HAIR).astype(np.float32) for k in range(frames.n)]
+    for i in range(4):
+        s = frames[i]
+        hair = s["target"][HAIR_TARGET]
+        assert any(np.array_equal(hair, t) or np.array_equal(hair, t[:, ::-1]) for t in truths)
+        assert (hair * s["target"][8]).max() == 0.0  # not face skin
+        assert (hair <= s["fg"][0]).all()
+    assert max(frames[i]["target"][HAIR_TARGET].mean() for i in range(4)) > 0.01
+
+
+def test_a_network_given_the_hair_class_keeps_every_other_output(frames):
+    """IntrinsicNet(hair=True) loaded from a network without the class gives that network's
+    outputs exactly and a third parsing channel; --train-only hair leaves only the hair head to
+    train; its loss joins the total."""
+    from training.intrinsic.model import IntrinsicNet, has_hair, load_weights, losses
+    from training.intrinsic.train import frozen_modules
+
+    torch.manual_seed(0)
+    old = IntrinsicNet("small").eval()
+    net = IntrinsicNet("small", hair=True).eval()
+    load_weights(net, old.state_dict())
+    assert has_hair(net.state_dict()) and not has_hair(old.state_dict())
+    assert net.classes == ("foreground", "skin", "hair")
+    b = frames.batch(range(2))
+    x = b["image"] / b["image"].amax()
+    with torch.no_grad():
+        ref, got = old(x), net(x)
+    for r, g in zip(ref, got):
+        torch.testing.assert_close(r, g[:, :r.shape[1]], rtol=0, atol=0)
+    assert got[3].shape == (2, 3, RES, RES)
+    frozen_modules(net, "hair")
+    trainable = {n for n, p in net.named_parameters() if p.requires_grad}
+    assert trainable and all(n.startswith("hair_head.") for n in trainable)
+    ls = losses(got, b["target"], b["fg"])
+    assert float(ls["hair"]) > 0.1
+    assert float(losses(ref, b["target"], b["fg"])["hair"]) == 0.0
 
 
 def test_the_transfer_is_the_light_stages_irradiance_to_its_order(frames):
@@ -376,6 +421,31 @@ def test_a_network_rebuilt_from_its_onnx_is_the_network(frames, tmp_path):
     export_onnx(IntrinsicNet("standard").eval(), tmp_path / "other.onnx")
     with pytest.raises(ValueError, match="enc.0.0 has shape"):
         recover.rebuild(tmp_path / "other.onnx", "small", True, x)
+
+
+def test_a_network_with_the_hair_class_exports_and_is_rebuilt_from_its_file(frames, tmp_path):
+    """The hair class's network exports three parsing channels, and recover rebuilds it from
+    the file (its hair head's convolutions included) as it rebuilds one without the class."""
+    from training.intrinsic import recover
+    from training.intrinsic.export import export_onnx, outputs
+    from training.intrinsic.model import IntrinsicNet
+    from training.intrinsic.train import prepare
+
+    torch.manual_seed(0)
+    net = _batch_norms_set_apart(IntrinsicNet("small", hair=True)).eval()
+    assert dict(outputs(net))[contract.OUTPUT_PARSING] == 3
+    path = tmp_path / "hair.onnx"
+    export_onnx(net, path)
+    x = prepare(frames.batch(range(2)), torch.Generator().manual_seed(3))
+    rebuilt = recover.rebuild(path, "small", True, x, hair=True).eval()
+    with torch.no_grad():
+        want, got = net(x), rebuilt(x)
+    assert got[3].shape[1] == 3
+    for w, g in zip(want, got):
+        scale = max(1.0, float(w.abs().max()))
+        torch.testing.assert_close(g, w, atol=2e-4 * scale, rtol=1e-3)
+    with pytest.raises(ValueError, match="convolutions"):
+        recover.rebuild(path, "small", True, x)  # read as a network without the class
 
 
 def test_a_network_rebuilt_from_its_int8_file_stays_near_it(frames, tmp_path):

@@ -42,8 +42,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 DEFAULT_OUT = ROOT / "cache" / "intrinsic"
 MAGIC_FORMAT = 1
 SKIN = PARSING_CLASSES.index("skin")
+HAIR = PARSING_CLASSES.index("hair")
 # Buffers in the order the network predicts them (channels of the target tensor).
-TARGETS = ("normal", "height", "albedo", "matte", "face", "transfer")
+TARGETS = ("normal", "height", "albedo", "matte", "face", "transfer", "hair")
 TRANSFER = slice(9, 9 + render.TRANSFER_CHANNELS)  # the transfer's channels in the target
 
 
@@ -174,7 +175,7 @@ def dense(a: dict, values: np.ndarray, fill=0.0) -> np.ndarray:
 def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo_pool=None,
            sky_flip: float = 0.0, studio: float = 0.0) -> dict:
     """``image`` (3, H, W) linear radiance and ``target`` (len(TARGETS) buffers stacked: 3 normal,
-    1 height, 3 albedo, 1 matte, 1 face, 16 transfer = 25 channels), ``fg`` (1, H, W) where the
+    1 height, 3 albedo, 1 matte, 1 face, 16 transfer, 1 hair = 26 channels), ``fg`` (1, H, W) where the
     normal, height, albedo and transfer are defined. A random horizontal flip (normal x and the
     transfer's x-odd coefficients negated) doubles the poses."""
     h, w = a["mask"].shape
@@ -191,7 +192,8 @@ def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo
     fg = a["mask"].astype(np.float32)[None]
     matte = a["cover"].astype(np.float32)[None]
     face = (a["label"] == SKIN).astype(np.float32)[None]
-    target = np.concatenate([normal, height, albedo, matte, face, transfer(a)], 0)
+    hair = (a["label"] == HAIR).astype(np.float32)[None]
+    target = np.concatenate([normal, height, albedo, matte, face, transfer(a), hair], 0)
     if rng.random() < 0.5:
         img, target, fg = img[..., ::-1], target[..., ::-1].copy(), fg[..., ::-1]
         target[0] *= -1.0

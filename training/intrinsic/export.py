@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import time
 
@@ -28,8 +29,9 @@ import torch
 
 from addon import contract, engine
 
+from ..eval.report import cpu_name
 from . import data
-from .model import CLASSES, STRIDE, IntrinsicNet, has_transfer, unoccluded
+from .model import HAIR_TARGET, STRIDE, IntrinsicNet, has_hair, has_transfer, unoccluded
 from .train import prepare
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -38,7 +40,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 def outputs(net: IntrinsicNet) -> list[tuple[str, int]]:
     """(name, channels) of the network's outputs, in the contract's order."""
     return ([(contract.OUTPUT_NORMAL, 3), (contract.OUTPUT_HEIGHT, 1), (contract.OUTPUT_ALBEDO, 3),
-             (contract.OUTPUT_PARSING, len(CLASSES))]
+             (contract.OUTPUT_PARSING, len(net.classes))]
             + ([(contract.OUTPUT_TRANSFER, contract.TRANSFER_CHANNELS)] if net.transfer else []))
 
 
@@ -110,6 +112,9 @@ def val_metrics(forward, n: int = 96, res: int = 128, cache_dir=None) -> dict:
     iou = float((pm & tm).sum() / (pm | tm).sum().clamp(min=1))
     pf, tf_ = parsing[:, 1:2] > 0.5, t[:, 8:9] > 0.5
     extra = {}
+    if parsing.shape[1] > 2:
+        ph, th = parsing[:, 2:3] > 0.5, t[:, HAIR_TARGET:HAIR_TARGET + 1] > 0.5
+        extra["hair_iou"] = float((ph & th).sum() / (ph | th).sum().clamp(min=1))
     if transfer:
         # Mean absolute error of the transfer's coefficients, and that of the transfer the true
         # normals give unoccluded (what a network without it, exact in its normals, would miss).
@@ -193,7 +198,7 @@ def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20)
     return float(np.median(t) * 1000)
 
 
-TRAIN_ARGS = ("width", "res", "cache", "minutes", "steps", "batch", "lr", "ema", "seed", "threads",
+TRAIN_ARGS = ("width", "res", "cache", "val_cache", "minutes", "steps", "batch", "lr", "ema", "seed", "threads",
               "val_n", "val_every", "zoom", "cut", "face_weight", "gradient_weight", "start_step",
               "init", "sky_flip", "studio", "up_weight", "device", "workers", "out")
 
@@ -212,6 +217,10 @@ def train_command(recipe: dict) -> str:
         args.append("--no-bf16")
     if not recipe.get("transfer", False):  # runs recorded before the transfer had none
         args.append("--no-transfer")
+    if recipe.get("hair"):
+        args.append("--hair")
+    if recipe.get("train_only", "all") != "all":
+        args.append(f"--train-only {recipe['train_only']}")
     return "python -m training.intrinsic.train " + " ".join(args)
 
 
@@ -296,7 +305,8 @@ def main(argv=None):
     a = parser().parse_args(argv)
     run = pathlib.Path(a.run)
     state = torch.load(run / a.checkpoint, map_location="cpu")
-    net = IntrinsicNet(state["width"], has_transfer(state["state_dict"]))
+    net = IntrinsicNet(state["width"], has_transfer(state["state_dict"]),
+                       has_hair(state["state_dict"]))
     net.load_state_dict(state["state_dict"])
     net.eval()
     out = pathlib.Path(a.out)
@@ -326,7 +336,7 @@ def main(argv=None):
         "colour": {"space": "linear Rec.709 scene-referred, channels first",
                    "image": "a square crop around the portrait (addon.framing), scaled so its 90th "
                             "luminance percentile is 0.6 (addon.intrinsic.exposure_scale)"},
-        "classes": list(CLASSES),
+        "classes": list(net.classes),
         "training": {"data": training_data(recipe),
                      "render_version": recipe.get("render_version"),
                      "recipe": lineage(run, a.checkpoint)},
@@ -337,7 +347,7 @@ def main(argv=None):
                          "two_threads_ms": round(ms["2"], 2),
                          "what": "the network alone at the working size; the whole frame's "
                                  "path: python -m bench.intrinsic_speed"},
-                 "machine": "2-core x86-64 CPU (AMD EPYC, AVX-512), shared and noisy"},
+                 "machine": f"{cpu_name()}, {os.cpu_count()} cores, shared and noisy"},
         "architecture": {"kind": "U-Net, dense 3x3", "width": state["width"],
                          "parameters": sum(p.numel() for p in net.parameters())},
         "onnx_check_max_abs": worst,

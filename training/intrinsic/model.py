@@ -9,7 +9,8 @@ camera data it must generalise to is distributed. Outputs, all at the input's si
 * ``height`` (1): height toward the camera in pixels, up to a constant (only differences matter);
 * ``albedo`` (3): reflectance in (0, 1), up to a per-channel gain (one image cannot tell albedo
   from light power; the renderer only uses its variations);
-* ``parsing`` (2): sigmoid probabilities of the portrait foreground (the matte) and face skin;
+* ``parsing`` (2, or 3 with ``hair``): sigmoid probabilities of the portrait foreground (the
+  matte) and face skin, and of hair (HairHead);
 * ``transfer`` (16): the light that reaches each pixel as order-3 SH coefficients (visibility
   times cosine: addon.intrinsic's light transport; data.transfer_matrix), so occlusion by the
   nose, brows, jaw and hair is learnt from the light stage rather than guessed from the height.
@@ -28,6 +29,8 @@ STRIDE = 16
 OUTPUTS = ("normal", "height", "albedo", "parsing", "transfer")
 HEAD = 3 + 1 + 3 + 2 + TRANSFER_CHANNELS
 CLASSES = ("foreground", "skin")
+HAIR_CLASSES = CLASSES + ("hair",)
+HAIR_WIDTH = 8
 
 
 def block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
@@ -36,19 +39,38 @@ def block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
         nn.Conv2d(cout, cout, 3, 1, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
 
 
+def hair_head(w: tuple[int, ...]) -> nn.Sequential:
+    """The hair class's own small head: it reads the two finest decoder blocks' features (the
+    coarser enlarged to the finer's size), so a network trained without it gains it with every
+    other output unchanged (``train --train-only hair``). Hair below the chin is what the
+    renderer needs it for: there the neck and clothes, which the light stage renders Lambert,
+    stand beside it, and only a class tells them apart."""
+    return nn.Sequential(nn.Conv2d(w[0] + w[1], 2 * HAIR_WIDTH, 1), nn.ReLU(inplace=True),
+                         nn.Conv2d(2 * HAIR_WIDTH, HAIR_WIDTH, 3, 1, 1), nn.ReLU(inplace=True),
+                         nn.Conv2d(HAIR_WIDTH, 1, 1))
+
+
 class IntrinsicNet(nn.Module):
     """``transfer`` False: the network without the transfer (networks trained before it had
-    none; their files keep four outputs when re-exported)."""
+    none; their files keep four outputs when re-exported). ``hair``: a third parsing class,
+    hair (hair_head)."""
 
-    def __init__(self, width: str = "standard", transfer: bool = True):
+    def __init__(self, width: str = "standard", transfer: bool = True, hair: bool = False):
         super().__init__()
         w = WIDTHS[width]
         self.width = width
         self.transfer = transfer
+        self.hair = hair
         self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i - 1], w[i], 2)
                                                      for i in range(1, len(w))])
         self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in range(len(w) - 1)])
         self.head = nn.Conv2d(w[0], HEAD if transfer else HEAD - TRANSFER_CHANNELS, 1)
+        if hair:
+            self.hair_head = hair_head(w)
+
+    @property
+    def classes(self) -> tuple[str, ...]:
+        return HAIR_CLASSES if self.hair else CLASSES
 
     def forward(self, image: torch.Tensor):
         x = image.clamp(0.0, 1.0).clamp(min=1e-6) ** (1 / 2.2) - 0.5
@@ -57,15 +79,20 @@ class IntrinsicNet(nn.Module):
             x = enc(x)
             skips.append(x)
         x = skips.pop()
+        coarse = None
         for i in reversed(range(len(self.dec))):
             s = skips[i]
             x = tf.interpolate(x, size=s.shape[-2:], mode="bilinear", align_corners=False)
+            coarse = x if i == 0 else coarse
             x = self.dec[i](torch.cat([x, s], 1))
         out = self.head(x).float()
         normal = tf.normalize(out[:, 0:3], dim=1, eps=1e-6)
         height = out[:, 3:4] * 10.0
         albedo = torch.sigmoid(out[:, 4:7])
         parsing = torch.sigmoid(out[:, 7:9])
+        if self.hair:  # ``coarse``: the second-finest block's output, enlarged
+            hair = self.hair_head(torch.cat([x, coarse], 1)).float()
+            parsing = torch.cat([parsing, torch.sigmoid(hair)], 1)
         if not self.transfer:
             return normal, height, albedo, parsing
         return normal, height, albedo, parsing, unoccluded(normal.detach()) + out[:, 9:HEAD]
@@ -74,6 +101,11 @@ class IntrinsicNet(nn.Module):
 def has_transfer(state_dict: dict) -> bool:
     """Whether a saved network predicts the transfer."""
     return state_dict["head.weight"].shape[0] == HEAD
+
+
+def has_hair(state_dict: dict) -> bool:
+    """Whether a saved network predicts the hair class."""
+    return any(k.startswith("hair_head.") for k in state_dict)
 
 
 _TRANSFER_BAND = torch.from_numpy(TRANSFER_BAND.copy())
@@ -91,7 +123,11 @@ def load_weights(net: IntrinsicNet, state_dict: dict) -> None:
     """Load a state dict into ``net``; one saved before the network predicted the transfer (a
     head of 9 channels) keeps its buffers' weights, and the transfer's channels start at zero
     (the unoccluded transfer of the predicted normals). A network without the transfer takes
-    the buffers' channels of one with it."""
+    the buffers' channels of one with it. A network with the hair class loaded from one
+    without it keeps its hair head as initialised."""
+    if net.hair and not has_hair(state_dict):
+        state_dict = {**state_dict, **{f"hair_head.{k}": v
+                                       for k, v in net.hair_head.state_dict().items()}}
     head = state_dict.get("head.weight")
     if head is not None and not net.transfer and head.shape[0] == HEAD:
         keep = HEAD - TRANSFER_CHANNELS
@@ -109,6 +145,7 @@ def load_weights(net: IntrinsicNet, state_dict: dict) -> None:
 TRANSFER_WEIGHT = 2.0  # the transfer's L1 (its coefficients are about 0.1-1) in the total
 ALBEDO_WEIGHT = 0.5    # the albedo's log L1 (up to a gain per channel) in the total
 GRADIENT_SCALES = (2, 4, 8)  # block sizes the normals are pooled over before their differences
+HAIR_TARGET = 9 + TRANSFER_CHANNELS  # the hair label's channel in the target (data.TARGETS)
 
 
 def normal_gradient(normal: torch.Tensor, t_n: torch.Tensor, face: torch.Tensor) -> torch.Tensor:
@@ -140,8 +177,9 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
            gradient_weight: float = 0.0, up_weight: float = 1.0,
            albedo_weight: float = ALBEDO_WEIGHT) -> dict:
     """Per-buffer losses against the light stage's exact buffers (data.TARGETS order: normal 3,
-    height 1, albedo 3, matte 1, face 1, transfer 16); ``fg`` (B, 1, H, W) where the subject's
-    buffers exist.
+    height 1, albedo 3, matte 1, face 1, transfer 16, hair 1); ``fg`` (B, 1, H, W) where the
+    subject's buffers exist. The hair class's loss (``hair``, over the whole picture) joins the
+    total when the network predicts it.
     ``face_weight``: the normal losses count face-skin pixels 1 + face_weight times (the face is a
     third of the subject and carries the shading a relit face shows); ``gradient_weight``: the
     normals' differences between neighbours on the face skin (normal_gradient) join the normal
@@ -179,12 +217,15 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
     p = parsing.clamp(1e-5, 1 - 1e-5)
     l_matte = tf.binary_cross_entropy(p[:, 0:1], t_m)
     l_face = tf.binary_cross_entropy(p[:, 1:2], t_f)
+    l_hair = (tf.binary_cross_entropy(p[:, 2:3], target[:, HAIR_TARGET:HAIR_TARGET + 1])
+              if p.shape[1] > 2 else normal.new_zeros(()))
     l_transfer = (mean_fg((transfer[0] - target[:, 9:9 + TRANSFER_CHANNELS]).abs()).mean()
                   if transfer else normal.new_zeros(()))
     total = (l_normal + l_height + albedo_weight * l_albedo + 0.5 * l_matte + 0.5 * l_face
-             + TRANSFER_WEIGHT * l_transfer)
+             + TRANSFER_WEIGHT * l_transfer + 0.5 * l_hair)
     with torch.no_grad():
         ang = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
         angle = mean_fg(ang).mean()
     return {"total": total, "normal": l_normal, "height": l_height, "albedo": l_albedo,
-            "matte": l_matte, "face": l_face, "transfer": l_transfer, "normal_deg": angle}
+            "matte": l_matte, "face": l_face, "transfer": l_transfer, "hair": l_hair,
+            "normal_deg": angle}

@@ -100,18 +100,19 @@ def conv_outputs(net: IntrinsicNet, x: torch.Tensor) -> dict[str, list[torch.Ten
     return stats
 
 
-def architecture(card: engine.ModelCard) -> tuple[str, bool]:
-    """(width, whether it predicts the transfer) of a shipped model, from its card."""
+def architecture(card: engine.ModelCard) -> tuple[str, bool, bool]:
+    """(width, whether it predicts the transfer, whether it predicts hair) of a shipped model,
+    from its card."""
     outputs = [o["name"] for o in card.data.get("outputs", [])]
     return (card.data.get("architecture", {}).get("width", "standard"),
-            contract.OUTPUT_TRANSFER in outputs)
+            contract.OUTPUT_TRANSFER in outputs, "hair" in card.classes)
 
 
 def rebuild(path: pathlib.Path, width: str, transfer: bool,
-            calibration: torch.Tensor) -> IntrinsicNet:
-    """The IntrinsicNet(width, transfer) of an ONNX file, its batch normalisations set from
-    ``calibration`` (a batch of prepared training inputs)."""
-    net = IntrinsicNet(width, transfer=transfer)
+            calibration: torch.Tensor, hair: bool = False) -> IntrinsicNet:
+    """The IntrinsicNet(width, transfer, hair) of an ONNX file, its batch normalisations set
+    from ``calibration`` (a batch of prepared training inputs)."""
+    net = IntrinsicNet(width, transfer=transfer, hair=hair)
     convs = conv_weights(path)
     modules = dict(net.named_modules())
     if set(convs) != {n for n, m in modules.items() if isinstance(m, torch.nn.Conv2d)}:
@@ -179,10 +180,10 @@ def save(net: IntrinsicNet, out: pathlib.Path, path: pathlib.Path, card_training
     recovered = {"onnx": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
                  "card_training": card_training, "against_onnx": check}
     torch.save({"state_dict": net.state_dict(), "width": net.width, "step": step,
-                "recovered_from": recovered}, out / "best.pt")
+                "hair": net.hair, "recovered_from": recovered}, out / "best.pt")
     (out / "recipe.json").write_text(json.dumps(
         {"command": command, "width": net.width, "git_commit": git_commit(),
-         "transfer": net.transfer, "recovered_from": recovered}, indent=2))
+         "transfer": net.transfer, "hair": net.hair, "recovered_from": recovered}, indent=2))
 
 
 def calibration_batch(cache, res: int, frames: int, seed: int = 5,
@@ -204,7 +205,8 @@ def main(argv=None):
     path = pathlib.Path(a.onnx)
     card = engine.load_card(path)
     x = calibration_batch(a.cache, a.res, a.frames)
-    net = rebuild(path, *architecture(card), x)
+    width, transfer, hair = architecture(card)
+    net = rebuild(path, width, transfer, x, hair)
     check = distance(net, path, calibration_batch(a.cache, a.res, 12, seed=6, split="val"))
     cmd = (f"python -m training.intrinsic.recover --onnx {a.onnx} --out {a.out}"
            + (f" --cache {a.cache}" if a.cache else "") + f" --frames {a.frames}")

@@ -32,7 +32,7 @@ import torch
 from addon import intrinsic as renderer
 
 from . import camera, data
-from .model import ALBEDO_WEIGHT, IntrinsicNet, load_weights, losses
+from .model import ALBEDO_WEIGHT, HAIR_TARGET, IntrinsicNet, load_weights, losses
 
 
 def normalise_batch(img: torch.Tensor) -> torch.Tensor:
@@ -74,6 +74,8 @@ def zoom(batch: dict, gen: torch.Generator, p: float = 0.5) -> dict:
     tgt[:, 0:3] = torch.nn.functional.normalize(tgt[:, 0:3], dim=1) * fg
     tgt[:, 3:4] = tgt[:, 3:4] * f.view(-1, 1, 1, 1)
     tgt[:, 8:9] = (tgt[:, 8:9] > 0.5).float()
+    if tgt.shape[1] > HAIR_TARGET:
+        tgt[:, HAIR_TARGET] = (tgt[:, HAIR_TARGET] > 0.5).float()
     out["target"], out["fg"] = tgt, fg
     return out
 
@@ -113,6 +115,7 @@ def frame_cut(batch: dict, gen: torch.Generator, p: float = 0.3) -> dict:
     out["fg"] = batch["fg"] * inside
     tgt = batch["target"].clone()
     tgt[:, 7:9] *= inside
+    tgt[:, HAIR_TARGET:HAIR_TARGET + 1] *= inside
     out["target"] = tgt
     return out
 
@@ -189,8 +192,10 @@ class EMA:
 # only a few pixels around each one; "decoder": every decoder block and the head. Meant to
 # refine the buffers while the encoder's reading of a face's large-scale shape stays; it does
 # not guarantee it: 2,500 steps of "decoder" (--albedo-weight 1.5) from the shipped network
-# moved the CroppedYale tune subjects' top/bottom balance 0.808 -> 0.794.
-TRAIN_ONLY = {"all": None, "decoder": ("dec", "head"), "last": ("dec.0", "head")}
+# moved the CroppedYale tune subjects' top/bottom balance 0.808 -> 0.794. "hair": only the hair
+# class's head (model.hair_head), so every other output stays exactly the --init network's.
+TRAIN_ONLY = {"all": None, "decoder": ("dec", "head"), "last": ("dec.0", "head"),
+              "hair": ("hair_head",)}
 
 
 def frozen_modules(model: torch.nn.Module, which: str) -> list:
@@ -258,12 +263,12 @@ def train(a) -> pathlib.Path:
                               studio=a.studio, keep_frames=not a.workers)
     recipe["long_hair"] = ds.long_hair
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2))
-    vds = data.IntrinsicFrames("val", a.res, 1234, a.cache)
+    vds = data.IntrinsicFrames("val", a.res, 1234, a.val_cache or a.cache)
     val = vds.batch(range(a.val_n))
     vgen = torch.Generator().manual_seed(99)
     val_in = prepare(val, vgen).to(device)
     val = {k: v.to(device) for k, v in val.items()}
-    model = IntrinsicNet(a.width, a.transfer)
+    model = IntrinsicNet(a.width, a.transfer, a.hair)
     if a.init:
         load_weights(model, torch.load(a.init, map_location="cpu")["state_dict"])
     model.to(device)
@@ -304,9 +309,12 @@ def train(a) -> pathlib.Path:
             v = validate(model, val, val_in)
             training_mode(model, frozen)
             score = v["normal_deg"] + 10 * v["albedo"] + 10 * v["height"] + 10 * v["transfer"]
+            if a.train_only == "hair":  # the rest is the --init network's, whatever the step
+                score = v["hair"]
             log.append({"step": step, "seconds": round(time.time() - t0), **v, "score": score})
             print("val", json.dumps(log[-1]), flush=True)
-            state = {"state_dict": cpu(ema.shadow), "width": a.width, "step": step, "val": v}
+            state = {"state_dict": cpu(ema.shadow), "width": a.width, "step": step, "val": v,
+                     "hair": a.hair}
             if score < best:
                 best = score
                 torch.save(state, out / "best.pt")
@@ -324,6 +332,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--width", default="standard", choices=["small", "standard"])
     ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--cache", help="intrinsic frame cache root (default cache/intrinsic)")
+    ap.add_argument("--val-cache", help="the val frames' cache root (default --cache): "
+                    "another build's held-out identities, e.g. all with long hair")
     ap.add_argument("--minutes", type=float, help="time box (else --steps)")
     ap.add_argument("--steps", type=int, default=4000)
     ap.add_argument("--batch", type=int, default=12)
@@ -364,6 +374,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-bf16", dest="bf16", action="store_false")
     ap.add_argument("--no-transfer", dest="transfer", action="store_false",
                     help="no transfer head (as the networks trained before it)")
+    ap.add_argument("--hair", action="store_true", help="a third parsing class, hair "
+                    "(model.hair_head); with --train-only hair, only that head trains")
     return ap
 
 
