@@ -1,6 +1,7 @@
 """What each effect of the intrinsic renderer buys and costs, against the light stage's truth.
 
     .venv/bin/python -m bench.intrinsic_effects [--frames 24] [--model models/relight-portrait.onnx]
+        [--cache cache/intrinsic-longval --out bench/results/intrinsic_effects_long_hair]
 
 Held-out val frames (training/intrinsic/data.py, identities never trained on) are rendered under
 a soft source light, then relit by ``addon.intrinsic.shade`` to five target lights and compared
@@ -17,12 +18,16 @@ source frame over the face skin the target light darkens to under half (after on
 relit frame's against the light stage's (a new shadow on skin is a little warm at its edges, from
 light diffusing under the skin; too warm reads as a red-brown band). Time: the renderer's
 milliseconds per 128 x 128 crop, median over the frames, on this machine. Writes
-``bench/results/intrinsic_effects.{md,json}``.
+``bench/results/intrinsic_effects.{md,json}``. ``--cache``: another build's val frames (those
+whose identities all wear long hair: training.intrinsic.data --long-hair 1); ``--no-hair-class``:
+both kinds of buffers without the hair class (the renderer then lights nothing below the chin as
+hair), to measure what the class buys.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import pathlib
@@ -86,7 +91,7 @@ def exact_buffers(a: dict) -> intrinsic.Buffers:
     return intrinsic.Buffers(data.dense(a, a["normal"]), data.dense(a, a["height"][:, None])[0],
                              data.dense(a, a["albedo"]), a["cover"].astype(np.float32),
                              (a["label"] == data.SKIN).astype(np.float32),
-                             data.transfer(a))
+                             data.transfer(a), (a["label"] == data.HAIR).astype(np.float32))
 
 
 def predicted_buffers(session, img: np.ndarray) -> intrinsic.Buffers:
@@ -124,9 +129,9 @@ def warmth(out: np.ndarray, src_rb: np.ndarray, where: np.ndarray) -> float | No
     return float(np.median((log_rb(out) - src_rb)[where]))
 
 
-def run(n_frames: int, model=None) -> dict:
+def run(n_frames: int, model=None, cache=None, hair_class: bool = True) -> dict:
     torch.set_num_threads(1)
-    ds = data.IntrinsicFrames("val", 128, 0, varied_backdrops=False)
+    ds = data.IntrinsicFrames("val", 128, 0, cache, varied_backdrops=False)
     lights = targets(ds.bank)
     session = None
     if model:
@@ -142,6 +147,8 @@ def run(n_frames: int, model=None) -> dict:
         kinds = {"exact buffers": exact_buffers(a)}
         if session is not None:
             kinds["network buffers"] = predicted_buffers(session, src)
+        if not hair_class:
+            kinds = {k: dataclasses.replace(b, hair=None) for k, b in kinds.items()}
         for lname, light in lights.items():
             gt = render(a, light)
             dark = darkened(src, gt, a["mask"] & (kinds["exact buffers"].face > 0.5))
@@ -193,8 +200,12 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--model", help="an intrinsic .onnx: also measure with its predicted buffers")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "intrinsic_effects"))
+    ap.add_argument("--cache", help="the val frames' cache root (default cache/intrinsic)")
+    ap.add_argument("--no-hair-class", dest="hair_class", action="store_false",
+                    help="the buffers without the hair class")
     a = ap.parse_args(argv)
-    write_report(a.out, "intrinsic_effects", argv, run(a.frames, a.model), markdown)
+    write_report(a.out, "intrinsic_effects", argv,
+                 run(a.frames, a.model, a.cache, a.hair_class), markdown)
 
 
 def write_report(out: str, module: str, argv, res: dict, markdown) -> None:
