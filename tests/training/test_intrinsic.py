@@ -451,6 +451,53 @@ def test_a_network_with_the_hair_class_exports_and_is_rebuilt_from_its_file(fram
         recover.rebuild(path, "small", True, x)  # read as a network without the class
 
 
+def test_a_hair_head_grafted_onto_a_file_leaves_its_other_outputs_bit_for_bit(frames, tmp_path):
+    """graft: the base file (float, and int8) with the hair head added gives the base file's
+    outputs exactly and a third parsing channel that is the hair network's own (on a float base,
+    to float rounding); recover rebuilds the grafted file as a network with the class; a file
+    that already has one is refused."""
+    import onnxruntime as ort
+
+    from training.intrinsic import graft, recover
+    from training.intrinsic.export import export_onnx, quantise
+    from training.intrinsic.model import IntrinsicNet, load_weights
+    from training.intrinsic.train import prepare
+
+    torch.manual_seed(0)
+    base_net = _batch_norms_set_apart(IntrinsicNet("small")).eval()
+    net = IntrinsicNet("small", hair=True).eval()
+    load_weights(net, base_net.state_dict())
+    x = prepare(frames.batch(range(2)), torch.Generator().manual_seed(3))
+    fp, q8 = tmp_path / "base.float.onnx", tmp_path / "base.onnx"
+    export_onnx(base_net, fp)
+    quantise(fp, q8, frames.batch(range(4)), frames.batch(range(4, 6)), RES)
+    with torch.no_grad():
+        want = [t.numpy() for t in net(x)]
+    for base in (fp, q8):
+        out = tmp_path / f"grafted-{base.name}"
+        graft.graft(base, net, out)
+
+        def run(path):
+            s = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+            return s.run(None, {contract.INPUT_IMAGE: x.numpy()})
+
+        before, after = run(base), run(out)
+        assert after[3].shape[1] == 3
+        c = graft.check(before, after, want[3])
+        assert c["other_outputs_max_abs_against_base"] == 0.0
+        if base == fp:
+            assert c["hair_mean_abs_against_the_network"] < 1e-5
+            for w, g in zip(want, after):
+                np.testing.assert_allclose(g, w, atol=1e-4 * max(1.0, float(np.abs(w).max())))
+        else:  # the int8 layers' features feed it: near, not equal
+            assert c["hair_mean_abs_against_the_network"] < 0.05
+    rebuilt = recover.rebuild(tmp_path / "grafted-base.float.onnx", "small", True, x, hair=True)
+    with torch.no_grad():
+        np.testing.assert_allclose(rebuilt.eval()(x)[3].numpy(), want[3], atol=1e-4)
+    with pytest.raises(ValueError, match="already"):
+        graft.graft(tmp_path / "grafted-base.onnx", net, tmp_path / "twice.onnx")
+
+
 def test_a_network_rebuilt_from_its_int8_file_stays_near_it(frames, tmp_path):
     """An int8 file's weights are dequantised per output channel: the rebuilt float network is
     as near the int8 file as the float network it was quantised from."""

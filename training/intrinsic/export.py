@@ -14,6 +14,11 @@ decoder block and its output head kept float (``INT8_KEEP_FLOAT``): quantised, t
 of the error and of the frame-to-frame flicker for little of the time. The card records how far
 the int8 buffers are from the float network's on held-out val identities; every other figure
 on it is the int8 file's.
+
+``--graft-onto FILE`` (a run that trained only the hair head from FILE's rebuilt checkpoint):
+FILE's graph with the hair head added (graft.py), every other output FILE's own, in place of
+exporting and quantising the whole network again; the card keeps FILE's quantisation record and
+says what was grafted onto which file.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ import torch
 from addon import contract, engine
 
 from ..eval.report import cpu_name
-from . import data
+from . import data, graft
 from .model import HAIR_TARGET, STRIDE, IntrinsicNet, has_hair, has_transfer, unoccluded
 from .train import prepare
 
@@ -309,7 +314,47 @@ def parser() -> argparse.ArgumentParser:
                          "training.intrinsic.data --split val --long-hair 1 --out CACHE)")
     ap.add_argument("--int8", action="store_true",
                     help="ship the network quantised to int8 (INT8_KEEP_FLOAT's layers float)")
+    ap.add_argument("--graft-onto", metavar="ONNX",
+                    help="add the run's hair head to this file (the one the run's --init was "
+                         "rebuilt from) instead of exporting the whole network (graft.py)")
     return ap
+
+
+def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
+    """--graft-onto: write ``onnx_path`` as the base file with ``net``'s hair head, and return
+    the card's record of it: the base file, its quantisation record (still the truth for every
+    layer but the hair head's, which is float), and the check on held-out val frames."""
+    base = pathlib.Path(a.graft_onto)
+    base_card = engine.load_card(base)  # read before the same path is written
+    if "hair" in base_card.classes:
+        raise SystemExit(f"{base} already predicts hair")
+    record = {"onnx": str(base), "sha256": engine.file_sha256(base),
+              "what": "the hair head (model.hair_head) added to this file's graph; every other "
+                      "output is the file's own"}
+    base_bytes = base.read_bytes()
+    part = onnx_path.with_suffix(".part.onnx")
+    graft.graft(base, net, part)
+    import onnxruntime as ort
+
+    b, x = val_inputs(16)
+    feeds = [{contract.INPUT_IMAGE: x[i:i + 1].numpy()} for i in range(len(x))]
+    before = ort.InferenceSession(base_bytes, providers=["CPUExecutionProvider"])
+    after = ort.InferenceSession(str(part), providers=["CPUExecutionProvider"])
+    ref, got = ([np.concatenate(o, 0) for o in zip(*[s.run(None, f) for f in feeds])]
+                for s in (before, after))
+    with torch.no_grad():
+        mine = net(x)[3].numpy()
+    record["check"] = {**graft.check(ref, got, mine), "samples": len(x),
+                       "split": "val (held-out identities)"}
+    if record["check"]["other_outputs_max_abs_against_base"] != 0.0:
+        part.unlink()
+        raise SystemExit(f"grafting changed the other outputs: {record['check']}")
+    part.replace(onnx_path)
+    quant = base_card.data.get("quantisation")
+    if quant:
+        quant = {**quant, "kept_float": quant["kept_float"] + [
+            c for c in conv_nodes(onnx_path) if c.startswith("/hair_head/")]}
+    return {"graft": record, "quantisation": quant}
 
 
 def main(argv=None):
@@ -324,10 +369,14 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     onnx_path = out / f"{a.name}.onnx"
     float_path = onnx_path.with_suffix(".float.onnx") if a.int8 else onnx_path
-    export_onnx(net, float_path)
-    worst = check_against_torch(net, float_path)
-    quant = None
-    if a.int8:
+    quant = worst = graft_record = None
+    if a.graft_onto:
+        done = grafted(a, net, onnx_path)
+        graft_record, quant = done["graft"], done["quantisation"]
+    else:
+        export_onnx(net, float_path)
+        worst = check_against_torch(net, float_path)
+    if a.int8 and not a.graft_onto:
         try:
             calibration = data.IntrinsicFrames("train", 128, 97).batch(range(INT8_CALIBRATION))
             check = data.IntrinsicFrames("val", 128, 4321).batch(range(32))
@@ -361,8 +410,11 @@ def main(argv=None):
                  "machine": f"{cpu_name()}, {os.cpu_count()} cores, shared and noisy"},
         "architecture": {"kind": "U-Net, dense 3x3", "width": state["width"],
                          "parameters": sum(p.numel() for p in net.parameters())},
-        "onnx_check_max_abs": worst,
     }
+    if worst is not None:
+        card["onnx_check_max_abs"] = worst
+    if graft_record:
+        card["graft"] = graft_record
     if quant:
         card["quantisation"] = quant
     card_path.write_text(json.dumps(card, indent=1) + "\n")  # the product path reads the card
@@ -372,7 +424,7 @@ def main(argv=None):
 
     metrics = evaluate.card_metrics(predictors.product_predictor(onnx_path, a.threads),
                                     evaluate.heldout_dataset(128), a.eval, 128)
-    forward = onnx_forward(onnx_path) if a.int8 else net
+    forward = onnx_forward(onnx_path) if a.int8 or a.graft_onto else net
     metrics["val_buffers"] = val_metrics(forward)
     if a.long_hair_val:
         long_hair = data.IntrinsicFrames("val", 128, 0, a.long_hair_val)

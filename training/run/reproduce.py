@@ -99,7 +99,8 @@ def commands(card: dict) -> list[str]:
                    + (" --recommended" if card.get("recommended") is True else "")
                    + (f" --long-hair-val {long_val[long_val.index('--out') + 1]}"
                       if "--out" in long_val else "")
-                   + (" --int8" if card.get("quantisation") else ""))
+                   + (f" --graft-onto {card['graft']['onnx']}" if card.get("graft")
+                      else " --int8" if card.get("quantisation") else ""))
         return out
     out.append(f"python -m training.run.export --run {recipe['args']['out']} --checkpoint "
                f"{checkpoint} --name {name} --threads 1 --eval 64" + (" --int8" if int8 else ""))

@@ -1,0 +1,106 @@
+"""Give a shipped intrinsic network file the hair class, leaving the rest of the file as it is.
+
+    .venv/bin/python -m training.intrinsic.export --run runs/portrait-hair --int8-from models/relight-portrait.onnx ...
+
+A run trained with ``--hair --train-only hair`` from a file's rebuilt checkpoint
+(training.intrinsic.recover) changed only the hair head (model.hair_head); every other layer is
+the file's own. Exporting that run afresh would quantise those layers again, and their int8
+activation ranges, calibrated on the rebuilt float network rather than the one the file was
+made from, move every buffer by about the int8 rounding (0.9 degrees of normal on held-out val
+frames: as far as the file is from its own float network). So the hair head is added to the
+file's graph instead: its three convolutions (float, as export's INT8_KEEP_FLOAT keeps the head),
+reading what they read in IntrinsicNet (the full-resolution decoder block's output averaged down
+to half size, beside the second-finest block's output), their logit enlarged to the input's size,
+and its sigmoid appended to ``parsing`` as a third channel. Every other output stays the file's to
+the bit; the node names are IntrinsicNet's (``/hair_head/hair_head.0/Conv``), so recover reads
+the result back as it reads an exported file.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+from addon import contract
+
+from .model import IntrinsicNet
+
+HEAD_CONV = "/head/Conv"            # the output head: its input is the finest block's output
+FINE_BLOCK_CONV = "/dec.0/dec.0.0/Conv"  # the finest decoder block's first convolution
+
+
+def _producer(graph, name: str):
+    return next(n for n in graph.node if name in n.output)
+
+
+def graft(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> None:
+    """Write ``out``: the ONNX file ``base`` (an IntrinsicNet without the hair class, exported by
+    export.py, float or int8) with ``net``'s hair head added. ``base`` may be ``out``."""
+    import onnx
+    from onnx import helper, numpy_helper
+
+    if not net.hair:
+        raise ValueError("the network has no hair head to graft")
+    model = onnx.load(str(base))
+    g = model.graph
+    nodes = {n.name: n for n in g.node}
+    if any(n.name.startswith("/hair_head/") for n in g.node):
+        raise ValueError(f"{base} already has a hair head")
+    if HEAD_CONV not in nodes or FINE_BLOCK_CONV not in nodes:
+        raise ValueError(f"{base}: not an intrinsic network's graph (no {HEAD_CONV} or "
+                         f"{FINE_BLOCK_CONV} node)")
+    fine = nodes[HEAD_CONV].input[0]
+    cat = _producer(g, nodes[FINE_BLOCK_CONV].input[0])
+    resize = _producer(g, cat.input[0])
+    if cat.op_type != "Concat" or resize.op_type != "Resize":
+        raise ValueError(f"{base}: the finest decoder block does not read an enlarged coarser "
+                         "block as IntrinsicNet does")
+    coarse = resize.input[0]
+    parsing = _producer(g, contract.OUTPUT_PARSING)
+    parsing.output[0] = "/hair/parsing_base"
+
+    convs = [m for m in net.hair_head if hasattr(m, "weight")]
+    names = [f"hair_head.{i}" for i, m in enumerate(net.hair_head) if hasattr(m, "weight")]
+    for name, conv in zip(names, convs):
+        for part in ("weight", "bias"):
+            g.initializer.append(numpy_helper.from_array(
+                getattr(conv, part).detach().numpy().astype(np.float32), f"{name}.{part}"))
+    g.initializer.append(numpy_helper.from_array(np.float32([1, 1, 2, 2]), "/hair/scales"))
+    n = helper.make_node
+    new = [n("AveragePool", [fine], ["/hair/pool"], name="/hair/AveragePool",
+             kernel_shape=[2, 2], strides=[2, 2]),
+           n("Concat", ["/hair/pool", coarse], ["/hair/cat"], name="/hair/Concat", axis=1)]
+    x = "/hair/cat"
+    for i, (name, conv) in enumerate(zip(names, convs)):
+        k = conv.kernel_size[0]
+        y = f"/hair_head/{name}/Conv_output_0"
+        new.append(n("Conv", [x, f"{name}.weight", f"{name}.bias"], [y],
+                     name=f"/hair_head/{name}/Conv", kernel_shape=[k, k],
+                     pads=[k // 2] * 4, strides=[1, 1], dilations=[1, 1], group=1))
+        x = y
+        if i < len(convs) - 1:
+            new.append(n("Relu", [y], [f"{y}_relu"], name=f"/hair_head/{name}/Relu"))
+            x = f"{y}_relu"
+    new += [n("Resize", [x, "", "/hair/scales"], ["/hair/up"], name="/hair/Resize",
+              mode="linear", coordinate_transformation_mode="half_pixel"),
+            n("Sigmoid", ["/hair/up"], ["/hair/p"], name="/hair/Sigmoid"),
+            n("Concat", ["/hair/parsing_base", "/hair/p"], [contract.OUTPUT_PARSING],
+              name="/hair/parsing", axis=1)]
+    g.node.extend(new)
+    for o in g.output:
+        if o.name == contract.OUTPUT_PARSING:
+            o.type.tensor_type.shape.dim[1].dim_value = len(net.classes)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(out))
+
+
+def check(base_outputs: list, grafted_outputs: list, reference: list) -> dict:
+    """How the grafted file's outputs (onnxruntime, on the same inputs) compare: every output but
+    the hair channel against the base file's (``base_outputs``), and the hair channel against
+    the network's own (``reference``: IntrinsicNet's parsing, as numpy)."""
+    same = max(float(np.abs(np.asarray(b) - np.asarray(g[:, :b.shape[1]] if i == 3 else g)).max())
+               for i, (b, g) in enumerate(zip(base_outputs, grafted_outputs)))
+    hair = float(np.abs(grafted_outputs[3][:, -1] - reference[:, -1]).mean())
+    return {"other_outputs_max_abs_against_base": same,
+            "hair_mean_abs_against_the_network": hair}
