@@ -58,6 +58,24 @@ def test_the_hair_label_follows_the_light_stage_s_and_the_mirror(frames):
     assert max(frames[i]["target"][HAIR_TARGET].mean() for i in range(4)) > 0.01
 
 
+def test_the_card_s_buffer_figures_include_the_hair_class(frames):
+    """export.val_metrics of a forward that returns the light stage's own buffers: every
+    buffer exact, hair included (hair_iou 1), beside the transfer's figures."""
+    from training.intrinsic import export
+    from training.intrinsic.model import HAIR_TARGET
+
+    cache = frames.folder.parent
+
+    def truth(x):
+        t = export.val_inputs(len(x), RES, cache)[0]["target"]
+        parsing = torch.cat([t[:, 7:9], t[:, HAIR_TARGET:HAIR_TARGET + 1]], 1)
+        return t[:, 0:3], t[:, 3:4], t[:, 4:7], parsing, t[:, 9:HAIR_TARGET]
+
+    m = export.val_metrics(truth, 2, RES, cache)
+    assert m["hair_iou"] == 1.0 and m["matte_iou"] == 1.0 and m["face_iou"] == 1.0
+    assert m["transfer_abs"] == 0.0 and m["albedo_log_abs"] < 1e-6
+
+
 def test_a_network_given_the_hair_class_keeps_every_other_output(frames):
     """IntrinsicNet(hair=True) loaded from a network without the class gives that network's
     outputs exactly and a third parsing channel; --train-only hair leaves only the hair head to

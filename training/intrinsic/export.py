@@ -124,10 +124,10 @@ def val_metrics(forward, n: int = 96, res: int = 128, cache_dir=None) -> dict:
         # Mean absolute error of the transfer's coefficients, and that of the transfer the true
         # normals give unoccluded (what a network without it, exact in its normals, would miss).
         tt = t[:, data.TRANSFER].permute(1, 0, 2, 3)[:, fg[:, 0]]
-        extra = {"transfer_abs": float((transfer[0].permute(1, 0, 2, 3)[:, fg[:, 0]] - tt)
-                                       .abs().mean()),
-                 "transfer_abs_unoccluded_truth": float(
-                     (unoccluded(t[:, 0:3]).permute(1, 0, 2, 3)[:, fg[:, 0]] - tt).abs().mean())}
+        extra |= {"transfer_abs": float((transfer[0].permute(1, 0, 2, 3)[:, fg[:, 0]] - tt)
+                                        .abs().mean()),
+                  "transfer_abs_unoccluded_truth": float(
+                      (unoccluded(t[:, 0:3]).permute(1, 0, 2, 3)[:, fg[:, 0]] - tt).abs().mean())}
     return {"normal_angle_deg_mean": float(ang.mean()), "normal_angle_deg_median": float(ang.median()),
             "height_abs_px": float((d - dm)[fg].abs().mean()),
             "albedo_log_abs": float((la - la_m).abs().permute(1, 0, 2, 3)[:, fg[:, 0]].mean()),
