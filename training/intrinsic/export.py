@@ -322,8 +322,10 @@ def parser() -> argparse.ArgumentParser:
 
 def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
     """--graft-onto: write ``onnx_path`` as the base file with ``net``'s hair head, and return
-    the card's record of it: the base file, its quantisation record (still the truth for every
-    layer but the hair head's, which is float), and the check on held-out val frames."""
+    the card's record of it: the base file, the check on held-out val frames and both files'
+    time (interleaved, one thread), the base card's quantisation record (still the truth for
+    every layer but the hair head's, which is float) and its per-frame time (``frontier``, from
+    bench.intrinsic_frontier, marked as the base file's until that bench is run again)."""
     base = pathlib.Path(a.graft_onto)
     base_card = engine.load_card(base)  # read before the same path is written
     if "hair" in base_card.classes:
@@ -349,12 +351,23 @@ def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
     if record["check"]["other_outputs_max_abs_against_base"] != 0.0:
         part.unlink()
         raise SystemExit(f"grafting changed the other outputs: {record['check']}")
+    ms = {"base": [], "grafted": []}
+    for _ in range(5):  # interleaved: the machine's load falls on both alike
+        ms["base"].append(time_onnx(base, 1, a.working_size))
+        ms["grafted"].append(time_onnx(part, 1, a.working_size))
+    record["ms_one_thread"] = {k: round(float(np.median(v)), 2) for k, v in ms.items()}
+    record["machine"] = f"{cpu_name()}, {os.cpu_count()} cores"
     part.replace(onnx_path)
+    front = base_card.data.get("frontier")
+    if front:
+        front = {**front, "file": f"measured on the file before the hair head was grafted "
+                                  f"(sha256 {record['sha256']}); graft.ms_one_thread says what "
+                                  "the head adds to the network"}
     quant = base_card.data.get("quantisation")
     if quant:
         quant = {**quant, "kept_float": quant["kept_float"] + [
             c for c in conv_nodes(onnx_path) if c.startswith("/hair_head/")]}
-    return {"graft": record, "quantisation": quant}
+    return {"graft": record, "quantisation": quant, "frontier": front}
 
 
 def main(argv=None):
@@ -369,10 +382,10 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     onnx_path = out / f"{a.name}.onnx"
     float_path = onnx_path.with_suffix(".float.onnx") if a.int8 else onnx_path
-    quant = worst = graft_record = None
+    quant = worst = graft_record = front = None
     if a.graft_onto:
         done = grafted(a, net, onnx_path)
-        graft_record, quant = done["graft"], done["quantisation"]
+        graft_record, quant, front = done["graft"], done["quantisation"], done["frontier"]
     else:
         export_onnx(net, float_path)
         worst = check_against_torch(net, float_path)
@@ -415,6 +428,8 @@ def main(argv=None):
         card["onnx_check_max_abs"] = worst
     if graft_record:
         card["graft"] = graft_record
+    if front:
+        card["frontier"] = front
     if quant:
         card["quantisation"] = quant
     card_path.write_text(json.dumps(card, indent=1) + "\n")  # the product path reads the card
