@@ -9,6 +9,7 @@ import pytest
 
 from addon import contract
 from training.intrinsic import export as intrinsic_export
+from training.intrinsic import recover as intrinsic_recover
 from training.intrinsic import train as intrinsic_train
 from training.model import checkpoint
 from training.run import export, lineage, options, reproduce
@@ -56,6 +57,25 @@ def test_an_intrinsic_card_reproduces_its_export_with_the_int8_flag_it_was_made_
     assert args.long_hair_val == "cache/intrinsic-longval" and not args.int8
 
 
+def test_a_grafted_card_reproduces_its_graft_and_names_the_file_it_needs():
+    """A card whose hair head was grafted onto a file exports with --graft-onto that file (not
+    --int8: the file is already quantised), and reproduce says which version of the file the
+    graft and the rebuild from it read (once, by sha256)."""
+    base = {"onnx": "models/relight-portrait.onnx", "sha256": "ab" * 32}
+    card = {**_card(preset="portrait", name="relight-portrait"),
+            "contract": contract.INTRINSIC_CONTRACT, "quantisation": {"kind": "int8"},
+            "graft": base}
+    card["training"]["recipe"]["init"] = {"checkpoint": "runs/r/best.pt",
+                                          "recipe": "python -m training.intrinsic.recover ...",
+                                          "recovered_from": base}
+    last = reproduce.commands(card)[-1]
+    args = intrinsic_export.parser().parse_args(shlex.split(last)[3:])
+    assert args.graft_onto == "models/relight-portrait.onnx" and not args.int8
+    notes = reproduce.file_notes(card)
+    assert len(notes) == 1 and "ab" * 32 in notes[0]
+    assert reproduce.file_notes(_card()) == []
+
+
 def test_a_model_trained_further_twice_reproduces_the_whole_chain(tmp_path):
     """lineage.load_init keeps the parent's own start (nested), completing an older one-level
     record from the parent checkpoint on disk; reproduce runs the chain from the first run."""
@@ -91,14 +111,17 @@ def test_every_shipped_card_gives_commands_the_current_cli_accepts(card):
             intrinsic_train.parser().parse_args(args[3:])
         elif args[2] == "training.intrinsic.export":
             intrinsic_export.parser().parse_args(args[3:])
+        elif args[2] == "training.intrinsic.recover":  # a run rebuilt from a shipped file
+            intrinsic_recover.parser().parse_args(args[3:])
         else:
             assert args[2] == "training.run.export"
             export.parser().parse_args(args[3:])
-    trains = [c for c in cmds
-              if shlex.split(c)[2] in ("training.run.train", "training.intrinsic.train")]
-    for before, after in zip(trains, trains[1:]):  # each run starts from the one before it
+    runs = [c for c in cmds if shlex.split(c)[2] in
+            ("training.run.train", "training.intrinsic.train", "training.intrinsic.recover")]
+    for before, after in zip(runs, runs[1:]):  # each run starts from the one before it
         out = shlex.split(before)[shlex.split(before).index("--out") + 1]
-        assert f"--init {out}/" in after
+        if shlex.split(after)[2] != "training.intrinsic.recover":  # that one reads a file
+            assert f"--init {out}/" in after
 
 
 def test_moved_modules_run_under_their_present_names():

@@ -193,7 +193,7 @@ def calibration_batch(cache, res: int, frames: int, seed: int = 5,
     return prepare(ds.batch(range(frames)), torch.Generator().manual_seed(seed))
 
 
-def main(argv=None):
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--onnx", required=True, help="an intrinsic model's .onnx (its card beside)")
     ap.add_argument("--out", required=True, help="run folder to write best.pt and recipe.json")
@@ -201,7 +201,11 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=48,
                     help="training frames the batch normalisations are set from")
     ap.add_argument("--res", type=int, default=128)
-    a = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None):
+    a = parser().parse_args(argv)
     path = pathlib.Path(a.onnx)
     card = engine.load_card(path)
     x = calibration_batch(a.cache, a.res, a.frames)

@@ -83,6 +83,23 @@ def version_notes(card: dict, current: str) -> list[str]:
             for i, r in enumerate(chain(card)) if r["render_version"] != current]
 
 
+def file_notes(card: dict) -> list[str]:
+    """One line per shipped file a command reads as it was when the card was made: a run
+    rebuilt from a file (training.intrinsic.recover) and a hair head grafted onto one (export
+    --graft-onto) need that version of the file in place, which its sha256 finds in git."""
+    files = []
+    node = card["training"]["recipe"]
+    while node:
+        if node.get("recovered_from"):
+            files.append(node["recovered_from"])
+        node = node.get("init")
+    if card.get("graft"):
+        files.append(card["graft"])
+    return [f"reproduce: put the {f['onnx']} whose sha256 is {f['sha256']} in place first "
+            f"(git log -- {f['onnx']} finds it): a command reads that version"
+            for f in {f["sha256"]: f for f in files}.values()]
+
+
 def commands(card: dict) -> list[str]:
     """The shell commands that made the model of ``card``, in order."""
     recipe = card["training"]["recipe"]
@@ -122,7 +139,7 @@ def main(argv=None) -> int:
     cmds = commands(card)
     for c in cmds:
         print(c)
-    for line in version_notes(card, renderer_version()):
+    for line in version_notes(card, renderer_version()) + file_notes(card):
         print(line, file=sys.stderr)
     if a.run:
         for c in cmds:
