@@ -2,7 +2,7 @@
 
 The network (training/intrinsic) predicts, for a square crop around the portrait, per-pixel
 normals, height toward the camera, albedo variations, the matte and face skin, and (networks
-that have it) the light transport (``transfer``: what the face itself hides from each direction,
+that have them) hair and the light transport (``transfer``: what the face itself hides from each direction,
 as order-3 SH). This module turns
 those buffers and a light vector into a per-pixel change of the footage:
 
@@ -27,7 +27,8 @@ those buffers and a light vector into a per-pixel change of the footage:
   light (an overcast sky, a uniform world) gets neither, and pays nothing for them. On skin the
   target irradiance diffuses under the surface (``subsurface``), red furthest, as the light
   stage renders it: terminators and shadow edges turn soft and warm. Hair (the subject away
-  from face skin) takes the light stage's wrapped lobe (``hair_share``).
+  from face skin above the chin, and the network's hair class below it) takes the light
+  stage's wrapped lobe and the head's shadow (``hair_share``, ``behind_head``).
 
 Everything is numpy, channels first, at the working size; addon/portrait.py brings the change
 to the footage's full resolution as a ratio, so the footage keeps its identity and detail.
