@@ -300,8 +300,7 @@ def hair_share(bufs: Buffers) -> np.ndarray:
     this shares). On held-out light-stage identities that all wear long hair
     (bench/results/intrinsic_effects_long_hair*.md) the class moves the network buffers' relit
     error by under 0.0005 either way; with the stage's exact buffers it rises 0.003-0.004 under
-    the key lamps, the head's shadow on the hair below the chin spreading into the neck beside
-    it through penumbra's blur."""
+    the key lamps."""
     face = np.clip(bufs.face, 0.0, 1.0)
     near = gaussian_blur(face, HAIR_FACE_SIGMA)
     share = np.clip(bufs.matte, 0.0, 1.0) * np.clip(1.0 - 3.0 * near, 0.0, 1.0)
