@@ -1,19 +1,21 @@
 """Give a shipped intrinsic network file the hair class, leaving the rest of the file as it is.
 
-    .venv/bin/python -m training.intrinsic.export --run runs/portrait-hair --int8-from models/relight-portrait.onnx ...
+    .venv/bin/python -m training.intrinsic.export --run runs/portrait-hair \
+        --graft-onto models/relight-portrait.onnx ...
 
 A run trained with ``--hair --train-only hair`` from a file's rebuilt checkpoint
 (training.intrinsic.recover) changed only the hair head (model.hair_head); every other layer is
 the file's own. Exporting that run afresh would quantise those layers again, and their int8
 activation ranges, calibrated on the rebuilt float network rather than the one the file was
-made from, move every buffer by about the int8 rounding (0.9 degrees of normal on held-out val
-frames: as far as the file is from its own float network). So the hair head is added to the
-file's graph instead: its three convolutions (float, as export's INT8_KEEP_FLOAT keeps the head),
-reading what they read in IntrinsicNet (the full-resolution decoder block's output averaged down
-to half size, beside the second-finest block's output), their logit enlarged to the input's size,
-and its sigmoid appended to ``parsing`` as a third channel. Every other output stays the file's to
-the bit; the node names are IntrinsicNet's (``/hair_head/hair_head.0/Conv``), so recover reads
-the result back as it reads an exported file.
+made from, move every buffer by about the int8 rounding (the card's
+``quantisation.against_float``), and every figure measured on the file with them. So the hair
+head is added to the file's graph instead: its three convolutions (float, as export's
+INT8_KEEP_FLOAT keeps the head), reading what they read in IntrinsicNet (the full-resolution
+decoder block's output averaged down to half size, beside the second-finest block's output),
+their logit enlarged to the input's size, and its sigmoid appended to ``parsing`` as a third
+channel. Every other output stays the file's to the bit; the node names are IntrinsicNet's
+(``/hair_head/hair_head.0/Conv``), so recover reads the result back as it reads an exported
+file.
 """
 
 from __future__ import annotations

@@ -42,9 +42,8 @@ def block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 def hair_head(w: tuple[int, ...]) -> nn.Sequential:
     """The hair class's own small head: it reads the two finest decoder blocks' features at half
     the input's size (the finest one averaged down) and its logit is enlarged to the input's, so
-    it costs a quarter of what it would at full size (at full size: 12% more of the float
-    network's time), and a network trained without it gains it with every other output
-    unchanged (``train --train-only hair``). Hair below the chin is what the renderer needs it
+    it costs a quarter of what it would at full size, and a network trained without it gains it
+    with every other output unchanged (``train --train-only hair``). Hair below the chin is what the renderer needs it
     for: there the neck and clothes, which the light stage renders Lambert, stand beside it,
     and only a class tells them apart."""
     return nn.Sequential(nn.Conv2d(w[0] + w[1], 2 * HAIR_WIDTH, 1), nn.ReLU(inplace=True),
