@@ -2,9 +2,9 @@
 
 The network (training/intrinsic) predicts, for a square crop around the portrait, per-pixel
 normals, height toward the camera, albedo variations, the matte and face skin, and (networks
-that have them) hair and the light transport (``transfer``: what the face itself hides from each direction,
-as order-3 SH). This module turns
-those buffers and a light vector into a per-pixel change of the footage:
+that have them) hair and the light transport (``transfer``: what the face itself hides from
+each direction, as order-3 SH). This module turns those buffers and a light vector into a
+per-pixel change of the footage:
 
     relit = footage * E_target / E_source + specular
 

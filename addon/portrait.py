@@ -144,9 +144,9 @@ def shrunk(bufs: intrinsic.Buffers, size: int,
     small = shared_fullres(fullres).shrink_planar(np.concatenate(planes, 0), size, size)
     k = np.float32(size / bufs.height.shape[0])
     rest = 9 if bufs.hair is None else 10
+    transfer = small[rest:] if bufs.transfer is not None else None
     return intrinsic.Buffers(intrinsic.unit_normals(small[0:3]), small[3] * k, small[4:7],
-                             small[7], small[8], small[rest:] if bufs.transfer is not None else None,
-                             None if bufs.hair is None else small[9])
+                             small[7], small[8], transfer, None if bufs.hair is None else small[9])
 
 
 def mean_buffers(a: intrinsic.Buffers, b: intrinsic.Buffers) -> intrinsic.Buffers:

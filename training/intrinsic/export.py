@@ -138,7 +138,7 @@ def val_metrics(forward, n: int = 96, res: int = 128, cache_dir=None) -> dict:
 
 # Left float in the int8 file (the modules whose convolutions they are): the first (it reads
 # the image's full range), the full-resolution decoder block's two, the output head and the hair
-# class's head (model.hair_head: a twentieth of the network's time, at full resolution).
+# class's head (model.hair_head).
 # In a trial on 16 held-out val frames, quantising every convolution put the buffers 3.9 degrees
 # of normal (albedo 8% in log) from the float network's, the first and the head kept float 0.6
 # degrees; on the dev footage (training.eval.footage_sheet) the latter still raised the relit
@@ -214,9 +214,9 @@ def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20)
     return float(np.median(t) * 1000)
 
 
-TRAIN_ARGS = ("width", "res", "cache", "val_cache", "minutes", "steps", "batch", "lr", "ema", "seed", "threads",
-              "val_n", "val_every", "zoom", "cut", "face_weight", "gradient_weight", "start_step",
-              "init", "sky_flip", "studio", "up_weight", "device", "workers", "out")
+TRAIN_ARGS = ("width", "res", "cache", "val_cache", "minutes", "steps", "batch", "lr", "ema", "seed",
+              "threads", "val_n", "val_every", "zoom", "cut", "face_weight", "gradient_weight",
+              "start_step", "init", "sky_flip", "studio", "up_weight", "device", "workers", "out")
 
 
 def train_command(recipe: dict) -> str:
@@ -338,7 +338,7 @@ def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
     graft.graft(base, net, part)
     import onnxruntime as ort
 
-    b, x = val_inputs(16)
+    _, x = val_inputs(16)
     feeds = [{contract.INPUT_IMAGE: x[i:i + 1].numpy()} for i in range(len(x))]
     before = ort.InferenceSession(base_bytes, providers=["CPUExecutionProvider"])
     after = ort.InferenceSession(str(part), providers=["CPUExecutionProvider"])

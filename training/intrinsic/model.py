@@ -10,7 +10,7 @@ camera data it must generalise to is distributed. Outputs, all at the input's si
 * ``albedo`` (3): reflectance in (0, 1), up to a per-channel gain (one image cannot tell albedo
   from light power; the renderer only uses its variations);
 * ``parsing`` (2, or 3 with ``hair``): sigmoid probabilities of the portrait foreground (the
-  matte) and face skin, and of hair (HairHead);
+  matte) and face skin, and of hair (hair_head);
 * ``transfer`` (16): the light that reaches each pixel as order-3 SH coefficients (visibility
   times cosine: addon.intrinsic's light transport; data.transfer_matrix), so occlusion by the
   nose, brows, jaw and hair is learnt from the light stage rather than guessed from the height.
@@ -43,9 +43,9 @@ def hair_head(w: tuple[int, ...]) -> nn.Sequential:
     """The hair class's own small head: it reads the two finest decoder blocks' features at half
     the input's size (the finest one averaged down) and its logit is enlarged to the input's, so
     it costs a quarter of what it would at full size, and a network trained without it gains it
-    with every other output unchanged (``train --train-only hair``). Hair below the chin is what the renderer needs it
-    for: there the neck and clothes, which the light stage renders Lambert, stand beside it,
-    and only a class tells them apart."""
+    with every other output unchanged (``train --train-only hair``). Hair below the chin is what
+    the renderer needs it for: there the neck and clothes, which the light stage renders
+    Lambert, stand beside it, and only a class tells them apart."""
     return nn.Sequential(nn.Conv2d(w[0] + w[1], 2 * HAIR_WIDTH, 1), nn.ReLU(inplace=True),
                          nn.Conv2d(2 * HAIR_WIDTH, HAIR_WIDTH, 3, 1, 1), nn.ReLU(inplace=True),
                          nn.Conv2d(HAIR_WIDTH, 1, 1))
