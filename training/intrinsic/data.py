@@ -175,9 +175,9 @@ def dense(a: dict, values: np.ndarray, fill=0.0) -> np.ndarray:
 def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo_pool=None,
            sky_flip: float = 0.0, studio: float = 0.0) -> dict:
     """``image`` (3, H, W) linear radiance and ``target`` (len(TARGETS) buffers stacked: 3 normal,
-    1 height, 3 albedo, 1 matte, 1 face, 16 transfer, 1 hair = 26 channels), ``fg`` (1, H, W) where the
-    normal, height, albedo and transfer are defined. A random horizontal flip (normal x and the
-    transfer's x-odd coefficients negated) doubles the poses."""
+    1 height, 3 albedo, 1 matte, 1 face, 16 transfer, 1 hair = 26 channels), ``fg`` (1, H, W)
+    where the normal, height, albedo and transfer are defined. A random horizontal flip (normal x
+    and the transfer's x-odd coefficients negated) doubles the poses."""
     h, w = a["mask"].shape
     backdrop = None
     if photo_bank is not None:

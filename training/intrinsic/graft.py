@@ -97,7 +97,7 @@ def graft(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> None:
     onnx.save(model, str(out))
 
 
-def check(base_outputs: list, grafted_outputs: list, reference: list) -> dict:
+def check(base_outputs: list, grafted_outputs: list, reference: np.ndarray) -> dict:
     """How the grafted file's outputs (onnxruntime, on the same inputs) compare: every output but
     the hair channel against the base file's (``base_outputs``), and the hair channel against
     the network's own (``reference``: IntrinsicNet's parsing, as numpy)."""

@@ -180,10 +180,10 @@ def save(net: IntrinsicNet, out: pathlib.Path, path: pathlib.Path, card_training
     recovered = {"onnx": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
                  "card_training": card_training, "against_onnx": check}
     torch.save({"state_dict": net.state_dict(), "width": net.width, "step": step,
-                "hair": net.hair, "recovered_from": recovered}, out / "best.pt")
+                "recovered_from": recovered}, out / "best.pt")
     (out / "recipe.json").write_text(json.dumps(
         {"command": command, "width": net.width, "git_commit": git_commit(),
-         "transfer": net.transfer, "hair": net.hair, "recovered_from": recovered}, indent=2))
+         "transfer": net.transfer, "recovered_from": recovered}, indent=2))
 
 
 def calibration_batch(cache, res: int, frames: int, seed: int = 5,

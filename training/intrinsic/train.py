@@ -74,8 +74,7 @@ def zoom(batch: dict, gen: torch.Generator, p: float = 0.5) -> dict:
     tgt[:, 0:3] = torch.nn.functional.normalize(tgt[:, 0:3], dim=1) * fg
     tgt[:, 3:4] = tgt[:, 3:4] * f.view(-1, 1, 1, 1)
     tgt[:, 8:9] = (tgt[:, 8:9] > 0.5).float()
-    if tgt.shape[1] > HAIR_TARGET:
-        tgt[:, HAIR_TARGET] = (tgt[:, HAIR_TARGET] > 0.5).float()
+    tgt[:, HAIR_TARGET] = (tgt[:, HAIR_TARGET] > 0.5).float()
     out["target"], out["fg"] = tgt, fg
     return out
 
@@ -313,8 +312,7 @@ def train(a) -> pathlib.Path:
                 score = v["hair"]
             log.append({"step": step, "seconds": round(time.time() - t0), **v, "score": score})
             print("val", json.dumps(log[-1]), flush=True)
-            state = {"state_dict": cpu(ema.shadow), "width": a.width, "step": step, "val": v,
-                     "hair": a.hair}
+            state = {"state_dict": cpu(ema.shadow), "width": a.width, "step": step, "val": v}
             if score < best:
                 best = score
                 torch.save(state, out / "best.pt")
