@@ -355,6 +355,47 @@ def test_a_shadow_s_edge_softens_with_the_distance_to_its_occluder():
     assert np.all(intrinsic.penumbra(ones, np.zeros_like(ones)) == 1.0)
 
 
+def far_ear():
+    """Buffers of a far ear: a tall block (a cheek, cols 20-29) turned away from a light from the
+    camera's right, and left of it a strip of flat subject (the ear, cols 14-19) facing the
+    camera, in the block's cast shadow, between the block and the backdrop (cols < 14)."""
+    normal = np.zeros((3, S, S), np.float32)
+    normal[2] = 1.0
+    height = np.zeros((S, S), np.float32)
+    cheek = (slice(16, 48), slice(20, 30))
+    height[cheek] = 20.0
+    normal[:, cheek[0], cheek[1]] = np.asarray(unit([-0.9, 0.0, 0.44]), np.float32)[:, None, None]
+    matte = np.ones((S, S), np.float32)
+    matte[:, :14] = 0.0
+    return intrinsic.Buffers(normal, height, np.full((3, S, S), 0.5, np.float32), matte,
+                             np.zeros_like(matte))
+
+
+def test_a_cast_shadow_beside_a_side_turned_from_the_light_stays_dark():
+    """The penumbra leaves the side turned from the light out of its blur (shadow never marched
+    it): a strip in the block's cast shadow stays dark at its edge against the block (blurred
+    with the turned side's unmarched visibility of 1, the two columns there kept 0.17 and 0.36
+    of the light, the strip 0.21 on average); lit subject beside the block keeps its full
+    change."""
+    bufs = far_ear()
+    image = np.full((3, S, S), 0.2, np.float32)
+    light = lightvec.splat_direction(RAKING_RIGHT, 10.0)
+    ratio = intrinsic.shade(image, bufs, light, keep_exposure=False).ratio[1]
+    floor = float(ratio[32, 45])
+    assert floor > 1.0
+    assert float(ratio[32, 18:20].max()) < 0.02 * floor, ratio[32, 14:20] / floor
+    assert float(ratio[32, 14:20].mean()) < 0.15 * floor, ratio[32, 14:20] / floor
+    assert np.allclose(ratio[32, 30:60], floor)
+
+
+def test_penumbra_with_no_pixel_turned_is_the_plain_blur():
+    ones = np.ones((S, S), np.float32)
+    vis, dist = intrinsic.shadow(bump_field(), ones, RAKING_RIGHT, distance=True)
+    plain = intrinsic.penumbra(vis, dist)
+    assert plain.min() < 0.5
+    assert np.allclose(intrinsic.penumbra(vis, dist, np.zeros((S, S), bool)), plain, atol=1e-6)
+
+
 def test_a_light_from_above_shadows_below():
     """Light from +Y (image up): the shadow falls below the bump (image y down)."""
     vis = intrinsic.shadow(bump_field(), np.ones((S, S), np.float32), unit([0.0, 0.94, 0.34]))
