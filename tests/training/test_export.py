@@ -233,8 +233,8 @@ def test_level_fit_rmse_forgives_an_overall_level_and_tint_only():
 
 def test_update_card_rewrites_only_the_metrics_of_the_card_that_describes_the_file(tmp_path):
     """evaluate --update-card: re-measuring a shipped model (a new test set) replaces the card's
-    metrics it measures and nothing else (an intrinsic card's buffer figures stay), and refuses
-    a card written for another file or a missing card."""
+    metrics it measures and nothing else (an intrinsic card's buffer figures stay, and its
+    indentation), and refuses a card written for another file or a missing card."""
     onnx_path = tmp_path / "m.onnx"
     onnx_path.write_bytes(b"model bytes")
     with pytest.raises(SystemExit, match="no card"):
@@ -250,6 +250,11 @@ def test_update_card_rewrites_only_the_metrics_of_the_card_that_describes_the_fi
     evaluate.update_card(onnx_path, {"rmse": 0.2})
     assert json.loads((tmp_path / "m.json").read_text())["metrics"] == {
         "rmse": 0.2, "val_buffers": {"normal_deg": 11.0}}
+    # A card keeps its own indentation, so its diff is the figures that changed.
+    (tmp_path / "m.json").write_text(json.dumps(card, indent=1) + "\n")
+    evaluate.update_card(onnx_path, {"rmse": 0.2})
+    assert (tmp_path / "m.json").read_text() == json.dumps(
+        {**card, "metrics": {"rmse": 0.2, "val_buffers": {"normal_deg": 11.0}}}, indent=1) + "\n"
     onnx_path.write_bytes(b"other bytes")
     with pytest.raises(SystemExit, match="sha256 differs"):
         evaluate.update_card(onnx_path, {"rmse": 0.1})

@@ -249,7 +249,8 @@ def update_card(onnx_path, metrics: dict) -> pathlib.Path:
     if not card_path.is_file():
         raise SystemExit(f"--update-card: no card at {card_path}; export the model with "
                          "training.run.export, which writes one")
-    card = json.loads(card_path.read_text())
+    text = card_path.read_text()
+    card = json.loads(text)
     digest = hashlib.sha256(onnx_path.read_bytes()).hexdigest()
     if card.get("sha256") != digest:
         raise SystemExit(f"--update-card: {card_path} describes another file than {onnx_path} "
@@ -257,7 +258,11 @@ def update_card(onnx_path, metrics: dict) -> pathlib.Path:
     # Figures this module does not measure (an intrinsic card's buffers against the light
     # stage, from its export) stay.
     card["metrics"] = {**card.get("metrics", {}), **metrics}
-    card_path.write_text(json.dumps(card, indent=2) + "\n")
+    # The card keeps its own indentation (exports write 1 space, older cards 2), so its diff
+    # shows the figures that changed.
+    second = text.split("\n", 2)[1] if text.count("\n") > 1 else ""
+    indent = len(second) - len(second.lstrip(" ")) or 2
+    card_path.write_text(json.dumps(card, indent=indent) + "\n")
     return card_path
 
 
