@@ -299,7 +299,7 @@ def hair_share(bufs: Buffers) -> np.ndarray:
     hair there kept the footage's light beside a cheek in shadow (behind_head takes only what
     this shares). On held-out light-stage identities that all wear long hair
     (bench/results/intrinsic_effects_long_hair*.md) the class moves the network buffers' relit
-    error by under 0.0005 either way; with the stage's exact buffers it rises 0.003-0.004 under
+    error by under 0.0005 either way; with the stage's exact buffers it rises about 0.002 under
     the key lamps."""
     face = np.clip(bufs.face, 0.0, 1.0)
     near = gaussian_blur(face, HAIR_FACE_SIGMA)
@@ -725,17 +725,21 @@ def penumbra(vis: np.ndarray, dist: np.ndarray, turned: np.ndarray | None = None
     around it (a normalised blur over PENUMBRA_REACH), so a shadow's lit edge widens as its dark
     side does.
 
-    ``turned`` (h, w) bool: the subject's pixels turned away from the light, which shadow does
-    not march; its visibility of 1 there means "not asked", so the blur leaves them out (a
-    blur normalised over the rest). Blurred in as lit, they lit the edge of every cast shadow
-    that meets the head's dark side: on dev footage under a key lamp the far ear, in the
-    head's shadow but a few working pixels wide beside a cheek turned away, kept much of the
-    footage's light. Taking them as shadow instead (and the backdrop left out too) also
-    darkened lit skin within the blur's reach of the terminator: CroppedYale's tune subjects
-    liked that (training.eval.yale --split tune: top/bottom 0.809 -> 0.824) but the light
-    stage's shadows came out too dark and, under a sunny HDRI, too cold (bench.intrinsic_effects,
-    exact buffers: key lamps 0.1103 / 0.1149 -> 0.1137 / 0.1184, long hair 0.1638 -> 0.1760;
-    shadow warmth -0.043 -> -0.099 against the stage's -0.021), so it is not done."""
+    ``turned`` (h, w) bool: the subject's pixels turned away from the light, which shadow does not
+    march; its visibility of 1 there means "not asked", so the blur leaves them out (a blur
+    normalised over the rest). Blurred in as lit, they lit the edge of every cast shadow that meets
+    the head's dark side: on dev footage under a key lamp the far ear, in the head's shadow but a
+    few working pixels wide beside a cheek turned away, kept much of the footage's light. Elsewhere
+    it changes little: bench.intrinsic_effects moves by under 0.0004 on the held-out identities,
+    and on long-haired ones their exact buffers' key lamps lose 0.002-0.004 (network buffers under
+    0.0005); a sunny HDRI's shadows come out a little colder (exact buffers' shadow warmth -0.043
+    -> -0.052, the stage's -0.021); CroppedYale's test subjects 20.36 -> 20.37 dB
+    (training.eval.yale). Taking them as shadow instead (and the backdrop left out too) also
+    darkened lit skin within the blur's reach of the terminator: CroppedYale's tune subjects liked
+    that (training.eval.yale --split tune: top/bottom 0.809 -> 0.824) but the light stage's shadows
+    came out too dark and, under a sunny HDRI, too cold (bench.intrinsic_effects, exact buffers:
+    key lamps 0.1103 / 0.1149 -> 0.1137 / 0.1184, long hair 0.1638 -> 0.1760; shadow warmth -0.043
+    -> -0.099 against the stage's -0.021), so it is not done."""
     dark = 1.0 - vis  # the cast shadow's, whose occluder distances set the width
     if not (dark > 0).any():
         return vis
