@@ -199,8 +199,10 @@ SWAPS = {"framing": ((), True), "normals": (("normal",), False), "height": (("he
          "transport": (("transfer",), False),
          # the transport holds its own normals' cosine: the two belong together
          "normals and transport": (("normal", "transfer"), False),
-         "all buffers": (("normal", "height", "albedo", "matte", "face", "transfer"), False),
-         "everything": (("normal", "height", "albedo", "matte", "face", "transfer"), True)}
+         "hair": (("hair",), False),
+         # every field of the buffers, whatever the renderer comes to read
+         "all buffers": (tuple(f.name for f in dataclasses.fields(intrinsic.Buffers)), False),
+         "everything": (tuple(f.name for f in dataclasses.fields(intrinsic.Buffers)), True)}
 
 
 @contextlib.contextmanager
