@@ -7,7 +7,8 @@ The frame is the built-in demo clip's first frame (our own render) enlarged into
 canvas, the portrait off-centre as in a wide shot. Each stage runs ``--repeats`` times after two
 warm-up runs; the table gives the median milliseconds and the frames per second it allows.
 Lights: a key lamp (one compact component: shadows and highlights are computed) and a soft
-uniform world (none: diffuse only). The stages run as the product runs them, numpy's BLAS on one
+uniform world (none: diffuse only); the key lamp's penumbra is timed alone too, beside the
+plain blur it replaces. The stages run as the product runs them, numpy's BLAS on one
 thread (addon/blas.py); relight_frame (and the clip below) also run with it left on its own
 threads, for comparison. The end-to-end figure counts the framing pass a run makes
 (it follows the last framed frame's box, find_box's ``prior``); the whole-frame search it falls
@@ -163,6 +164,18 @@ def run(model: str, threads: int, repeats: int) -> dict:
             "renderer, key lamp (diffuse + shadow + highlight)":
                 timed(lambda: intrinsic.shade(crop, bufs, lamp), repeats),
         }
+        # The key lamp's penumbra alone, with the pixels turned from it left out of its blur
+        # (as shade runs it) and the plain blur beside it: what leaving them out costs.
+        comp = intrinsic.plan(lamp).components[0]
+        lam = intrinsic.lobe(np.tensordot(comp.direction, bufs.normal, axes=(0, 0)),
+                             intrinsic.hair_share(bufs))
+        vis, dist = intrinsic.shadow(bufs.height / intrinsic.height_scale(bufs), bufs.matte,
+                                     comp.direction, lit=lam, distance=True)
+        turned = (lam <= 0) & (bufs.matte > 0.5)
+        rows["penumbra, key lamp (the pixels turned from it left out of the blur)"] = timed(
+            lambda: intrinsic.penumbra(vis, dist, turned), repeats)
+        rows["penumbra, key lamp, the plain blur (comparison)"] = timed(
+            lambda: intrinsic.penumbra(vis, dist), repeats)
         if bufs.transfer is not None:  # what the transfer's occlusion costs, in the same run
             plain = dataclasses.replace(bufs, transfer=None)
             rows["renderer, key lamp, the transfer left out (comparison)"] = timed(

@@ -372,7 +372,7 @@ def far_ear():
 
 
 def test_a_cast_shadow_beside_a_side_turned_from_the_light_stays_dark():
-    """The penumbra leaves the side turned from the light out of its blur (shadow never marched
+    """The penumbra does not blur the side turned from the light in as lit (shadow never marched
     it): a strip in the block's cast shadow stays dark at its edge against the block (blurred
     with the turned side's unmarched visibility of 1, the two columns there kept 0.17 and 0.36
     of the light, the strip 0.21 on average); lit subject beside the block keeps its full
