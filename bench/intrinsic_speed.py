@@ -164,16 +164,16 @@ def run(model: str, threads: int, repeats: int) -> dict:
             "renderer, key lamp (diffuse + shadow + highlight)":
                 timed(lambda: intrinsic.shade(crop, bufs, lamp), repeats),
         }
-        # The key lamp's penumbra alone, with the pixels turned from it left out of its blur
-        # (as shade runs it) and the plain blur beside it: what leaving them out costs.
+        # The key lamp's penumbra alone, the pixels turned from it filled from the asked ones
+        # (as shade runs it), and the plain blur beside it: what the fill costs.
         comp = intrinsic.plan(lamp).components[0]
         lam = intrinsic.lobe(np.tensordot(comp.direction, bufs.normal, axes=(0, 0)),
                              intrinsic.hair_share(bufs))
         vis, dist = intrinsic.shadow(bufs.height / intrinsic.height_scale(bufs), bufs.matte,
                                      comp.direction, lit=lam, distance=True)
         turned = (lam <= 0) & (bufs.matte > 0.5)
-        rows["penumbra, key lamp (the pixels turned from it left out of the blur)"] = timed(
-            lambda: intrinsic.penumbra(vis, dist, turned), repeats)
+        fill_row = "penumbra, key lamp (the pixels turned from it filled from their neighbours)"
+        rows[fill_row] = timed(lambda: intrinsic.penumbra(vis, dist, turned), repeats)
         rows["penumbra, key lamp, the plain blur (comparison)"] = timed(
             lambda: intrinsic.penumbra(vis, dist), repeats)
         if bufs.transfer is not None:  # what the transfer's occlusion costs, in the same run
