@@ -192,6 +192,8 @@ def without_cast_shadows():
         intrinsic.plan = plan
 
 
+# Every field of the buffers, whatever the renderer comes to read.
+ALL_BUFFERS = tuple(f.name for f in dataclasses.fields(intrinsic.Buffers))
 # What --swap takes from another intrinsic model (buffers_from), by name: the fields of its
 # buffers in the relighting pass, and whether its face and matte maps place the portrait's box.
 SWAPS = {"framing": ((), True), "normals": (("normal",), False), "height": (("height",), False),
@@ -200,9 +202,7 @@ SWAPS = {"framing": ((), True), "normals": (("normal",), False), "height": (("he
          # the transport holds its own normals' cosine: the two belong together
          "normals and transport": (("normal", "transfer"), False),
          "hair": (("hair",), False),
-         # every field of the buffers, whatever the renderer comes to read
-         "all buffers": (tuple(f.name for f in dataclasses.fields(intrinsic.Buffers)), False),
-         "everything": (tuple(f.name for f in dataclasses.fields(intrinsic.Buffers)), True)}
+         "all buffers": (ALL_BUFFERS, False), "everything": (ALL_BUFFERS, True)}
 
 
 @contextlib.contextmanager

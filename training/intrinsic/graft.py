@@ -62,9 +62,8 @@ def graft(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> None:
     parsing = _producer(g, contract.OUTPUT_PARSING)
     parsing.output[0] = "/hair/parsing_base"
 
-    convs = [m for m in net.hair_head if hasattr(m, "weight")]
-    names = [f"hair_head.{i}" for i, m in enumerate(net.hair_head) if hasattr(m, "weight")]
-    for name, conv in zip(names, convs):
+    convs = [(f"hair_head.{i}", m) for i, m in enumerate(net.hair_head) if hasattr(m, "weight")]
+    for name, conv in convs:
         for part in ("weight", "bias"):
             g.initializer.append(numpy_helper.from_array(
                 getattr(conv, part).detach().numpy().astype(np.float32), f"{name}.{part}"))
@@ -74,7 +73,7 @@ def graft(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> None:
              kernel_shape=[2, 2], strides=[2, 2]),
            n("Concat", ["/hair/pool", coarse], ["/hair/cat"], name="/hair/Concat", axis=1)]
     x = "/hair/cat"
-    for i, (name, conv) in enumerate(zip(names, convs)):
+    for i, (name, conv) in enumerate(convs):
         k = conv.kernel_size[0]
         y = f"/hair_head/{name}/Conv_output_0"
         new.append(n("Conv", [x, f"{name}.weight", f"{name}.bias"], [y],
