@@ -387,16 +387,17 @@ def upsample_graph() -> bytes:
 
 
 def mix_graph() -> bytes:
-    """(3, P) half ``y``, (3, P) ``x``, (P,) ``share``, scalar ``scale`` -> (3, P) half
+    """(3, P) half ``y``, (3, P) ``x``, (1 or 3, P) ``share``, scalar ``scale`` -> (3, P) half
     x scale + share (y - x scale): a relit pixel taken part of the way back to its footage
-    (addon.outline), its half-float conversions vectorised."""
+    (addon.outline), for all its channels or each its own, its half-float conversions
+    vectorised."""
     from . import onnx_graph as g
     return g.model(
         [g.node("Cast", ["y"], ["yf"], to=g.FLOAT), g.node("Mul", ["x", "scale"], ["xs"]),
          g.node("Sub", ["yf", "xs"], ["d"]), g.node("Mul", ["d", "share"], ["ds"]),
          g.node("Add", ["xs", "ds"], ["m"]), g.node("Cast", ["m"], ["out"], to=g.FLOAT16)],
         [g.value_info("y", g.FLOAT16, [3, "P"]), g.value_info("x", g.FLOAT, [3, "P"]),
-         g.value_info("share", g.FLOAT, ["P"]), g.value_info("scale", g.FLOAT, [])],
+         g.value_info("share", g.FLOAT, ["S", "P"]), g.value_info("scale", g.FLOAT, [])],
         [g.value_info("out", g.FLOAT16, [3, "P"])], name="mix")
 
 
@@ -488,12 +489,13 @@ class FullRes:
     def mix_half(self, y: np.ndarray, x: np.ndarray, share: np.ndarray,
                  scale: float) -> np.ndarray:
         """(3, P) half: x * scale + share * (y - x * scale), for (3, P) half ``y``, (3, P)
-        ``x`` and (P,) ``share`` (mix_graph)."""
+        ``x`` and (P,) ``share``, or (3, P): a share for each channel (mix_graph)."""
         if not share.size:
             return np.zeros((3, 0), np.float16)
+        share = np.ascontiguousarray(share, np.float32).reshape(-1, share.shape[-1])
         return self._mix.run(None, {"y": np.ascontiguousarray(y, np.float16),
                                     "x": np.ascontiguousarray(x, np.float32),
-                                    "share": np.ascontiguousarray(share, np.float32),
+                                    "share": share,
                                     "scale": np.array(scale, np.float32)})[0]
 
     def upsample_half_planar(self, low: np.ndarray, height: int, width: int, lo: float,

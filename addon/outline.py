@@ -16,6 +16,14 @@ the matte's core, so its refit reads skin at the outline as partly background, a
 a screen kept a lit line beside a cheek the lamp left dark. A run that writes a matte strip
 refits the matte the same way (``refine_matte``), so the strip follows the footage's edges too.
 
+Where the subject's colour and the background's beside it are far apart (skin against a green
+screen), a fade pixel is also read as a mix of the two (a two-colour model of the pixel: the
+local colours of the subject's core and of the clear background around it): it takes the
+change on the subject's part of its colour only, channel by channel, and its share of the
+subject from that model where the model says more than the refit. Taken on the whole pixel, a
+pixel half skin and half screen kept half the skin's footage light: under a key lamp from the
+other side, a lit pink rim along a jaw and an ear against the screen, pixel-stepped.
+
 Only the fade is touched: the fit runs on the grid samples whose windows meet it, and the
 correction on the full-resolution pixels whose bilinear samples do (a few percent of a frame).
 """
@@ -48,6 +56,17 @@ SURE = (0.5, 0.9)
 # outline kept the footage's light in proportion to the matte's fade, a working pixel or two
 # wide: a lit line along a jaw and a shoulder on the side a key lamp left dark (dev footage).
 MATTE_WHOLE = 0.5
+# The two-colour model of a fade pixel (where the subject's matte is fitted too): the subject's
+# colour is the mean of the grid samples within COLOUR_RADIUS whose matte is above CORE, the
+# background's of those below CLEAR; each counts where at least FOUND of the window holds it.
+# It takes over as the two colours' distance, over the larger colour's size, rises over
+# DISTINCT. On the dev footage the outline's samples read 0.7-0.9 (skin and hair against a green
+# screen), 0.9 (dark hair against a grey wall) and 0.6-0.85 (auburn hair against a paler pink
+# wall); a wall of the skin's own colour and brightness, 0.09, is left to the refit alone.
+CORE, CLEAR = 0.95, 0.05
+COLOUR_RADIUS = 2
+FOUND = 0.2
+DISTINCT = (0.1, 0.3)
 
 
 @dataclass
@@ -60,6 +79,10 @@ class Fit:
     cells: np.ndarray    # (gh, gw) bool: grid cells whose bilinear corners meet the fade
     level: float         # the guide's normalisation, in the units of the footage
     subject: np.ndarray | None = None  # (gh, gw) the subject's matte, where it was given
+    # (7, gh, gw) on the fade, where the subject's matte was given and some fade sample has
+    # two distinct colours beside it: the subject's colour (3), the background's (3) and how
+    # far the two-colour model takes over (0 elsewhere); else None
+    colours: np.ndarray | None = None
 
 
 def _window(shape, flat: np.ndarray, r: int) -> np.ndarray:
@@ -143,8 +166,39 @@ def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float =
     cells[:-1] |= fade[1:]
     cells[:, :-1] |= fade[:, 1:]
     cells[:-1, :-1] |= fade[1:, 1:]
+    colours = None if subject is None else _colours(np.asarray(grid, np.float32), targets[1],
+                                                    near)
     return Fit(out.reshape(-1, h, w), weight, cells, level,
-               None if subject is None else targets[1])
+               None if subject is None else targets[1], colours)
+
+
+def _colours(grid: np.ndarray, subject: np.ndarray, near: np.ndarray) -> np.ndarray | None:
+    """Fit's ``colours`` on ``near`` (gh, gw) bool (the fade and the samples beside it, so a
+    cell at the fade's outer edge has them at every corner), the colours times the share ``t``
+    the model takes (so that enlarged bilinearly they stay a weighted mean); None where no sample
+    has two distinct colours beside it."""
+    h, w = subject.shape
+    core, clear = subject > CORE, subject < CLEAR
+    # Only samples with both within reach can have both colours.
+    at = np.flatnonzero(near & _dilate(core, COLOUR_RADIUS) & _dilate(clear, COLOUR_RADIUS))
+    if not at.size:
+        return None
+    win = _window((h, w), at, COLOUR_RADIUS)  # (K, N)
+    g = grid.reshape(3, -1)[:, win]  # (3, K, N)
+    inner, outer = core.reshape(-1)[win], clear.reshape(-1)[win]
+    n_in, n_out = inner.sum(0), outer.sum(0)
+    fg = (g * inner).sum(1) / np.maximum(n_in, 1)
+    bg = (g * outer).sum(1) / np.maximum(n_out, 1)
+    size = np.maximum(np.linalg.norm(fg, axis=0), np.linalg.norm(bg, axis=0))
+    apart = np.linalg.norm(fg - bg, axis=0) / np.maximum(size, 1e-12)
+    found = np.float32(1.0 / (FOUND * win.shape[0]))
+    t = (np.clip((apart - DISTINCT[0]) / (DISTINCT[1] - DISTINCT[0]), 0.0, 1.0)
+         * np.clip(n_in * found, 0.0, 1.0) * np.clip(n_out * found, 0.0, 1.0))
+    if not (t > 0).any():
+        return None
+    out = np.zeros((7, h * w), np.float32)
+    out[0:3, at], out[3:6, at], out[6, at] = fg * t, bg * t, t
+    return out.reshape(7, h, w)
 
 
 def _axis(n: int, big: int):
@@ -154,11 +208,12 @@ def _axis(n: int, big: int):
     return idx[:, 0], np.ascontiguousarray(wts[:, 1])
 
 
-def pixels(f: Fit, height: int, width: int):
-    """The full-resolution pixels whose bilinear stencil's first sample is a cell of ``f`` (so
-    may lie in the enlarged fade), cell after cell (np.nonzero(f.cells) order): (their flat
-    indices into the frame, how many each cell has, the upper row's and the right column's
-    bilinear weight of each)."""
+def _enlarged(f: Fit, stack: np.ndarray, height: int, width: int,
+              cells: np.ndarray | None = None):
+    """(flat indices into the frame of the full-resolution pixels whose bilinear stencil's first
+    sample is a cell of ``f`` (or of ``cells``, a subset of f.cells), cell after cell in
+    np.nonzero order and row by row within a cell; how many each cell has; (c, P) ``stack``
+    (c, gh, gw) enlarged bilinearly at them, as the finish enlarges)."""
     h, w = f.weight.shape
     (r0, ty), (c0, tx) = _axis(h, height), _axis(w, width)
     # Each grid row owns a contiguous run of full-resolution rows (the runs' starts and lengths).
@@ -166,42 +221,57 @@ def pixels(f: Fit, height: int, width: int):
     y_len = np.searchsorted(r0, np.arange(h), side="right") - y_start
     x_start = np.searchsorted(c0, np.arange(w), side="left")
     x_len = np.searchsorted(c0, np.arange(w), side="right") - x_start
-    cy, cx = np.nonzero(f.cells)
-    n = y_len[cy] * x_len[cx]
-    off = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    rows, cols = np.divmod(off, np.repeat(x_len[cx], n))
-    rows += np.repeat(y_start[cy], n)
-    cols += np.repeat(x_start[cx], n)
-    return rows * width + cols, n, np.take(ty, rows), np.take(tx, cols)
-
-
-def _at_pixels(f: Fit, x_full: np.ndarray, height: int, width: int):
-    """At the fit's full-resolution pixels (``pixels``): their flat indices, (5, P) alpha (3),
-    beta and the enlarged weight there (bilinear, as the finish enlarges), followed where the
-    fit has the subject's matte by its alpha (3), beta and the enlarged matte ((10, P) in all),
-    and (3, P) x_full."""
-    pix, n, ty, tx = pixels(f, height, width)
-    h, w = f.weight.shape
-    # Each cell's stencil as a bilinear polynomial in the pixel's (tx, ty), per channel (alpha 3,
-    # beta, the weight): c00 + tx d1 + ty (d2 + tx d3).
-    cy, cx = np.nonzero(f.cells)
+    cy, cx = np.nonzero(f.cells if cells is None else cells)
     cy1, cx1 = np.minimum(cy + 1, h - 1), np.minimum(cx + 1, w - 1)
-    extra = [] if f.subject is None else [f.coef[4:], f.subject[None]]
-    stack = np.concatenate([f.coef[:4], f.weight[None]] + extra, 0)
     c = stack.shape[0]
     stack = stack.reshape(c, -1)
     c00, c01 = np.take(stack, cy * w + cx, axis=1), np.take(stack, cy * w + cx1, axis=1)
     c10, c11 = np.take(stack, cy1 * w + cx, axis=1), np.take(stack, cy1 * w + cx1, axis=1)
-    poly = np.concatenate([c00, c01 - c00, c10 - c00, c11 - c10 - c01 + c00], 0)  # (4c, K)
-    e = np.repeat(poly, n, axis=1)  # (4c, P): the pixels come cell after cell
-    e[c:2 * c] *= tx
-    e[0:c] += e[c:2 * c]
-    e[3 * c:] *= tx
-    e[2 * c:3 * c] += e[3 * c:]
-    e[2 * c:3 * c] *= ty
-    e[0:c] += e[2 * c:3 * c]
+    # Each cell's stencil is c00 + tx d1 + ty (d2 + tx d3) in the pixel's (tx, ty): along one
+    # full-resolution row of a cell (a segment) it is a + tx b, a and b set by the row's ty.
+    rows = y_len[cy]
+    seg = np.repeat(np.arange(len(cy)), rows)  # the cell of each segment
+    seg_y = y_start[cy][seg] + np.arange(len(seg)) - np.repeat(np.cumsum(rows) - rows, rows)
+    t = np.take(ty, seg_y)
+    a = np.take(c10 - c00, seg, axis=1)
+    a *= t
+    a += np.take(c00, seg, axis=1)
+    b = np.take(c11 - c10 - c01 + c00, seg, axis=1)
+    b *= t
+    b += np.take(c01 - c00, seg, axis=1)
+    cols = x_len[cx][seg]  # pixels in each segment
+    first = np.repeat(np.cumsum(cols) - cols, cols)
+    x = np.repeat(x_start[cx][seg], cols) + np.arange(int(cols.sum())) - first
+    e = np.repeat(a, cols, axis=1)
+    e += np.repeat(b, cols, axis=1) * np.take(tx, x)
+    return np.repeat(seg_y, cols) * width + x, rows * x_len[cx], e
+
+
+def _at_pixels(f: Fit, x_full: np.ndarray, height: int, width: int):
+    """At the fit's full-resolution pixels (_enlarged's): their flat indices, (5, P) alpha (3),
+    beta and the enlarged weight there (bilinear, as the finish enlarges), followed where the
+    fit has the subject's matte by its alpha (3), beta and the enlarged matte ((10, P) in all),
+    (3, P) x_full, and how many of the pixels each cell has."""
+    extra = [] if f.subject is None else [f.coef[4:], f.subject[None]]
+    stack = np.concatenate([f.coef[:4], f.weight[None]] + extra, 0)
+    pix, n, e = _enlarged(f, stack, height, width)
     x = np.take(np.asarray(x_full, np.float32).reshape(3, -1), pix, axis=1)
-    return pix, e[:c], x
+    return pix, e, x, n
+
+
+def _coloured(f: Fit, n: np.ndarray, height: int, width: int):
+    """Where the fit has colours: (the indices into _at_pixels' pixels (``n`` of them a cell)
+    of those in cells with a corner the two-colour model reaches, (7, P') the colours enlarged
+    at them)."""
+    t = f.colours[6] > 0
+    reach = t.copy()  # cells (top-left corners) with a corner where t > 0
+    reach[:-1] |= t[1:]
+    reach[:, :-1] |= t[:, 1:]
+    reach[:-1, :-1] |= t[1:, 1:]
+    cells = f.cells & reach
+    cy, cx = np.nonzero(f.cells)
+    _, _, col = _enlarged(f, f.colours, height, width, cells)
+    return np.flatnonzero(np.repeat(cells[cy, cx], n)), col
 
 
 def _refit(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
@@ -225,22 +295,56 @@ def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
     return np.where(e[4] >= UP_FLOOR, up / w, np.minimum(refit / w, 1.0)).astype(np.float32)
 
 
+def split(e: np.ndarray, colours: np.ndarray, x: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """(3, P) each fade pixel's share of its enlarged change per channel, from ``shares``'
+    ``share`` (P,) and the fit's ``colours`` enlarged at the pixels (7, P): the pixel read as a
+    mix of the subject's colour F and the background's B beside it, alpha F + (1 - alpha) B,
+    alpha its colour's projection on the line from B to F (no more than the enlarged matte over
+    MATTE_WHOLE, and raising the refit's weight only where the enlarged weight is at least
+    UP_FLOOR), takes the change on alpha F only, channel by channel; faded in by the colours'
+    share t (``e``, ``x``: _at_pixels')."""
+    w = np.maximum(e[4], FLOOR)
+    now = share * w  # the weight of the change the refit gives
+    t = np.clip(colours[6], 0.0, 1.0)
+    inv = np.float32(1.0) / np.maximum(colours[6], 1e-12)
+    fg, bg = colours[0:3] * inv, colours[3:6] * inv
+    d = fg - bg
+    alpha = np.clip(((x - bg) * d).sum(0) / np.maximum((d * d).sum(0), 1e-12), 0.0, 1.0)
+    alpha = np.minimum(alpha, np.minimum(e[9] * np.float32(1.0 / MATTE_WHOLE), 1.0))
+    alpha = np.where(e[4] >= UP_FLOOR, np.maximum(alpha, now), now)
+    part = alpha * np.maximum(fg, 0.0)
+    part = np.clip(part / np.maximum(part + (1.0 - alpha) * np.maximum(bg, 0.0), 1e-12), 0.0, 1.0)
+    return ((now + t * (part - now)) / w).astype(np.float32)
+
+
 def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
           fullres: detail.FullRes | None = None) -> np.ndarray:
     """``y`` (3, H, W) half, the relit frame of ``x_full`` (3, H, W) (the footage over
     ``scale``: ``scale * x_full`` is the frame unchanged), with the change on the fade's pixels
-    scaled by the refitted weight over the enlarged one (``shares``). In place; returns ``y``.
-    ``fullres``: its graphs do the half-float mixing (built once if not given)."""
+    scaled by the refitted weight over the enlarged one (``shares``), per channel where the fit
+    has the two colours (``split``). In place; returns ``y``. ``fullres``: its graphs do the
+    half-float mixing (built once if not given)."""
     if f is None:
         return y
-    pix, e, x = _at_pixels(f, x_full, *y.shape[1:])
+    pix, e, x, n = _at_pixels(f, x_full, *y.shape[1:])
     share = shares(e, x, f.level)
-    # Only where the refit changes the share (the rest keeps its value exactly).
-    cut = np.flatnonzero((share != 1.0) & (e[4] > FLOOR) & (e[4] < 1.0))
-    pix = np.take(pix, cut)
+    fade = (e[4] > FLOOR) & (e[4] < 1.0)
     flat = y.reshape(3, -1)
-    mixed = (fullres or _fullres()).mix_half(np.take(flat, pix, axis=1), np.take(x, cut, axis=1),
-                                             np.take(share, cut), scale)
+    mix = (fullres or _fullres()).mix_half
+    if f.colours is not None:  # the pixels the two-colour model reaches: a share per channel
+        on, col = _coloured(f, n, *y.shape[1:])
+        keep = fade[on]
+        on, col = on[keep], col[:, keep]
+        per = split(np.take(e, on, axis=1), col, np.take(x, on, axis=1), np.take(share, on))
+        p = np.take(pix, on)
+        mixed = mix(np.take(flat, p, axis=1), np.take(x, on, axis=1), per, scale)
+        for c in range(3):
+            flat[c][p] = mixed[c]
+        share[on] = 1.0  # done
+    # Only where the refit changes the share (the rest keeps its value exactly).
+    cut = np.flatnonzero((share != 1.0) & fade)
+    pix = np.take(pix, cut)
+    mixed = mix(np.take(flat, pix, axis=1), np.take(x, cut, axis=1), np.take(share, cut), scale)
     for c in range(3):
         flat[c][pix] = mixed[c]
     return y
@@ -256,7 +360,7 @@ def refine_matte(f: Fit | None, x_full: np.ndarray, matte: np.ndarray) -> np.nda
     instead of the grid's. In place; returns ``matte``."""
     if f is None:
         return matte
-    pix, e, x = _at_pixels(f, x_full, *matte.shape)
+    pix, e, x, _ = _at_pixels(f, x_full, *matte.shape)
     inside = np.flatnonzero((e[4] > MATTE_TOL) & (e[4] < 1.0 - MATTE_TOL))
     refit = _refit(np.take(e, inside, axis=1), np.take(x, inside, axis=1), f.level)
     matte.reshape(-1)[np.take(pix, inside)] = np.clip(refit, 0.0, 1.0)

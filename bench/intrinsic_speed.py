@@ -190,6 +190,10 @@ def run(model: str, threads: int, repeats: int) -> dict:
             "full-resolution finish at 1080p":
                 timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
             outline_row: timed(lambda: outline.apply(res.outline, x, y, fullres=fullres), repeats),
+            # The same without the two-colour model of the outline's pixels: what it costs.
+            "outline refit at 1080p, the change on whole pixels (comparison)": timed(
+                lambda: outline.apply(res.outline and dataclasses.replace(
+                    res.outline, colours=None), x, y, fullres=fullres), repeats),
             loose_row: timed(lambda: fullres.finish_planar(x, *loose, float(x.max())), repeats),
             blend_row: timed(lambda: temporal.blend((res.a, res.b), (res.a, res.b), (res.a, res.b),
                                              mask=res.matte), repeats),

@@ -108,6 +108,11 @@ def test_sparse_correction_equals_the_dense_one(shape, grid, scale, with_matte):
         given = np.maximum(refit, np.minimum(sure * sure * (3.0 - 2.0 * sure), cap))
     share = np.where(up[4] >= outline.UP_FLOOR, given, refit) / np.maximum(up[4], outline.FLOOR)
     share = np.where(up[4] >= outline.UP_FLOOR, share, np.minimum(share, 1.0))
+    if with_matte:  # skin against a screen: the two-colour model splits the change
+        assert fit.colours is not None
+        col = detail.enlarge_planar(fit.colours, h, w)
+        share = outline.split(up.reshape(10, -1), col.reshape(7, -1), x.reshape(3, -1),
+                              share.reshape(-1)).reshape(3, h, w)
     share = np.where((up[4] > outline.FLOOR) & (up[4] < 1.0), share, 1.0)
     yf = y.astype(np.float32)
     dense = (scale * x + share * (yf - scale * x)).astype(np.float16).astype(np.float32)
@@ -233,6 +238,40 @@ def test_skin_at_the_outline_takes_the_change_its_matte_says():
     assert change(both, edge) > 0.95, change(both, edge)
     screen = (cover == 0.0) & ~outline._dilate(ear, 2)
     assert change(both, screen) < 2e-3
+
+
+def test_a_pixel_half_skin_half_screen_takes_the_change_on_its_skin_only():
+    """Where the subject's colour and the screen's are far apart, a pixel of the outline that is
+    part skin, part screen comes out as the relit skin over the same screen, as the light stage
+    composites its renders: the change on the whole pixel kept part of the skin's footage light
+    there under a lamp that leaves the subject dark (a lit, pixel-stepped rim along a jaw against
+    a green screen), and a brighter light greened the skin there too."""
+    h, w, k = 160, 200, 5
+    x, cover = scene(h, w, 45.0, seed=5)
+    skin = (x - (1.0 - cover) * GREEN[:, None, None]) / np.maximum(cover, 1e-6)
+    matte = grid_of(cover[None], k)[0]
+    weight = soft_weight(matte, 1.2)
+    g = grid_of(x, k)
+    mixed = (cover > 0.2) & (cover < 0.8)
+    screen = (cover == 0.0) & (detail.enlarge_planar(weight[None], h, w)[0] > outline.FLOOR)
+    assert mixed.sum() > 100 and screen.sum() > 200
+    for gain in (0.2, 2.0):
+        y = finish(x, weight, gain)
+        truth = cover * gain * skin + (1.0 - cover) * GREEN[:, None, None]
+        fit = outline.fit(g, weight, subject=matte)
+        assert fit.colours is not None
+        split = outline.apply(fit, x, y.copy()).astype(np.float32)
+        with pytest.MonkeyPatch.context() as mp:  # the two colours never distinct enough
+            mp.setattr(outline, "DISTINCT", (np.inf, np.inf))
+            whole_fit = outline.fit(g, weight, subject=matte)
+            assert whole_fit.colours is None
+            whole = outline.apply(whole_fit, x, y.copy()).astype(np.float32)
+
+        def err(img):
+            return float(np.abs(img - truth)[:, mixed].mean() / np.abs(truth[:, mixed]).mean())
+
+        assert err(split) < 0.5 * err(whole), (gain, err(split), err(whole))
+        assert float(np.abs(split - x)[:, screen].max()) < 0.01 * float(GREEN.max())
 
 
 def test_a_wall_of_the_subject_s_colour_is_given_no_change():
