@@ -262,7 +262,7 @@ def test_a_pixel_half_skin_half_screen_takes_the_change_on_its_skin_only():
         assert fit.colours is not None
         split = outline.apply(fit, x, y.copy()).astype(np.float32)
         with pytest.MonkeyPatch.context() as mp:  # the two colours never distinct enough
-            mp.setattr(outline, "DISTINCT", (np.inf, np.inf))
+            mp.setattr(outline, "DISTINCT", (2.0, 2.5))  # no two colours are 2 apart
             whole_fit = outline.fit(g, weight, subject=matte)
             assert whole_fit.colours is None
             whole = outline.apply(whole_fit, x, y.copy()).astype(np.float32)
@@ -315,6 +315,10 @@ def test_half_mixing_graph_matches_numpy():
     assert out.dtype == np.float16 and out.shape == (3, 1000)
     np.testing.assert_allclose(out.astype(np.float32), want, rtol=1e-3, atol=1e-3)
     assert detail.FullRes(threads=1).mix_half(y[:, :0], x[:, :0], share[:0], 1.0).shape == (3, 0)
+    each = rng.uniform(0, 1, (3, 1000)).astype(np.float32)  # a share for each channel
+    out = detail.FullRes(threads=1).mix_half(y, x, each, 1.5)
+    want = 1.5 * x + each * (y.astype(np.float32) - 1.5 * x)
+    np.testing.assert_allclose(out.astype(np.float32), want, rtol=1e-3, atol=1e-3)
 
 
 def test_the_matte_strip_follows_the_footage_s_edges():
