@@ -124,12 +124,15 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
 
 
 def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float = EPS,
-        tol: float = 0.0, subject: np.ndarray | None = None) -> Fit | None:
+        tol: float = 0.0, subject: np.ndarray | None = None,
+        colours: bool | None = None) -> Fit | None:
     """The colour guided filter of ``weight`` (gh, gw) in [0, 1] against ``grid`` (3, gh, gw),
     the footage on the grid, on the fade (tol < weight < 1 - tol) only; None when there is no
     fade. ``subject`` (gh, gw): the subject's own matte, of which the weight is the core; its
     filter over the same windows says how much of the subject a fade pixel's colour is (the
-    share the refit gives back, ``shares``)."""
+    share the refit gives back, ``shares``). ``colours``: whether to fit the two-colour model
+    too (Fit's ``colours``, on the subject's matte, else on ``weight`` as a matte); by default
+    where ``subject`` is given."""
     weight = np.clip(np.asarray(weight, np.float32), 0.0, 1.0)
     fade = (weight > tol) & (weight < 1.0 - tol)
     if not fade.any():
@@ -166,10 +169,10 @@ def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float =
     cells[:-1] |= fade[1:]
     cells[:, :-1] |= fade[:, 1:]
     cells[:-1, :-1] |= fade[1:, 1:]
-    colours = None if subject is None else _colours(np.asarray(grid, np.float32), targets[1],
-                                                    near)
+    two = (subject is not None) if colours is None else colours
     return Fit(out.reshape(-1, h, w), weight, cells, level,
-               None if subject is None else targets[1], colours)
+               None if subject is None else targets[1],
+               _colours(np.asarray(grid, np.float32), targets[-1], near) if two else None)
 
 
 def _colours(grid: np.ndarray, subject: np.ndarray, near: np.ndarray) -> np.ndarray | None:
@@ -295,6 +298,18 @@ def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
     return np.where(e[4] >= UP_FLOOR, up / w, np.minimum(refit / w, 1.0)).astype(np.float32)
 
 
+def _two_colour(colours: np.ndarray, x: np.ndarray):
+    """(alpha (P,), t (P,), F (3, P), B (3, P)) at pixels of colour ``x`` (3, P), from the fit's
+    ``colours`` enlarged there (7, P): the subject's colour F and the background's B beside the
+    pixel, alpha its colour's projection on the line from B to F (in [0, 1]), t the share the
+    model takes."""
+    inv = np.float32(1.0) / np.maximum(colours[6], 1e-12)
+    fg, bg = colours[0:3] * inv, colours[3:6] * inv
+    d = fg - bg
+    alpha = np.clip(((x - bg) * d).sum(0) / np.maximum((d * d).sum(0), 1e-12), 0.0, 1.0)
+    return alpha, np.clip(colours[6], 0.0, 1.0), fg, bg
+
+
 def split(e: np.ndarray, colours: np.ndarray, x: np.ndarray, share: np.ndarray) -> np.ndarray:
     """(3, P) each fade pixel's share of its enlarged change per channel, from ``shares``'
     ``share`` (P,) and the fit's ``colours`` enlarged at the pixels (7, P): the pixel read as a
@@ -305,11 +320,7 @@ def split(e: np.ndarray, colours: np.ndarray, x: np.ndarray, share: np.ndarray) 
     share t (``e``, ``x``: _at_pixels')."""
     w = np.maximum(e[4], FLOOR)
     now = share * w  # the weight of the change the refit gives
-    t = np.clip(colours[6], 0.0, 1.0)
-    inv = np.float32(1.0) / np.maximum(colours[6], 1e-12)
-    fg, bg = colours[0:3] * inv, colours[3:6] * inv
-    d = fg - bg
-    alpha = np.clip(((x - bg) * d).sum(0) / np.maximum((d * d).sum(0), 1e-12), 0.0, 1.0)
+    alpha, t, fg, bg = _two_colour(colours, x)
     alpha = np.minimum(alpha, np.minimum(e[9] * np.float32(1.0 / MATTE_WHOLE), 1.0))
     alpha = np.where(e[4] >= UP_FLOOR, np.maximum(alpha, now), now)
     part = alpha * np.maximum(fg, 0.0)
@@ -355,15 +366,20 @@ MATTE_TOL = 0.02  # the network's matte is a sigmoid: its fade lies this far ins
 
 def refine_matte(f: Fit | None, x_full: np.ndarray, matte: np.ndarray) -> np.ndarray:
     """``matte`` (H, W), the enlargement of the grid matte ``f`` was fitted to (fit(grid,
-    matte, tol=MATTE_TOL)), with its fade's pixels taken from the colour refit, clipped to
-    [0, 1]: the matte strip follows the footage's own edges (a hair's outline against a screen)
-    instead of the grid's. In place; returns ``matte``."""
+    matte, tol=MATTE_TOL, colours=True)), with its fade's pixels taken from the colour refit,
+    clipped to [0, 1], and where the fit has colours from the two-colour model's alpha as far
+    as it takes over (``split``'s): the matte strip follows the footage's own edges (a hair's
+    outline against a screen) instead of the grid's. In place; returns ``matte``."""
     if f is None:
         return matte
-    pix, e, x, _ = _at_pixels(f, x_full, *matte.shape)
+    pix, e, x, n = _at_pixels(f, x_full, *matte.shape)
+    alpha = np.clip(_refit(e, x, f.level), 0.0, 1.0)
+    if f.colours is not None:
+        on, col = _coloured(f, n, *matte.shape)
+        a2, t, _, _ = _two_colour(col, np.take(x, on, axis=1))
+        alpha[on] += t * (a2 - alpha[on])
     inside = np.flatnonzero((e[4] > MATTE_TOL) & (e[4] < 1.0 - MATTE_TOL))
-    refit = _refit(np.take(e, inside, axis=1), np.take(x, inside, axis=1), f.level)
-    matte.reshape(-1)[np.take(pix, inside)] = np.clip(refit, 0.0, 1.0)
+    matte.reshape(-1)[np.take(pix, inside)] = np.take(alpha, inside)
     return matte
 
 

@@ -367,4 +367,5 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     return FrameResult(np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32),
                        np.ascontiguousarray(matte, np.float32), True, plan, lum_in, lum_out,
                        unit, outline.fit(grid, mix[6], subject=mix[7]) if outline_fit else None,
-                       outline.fit(grid, matte, tol=outline.MATTE_TOL) if matte_fit else None)
+                       outline.fit(grid, matte, tol=outline.MATTE_TOL, colours=True) if matte_fit
+                       else None)

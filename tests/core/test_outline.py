@@ -324,7 +324,8 @@ def test_half_mixing_graph_matches_numpy():
 def test_the_matte_strip_follows_the_footage_s_edges():
     """The network's matte on the grid, enlarged, blurs the outline over several pixels;
     refitted to colour at full resolution it is far closer to the subject's true coverage
-    there, and untouched away from the outline."""
+    there, and untouched away from the outline; read as a mix of the skin's colour and the
+    screen's it comes closer still."""
     h, w, k = 160, 200, 5
     x, cover = scene(h, w, 45.0, seed=11)
     g = grid_of(x, k)
@@ -339,3 +340,10 @@ def test_the_matte_strip_follows_the_footage_s_edges():
     assert after < 0.5 * before, (before, after)
     still = (enlarged == 0) | (enlarged == 1)
     assert np.array_equal(refined[still], enlarged.astype(np.float32)[still])
+    # Skin against a screen: read as a mix of the two colours, the strip comes closer still.
+    fit = outline.fit(g, raw, tol=outline.MATTE_TOL, colours=True)
+    assert fit.colours is not None
+    mixed = outline.refine_matte(fit, x, enlarged.copy()).astype(np.float32)
+    two = np.abs(mixed - cover)[band].mean()
+    assert two < 0.7 * after, (after, two)
+    assert np.array_equal(mixed[still], enlarged.astype(np.float32)[still])
