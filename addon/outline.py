@@ -299,33 +299,40 @@ def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
 
 
 def _two_colour(colours: np.ndarray, x: np.ndarray):
-    """(alpha (P,), t (P,), F (3, P), B (3, P)) at pixels of colour ``x`` (3, P), from the fit's
-    ``colours`` enlarged there (7, P): the subject's colour F and the background's B beside the
-    pixel, alpha its colour's projection on the line from B to F (in [0, 1]), t the share the
-    model takes."""
-    inv = np.float32(1.0) / np.maximum(colours[6], 1e-12)
-    fg, bg = colours[0:3] * inv, colours[3:6] * inv
+    """(alpha (P,), t (P,), t F (3, P), t B (3, P)) at pixels of colour ``x`` (3, P), from the
+    fit's ``colours`` enlarged there (7, P): F and B the subject's colour and the background's
+    beside the pixel, alpha the pixel's colour projected on the line from B to F (in [0, 1]),
+    t the share the model takes. The colours come times t, which alpha's ratio cancels."""
+    fg, bg, t = colours[0:3], colours[3:6], colours[6]
     d = fg - bg
-    alpha = np.clip(((x - bg) * d).sum(0) / np.maximum((d * d).sum(0), 1e-12), 0.0, 1.0)
-    return alpha, np.clip(colours[6], 0.0, 1.0), fg, bg
+    num = np.einsum("cp,cp->p", x * t - bg, d)
+    alpha = np.clip(num / np.maximum(np.einsum("cp,cp->p", d, d), 1e-24), 0.0, 1.0)
+    return alpha, np.clip(t, 0.0, 1.0), fg, bg
 
 
-def split(e: np.ndarray, colours: np.ndarray, x: np.ndarray, share: np.ndarray) -> np.ndarray:
+def split(weight: np.ndarray, matte: np.ndarray, colours: np.ndarray, x: np.ndarray,
+          share: np.ndarray) -> np.ndarray:
     """(3, P) each fade pixel's share of its enlarged change per channel, from ``shares``'
-    ``share`` (P,) and the fit's ``colours`` enlarged at the pixels (7, P): the pixel read as a
+    ``share`` (P,), the enlarged weight and matte there (P,) and the fit's ``colours`` enlarged
+    there (7, P), at pixels of colour ``x`` (3, P): the pixel read as a
     mix of the subject's colour F and the background's B beside it, alpha F + (1 - alpha) B,
     alpha its colour's projection on the line from B to F (no more than the enlarged matte over
     MATTE_WHOLE, and raising the refit's weight only where the enlarged weight is at least
     UP_FLOOR), takes the change on alpha F only, channel by channel; faded in by the colours'
-    share t (``e``, ``x``: _at_pixels')."""
-    w = np.maximum(e[4], FLOOR)
+    share t."""
+    w = np.maximum(weight, FLOOR)
     now = share * w  # the weight of the change the refit gives
     alpha, t, fg, bg = _two_colour(colours, x)
-    alpha = np.minimum(alpha, np.minimum(e[9] * np.float32(1.0 / MATTE_WHOLE), 1.0))
-    alpha = np.where(e[4] >= UP_FLOOR, np.maximum(alpha, now), now)
-    part = alpha * np.maximum(fg, 0.0)
-    part = np.clip(part / np.maximum(part + (1.0 - alpha) * np.maximum(bg, 0.0), 1e-12), 0.0, 1.0)
-    return ((now + t * (part - now)) / w).astype(np.float32)
+    alpha = np.minimum(alpha, matte * np.float32(1.0 / MATTE_WHOLE))
+    alpha = np.where(weight >= UP_FLOOR, np.maximum(alpha, now), now)
+    part = alpha * np.maximum(fg, 0.0)  # alpha F and the pixel's whole, both times t
+    whole = part + (1.0 - alpha) * np.maximum(bg, 0.0)
+    part = np.minimum(part / np.maximum(whole, 1e-30), 1.0)
+    part -= now
+    part *= t
+    part += now
+    part /= w
+    return part
 
 
 def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
@@ -346,7 +353,8 @@ def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
         on, col = _coloured(f, n, *y.shape[1:])
         keep = fade[on]
         on, col = on[keep], col[:, keep]
-        per = split(np.take(e, on, axis=1), col, np.take(x, on, axis=1), np.take(share, on))
+        per = split(np.take(e[4], on), np.take(e[9], on), col, np.take(x, on, axis=1),
+                    np.take(share, on))
         p = np.take(pix, on)
         mixed = mix(np.take(flat, p, axis=1), np.take(x, on, axis=1), per, scale)
         for c in range(3):

@@ -111,8 +111,8 @@ def test_sparse_correction_equals_the_dense_one(shape, grid, scale, with_matte):
     if with_matte:  # skin against a screen: the two-colour model splits the change
         assert fit.colours is not None
         col = detail.enlarge_planar(fit.colours, h, w)
-        share = outline.split(up.reshape(10, -1), col.reshape(7, -1), x.reshape(3, -1),
-                              share.reshape(-1)).reshape(3, h, w)
+        share = outline.split(up[4].reshape(-1), up[9].reshape(-1), col.reshape(7, -1),
+                              x.reshape(3, -1), share.reshape(-1)).reshape(3, h, w)
     share = np.where((up[4] > outline.FLOOR) & (up[4] < 1.0), share, 1.0)
     yf = y.astype(np.float32)
     dense = (scale * x + share * (yf - scale * x)).astype(np.float16).astype(np.float32)
