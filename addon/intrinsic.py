@@ -648,6 +648,14 @@ def march(field: np.ndarray, fill: float, yy: np.ndarray, xx: np.ndarray, step, 
         yield t, flat[base + off]
 
 
+def marched(matte: np.ndarray, lit: np.ndarray | None = None) -> np.ndarray:
+    """(h, w) bool: the pixels ``shadow`` marches, the subject's (only the subject receives
+    shadows here) that face the light (``lit`` positive, where given). Its visibility elsewhere
+    is 1, meaning "not asked" (``penumbra``'s ``turned``)."""
+    m = matte > 0.5
+    return m if lit is None else m & (lit > 0)
+
+
 def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
            steps: int = SHADOW_STEPS, lit: np.ndarray | None = None, distance: bool = False):
     """(h, w) visibility in [0, 1] toward a distant light: march from each subject pixel toward
@@ -665,10 +673,7 @@ def shadow(height: np.ndarray, matte: np.ndarray, direction: np.ndarray,
     rise = dz / lat                       # height gained per pixel travelled toward the light
     # Off the subject (and off the crop) the height is far below any ray: it never occludes.
     field = np.where(matte > 0.5, height, -1e6)
-    yy, xx = np.nonzero(matte > 0.5)  # only the subject receives shadows here
-    if lit is not None:
-        keep = lit[yy, xx] > 0
-        yy, xx = yy[keep], xx[keep]
+    yy, xx = np.nonzero(marched(matte, lit))
     ray0 = field[yy, xx] + np.float32(SHADOW_BIAS[0])
     occl = np.zeros(len(yy), np.float32)
     at = np.zeros(len(yy), np.float32)
@@ -867,7 +872,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         vis = None
         if effects.shadows:
             vis = penumbra(*shadow(height, bufs.matte, comp.direction, lit=lam, distance=True),
-                           turned=(lam <= 0) & (bufs.matte > 0.5))
+                           turned=(bufs.matte > 0.5) & ~marched(bufs.matte, lam))
             vis = vis * behind_head(cos, bufs.face, wrap, comp.direction)
             e_t = e_t - (1.0 - vis)[None] * e_c * (1.0 if occl is None else occl[None])
         if effects.specular:
