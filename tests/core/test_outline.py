@@ -274,6 +274,46 @@ def test_a_pixel_half_skin_half_screen_takes_the_change_on_its_skin_only():
         assert float(np.abs(split - x)[:, screen].max()) < 0.01 * float(GREEN.max())
 
 
+def test_a_thin_part_unlike_the_core_beside_it_takes_its_change():
+    """An ear's skin against a screen beside dark hair, where the network's matte over the ear
+    is soft (not the core): the subject colour beside the ear is the hair's, so the ear's skin
+    projects short on the line from the screen to the hair, yet it lies as far from the screen
+    as the hair does. Read by that distance too, the ear takes most of the subject's change
+    under a lamp that leaves it dark (the projection alone left it lit like the footage: 0.37
+    of the change), while the screen beside it keeps the footage."""
+    hair = np.array([0.05, 0.035, 0.03], np.float32)
+    h, w, k = 160, 200, 5
+    _, cover = scene(h, w, 45.0, seed=2)
+    rng = np.random.default_rng(8)
+
+    def noise(a):
+        return (1 + a * rng.standard_normal((1, h, w))).astype(np.float32)
+
+    x = (cover * hair[:, None, None] * noise(0.08)
+         + (1 - cover) * GREEN[:, None, None] * noise(0.03)).astype(np.float32)
+    ear = np.zeros((h, w), bool)
+    ear[60:100, 145:151] = True
+    x[:, ear] = SKIN[:, None] * (1 + 0.08 * rng.standard_normal((1, int(ear.sum()))))
+    cover = np.maximum(cover, ear.astype(np.float32))
+    matte = grid_of(cover[None], k)[0]
+    matte[12:20, 29] *= 0.8  # the ear's own samples: soft in the network's matte
+    weight = soft_weight(matte, 1.2)
+    gain = 0.2
+    y = finish(x, weight, gain)
+    fixed = outline.apply(outline.fit(grid_of(x, k), weight, subject=matte), x, y.copy())
+
+    def change(img, where):
+        img = img.astype(np.float32)
+        return float((1.0 - img[:, where] / x[:, where]).mean() / (1.0 - gain))
+
+    assert change(y, ear) < 0.35
+    assert change(fixed, ear) > 0.6, change(fixed, ear)
+    screen = (cover == 0.0) & ~outline._dilate(ear, 2) & (
+        detail.enlarge_planar(weight[None], h, w)[0] > outline.FLOOR)
+    assert screen.sum() > 200
+    assert float(np.abs(fixed.astype(np.float32) - x)[:, screen].max()) < 0.02 * float(GREEN.max())
+
+
 def test_a_wall_of_the_subject_s_colour_is_given_no_change():
     """Where the background's colour is nearly the subject's (auburn hair against a pink wall)
     the matte's refit is unsure (well below SURE's upper end) and gives back nothing: the wall
