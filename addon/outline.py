@@ -194,8 +194,8 @@ def _colours(grid: np.ndarray, subject: np.ndarray, near: np.ndarray) -> np.ndar
     g = grid.reshape(3, -1)[:, win]  # (3, K, N)
     inner, outer = core.reshape(-1)[win], clear.reshape(-1)[win]
     n_in, n_out = inner.sum(0), outer.sum(0)
-    fg = (g * inner).sum(1) / np.maximum(n_in, 1)
-    bg = (g * outer).sum(1) / np.maximum(n_out, 1)
+    fg = np.maximum((g * inner).sum(1), 0.0) / np.maximum(n_in, 1)  # colours, not negative
+    bg = np.maximum((g * outer).sum(1), 0.0) / np.maximum(n_out, 1)
     size = np.maximum(np.linalg.norm(fg, axis=0), np.linalg.norm(bg, axis=0))
     apart = np.linalg.norm(fg - bg, axis=0) / np.maximum(size, 1e-12)
     found = np.float32(1.0 / (FOUND * win.shape[0]))
@@ -282,7 +282,10 @@ def _coloured(f: Fit, n: np.ndarray, height: int, width: int):
 
 
 def _refit(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
-    return (e[0] * x[0] + e[1] * x[1] + e[2] * x[2]) * np.float32(1.0 / level) + e[3]
+    out = np.einsum("cp,cp->p", e[0:3], x)
+    out *= np.float32(1.0 / level)
+    out += e[3]
+    return out
 
 
 def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
@@ -293,13 +296,24 @@ def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
     at most the enlarged matte over MATTE_WHOLE (``e``, ``x``: _at_pixels')."""
     refit = np.clip(_refit(e, x, level), 0.0, 1.0)
     w = np.maximum(e[4], FLOOR)
-    if len(e) >= 10:
-        sure = np.clip((_refit(e[5:], x, level) - SURE[0]) / (SURE[1] - SURE[0]), 0.0, 1.0)
-        cap = np.minimum(e[9] * np.float32(1.0 / MATTE_WHOLE), 1.0)
-        up = np.maximum(refit, np.minimum(sure * sure * (3.0 - 2.0 * sure), cap))
+    if len(e) >= 10:  # in place: this runs on every pixel of the fade
+        sure = _refit(e[5:], x, level)
+        sure -= np.float32(SURE[0])
+        sure *= np.float32(1.0 / (SURE[1] - SURE[0]))
+        np.clip(sure, 0.0, 1.0, out=sure)
+        smooth = np.float32(3.0) - np.float32(2.0) * sure
+        sure *= sure
+        sure *= smooth
+        cap = e[9] * np.float32(1.0 / MATTE_WHOLE)
+        np.minimum(cap, 1.0, out=cap)
+        np.minimum(sure, cap, out=sure)
+        up = np.maximum(refit, sure, out=sure)
     else:
-        up = refit
-    return np.where(e[4] >= UP_FLOOR, up / w, np.minimum(refit / w, 1.0)).astype(np.float32)
+        up = refit.copy()
+    up /= w
+    refit /= w
+    np.minimum(refit, 1.0, out=refit)
+    return np.where(e[4] >= UP_FLOOR, up, refit)
 
 
 def _two_colour(colours: np.ndarray, x: np.ndarray):
@@ -335,9 +349,12 @@ def split(weight: np.ndarray, matte: np.ndarray, colours: np.ndarray, x: np.ndar
     alpha, t, fg, bg = _two_colour(colours, x)
     alpha = np.minimum(alpha, matte * np.float32(1.0 / MATTE_WHOLE))
     alpha = np.where(weight >= UP_FLOOR, np.maximum(alpha, now), now)
-    part = alpha * np.maximum(fg, 0.0)  # alpha F and the pixel's whole, both times t
-    whole = part + (1.0 - alpha) * np.maximum(bg, 0.0)
-    part = np.minimum(part / np.maximum(whole, 1e-30), 1.0)
+    part = fg * alpha  # alpha F and the pixel's whole, both times t
+    whole = bg * (1.0 - alpha)
+    whole += part
+    np.maximum(whole, 1e-30, out=whole)
+    part /= whole
+    np.minimum(part, 1.0, out=part)
     part -= now
     part *= t
     part += now
@@ -363,10 +380,10 @@ def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
         on, col = _coloured(f, n, *y.shape[1:])
         keep = fade[on]
         on, col = on[keep], col[:, keep]
-        per = split(np.take(e[4], on), np.take(e[9], on), col, np.take(x, on, axis=1),
-                    np.take(share, on))
+        x_on = np.take(x, on, axis=1)
+        per = split(np.take(e[4], on), np.take(e[9], on), col, x_on, np.take(share, on))
         p = np.take(pix, on)
-        mixed = mix(np.take(flat, p, axis=1), np.take(x, on, axis=1), per, scale)
+        mixed = mix(np.take(flat, p, axis=1), x_on, per, scale)
         for c in range(3):
             flat[c][p] = mixed[c]
         share[on] = 1.0  # done
