@@ -338,12 +338,11 @@ def split(weight: np.ndarray, matte: np.ndarray, colours: np.ndarray, x: np.ndar
           share: np.ndarray) -> np.ndarray:
     """(3, P) each fade pixel's share of its enlarged change per channel, from ``shares``'
     ``share`` (P,), the enlarged weight and matte there (P,) and the fit's ``colours`` enlarged
-    there (7, P), at pixels of colour ``x`` (3, P): the pixel read as a
-    mix of the subject's colour F and the background's B beside it, alpha F + (1 - alpha) B,
-    alpha its colour's projection on the line from B to F (no more than the enlarged matte over
-    MATTE_WHOLE, and raising the refit's weight only where the enlarged weight is at least
-    UP_FLOOR), takes the change on alpha F only, channel by channel; faded in by the colours'
-    share t."""
+    there (7, P), at pixels of colour ``x`` (3, P): the pixel read as a mix of the subject's
+    colour F and the background's B beside it, alpha F + (1 - alpha) B, alpha as _two_colour
+    reads it (no more than the enlarged matte over MATTE_WHOLE, and raising the refit's weight
+    only where the enlarged weight is at least UP_FLOOR), takes the change on alpha F only,
+    channel by channel; faded in by the colours' share t."""
     w = np.maximum(weight, FLOOR)
     now = share * w  # the weight of the change the refit gives
     alpha, t, fg, bg = _two_colour(colours, x)
