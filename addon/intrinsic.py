@@ -872,7 +872,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         vis = None
         if effects.shadows:
             vis = penumbra(*shadow(height, bufs.matte, comp.direction, lit=lam, distance=True),
-                           turned=(bufs.matte > 0.5) & ~marched(bufs.matte, lam))
+                           turned=marched(bufs.matte) & ~marched(bufs.matte, lam))
             vis = vis * behind_head(cos, bufs.face, wrap, comp.direction)
             e_t = e_t - (1.0 - vis)[None] * e_c * (1.0 if occl is None else occl[None])
         if effects.specular:

@@ -168,15 +168,21 @@ def fit(grid: np.ndarray, weight: np.ndarray, radius: int = RADIUS, eps: float =
     for t, target in enumerate(targets):
         out[4 * t + 3] = target.reshape(-1)
     out[:, dst] = coef[:, _window((h, w), dst, radius)].sum(1) * k
-    # Cells (top-left corners of a bilinear stencil) whose four corners meet the fade.
-    cells = fade.copy()
-    cells[:-1] |= fade[1:]
-    cells[:, :-1] |= fade[:, 1:]
-    cells[:-1, :-1] |= fade[1:, 1:]
+    cells = _cells(fade)
     two = (subject is not None) if colours is None else colours
     return Fit(out.reshape(-1, h, w), weight, cells, level,
                None if subject is None else targets[1],
                _colours(np.asarray(grid, np.float32), targets[-1], near) if two else None)
+
+
+def _cells(mask: np.ndarray) -> np.ndarray:
+    """(gh, gw) bool: the cells (named by the top-left corner of their bilinear stencil) with a
+    corner in ``mask``."""
+    cells = mask.copy()
+    cells[:-1] |= mask[1:]
+    cells[:, :-1] |= mask[:, 1:]
+    cells[:-1, :-1] |= mask[1:, 1:]
+    return cells
 
 
 def _colours(grid: np.ndarray, subject: np.ndarray, near: np.ndarray) -> np.ndarray | None:
@@ -270,12 +276,7 @@ def _coloured(f: Fit, n: np.ndarray, height: int, width: int):
     """Where the fit has colours: (the indices into _at_pixels' pixels (``n`` of them a cell)
     of those in cells with a corner the two-colour model reaches, (7, P') the colours enlarged
     at them)."""
-    t = f.colours[6] > 0
-    reach = t.copy()  # cells (top-left corners) with a corner where t > 0
-    reach[:-1] |= t[1:]
-    reach[:, :-1] |= t[:, 1:]
-    reach[:-1, :-1] |= t[1:, 1:]
-    cells = f.cells & reach
+    cells = f.cells & _cells(f.colours[6] > 0)
     cy, cx = np.nonzero(f.cells)
     _, _, col = _enlarged(f, f.colours, height, width, cells)
     return np.flatnonzero(np.repeat(cells[cy, cx], n)), col
@@ -375,23 +376,23 @@ def apply(f: Fit | None, x_full: np.ndarray, y: np.ndarray, scale: float = 1.0,
     fade = (e[4] > FLOOR) & (e[4] < 1.0)
     flat = y.reshape(3, -1)
     mix = (fullres or _fullres()).mix_half
+
+    def put(at, x_at, share_at):  # mix the pixels ``at`` (indices into pix) in place
+        p = np.take(pix, at)
+        mixed = mix(np.take(flat, p, axis=1), x_at, share_at, scale)
+        for c in range(3):
+            flat[c][p] = mixed[c]
+
     if f.colours is not None:  # the pixels the two-colour model reaches: a share per channel
         on, col = _coloured(f, n, *y.shape[1:])
         keep = fade[on]
         on, col = on[keep], col[:, keep]
         x_on = np.take(x, on, axis=1)
-        per = split(np.take(e[4], on), np.take(e[9], on), col, x_on, np.take(share, on))
-        p = np.take(pix, on)
-        mixed = mix(np.take(flat, p, axis=1), x_on, per, scale)
-        for c in range(3):
-            flat[c][p] = mixed[c]
-        share[on] = 1.0  # done
+        put(on, x_on, split(np.take(e[4], on), np.take(e[9], on), col, x_on, np.take(share, on)))
+        fade[on] = False  # mixed
     # Only where the refit changes the share (the rest keeps its value exactly).
     cut = np.flatnonzero((share != 1.0) & fade)
-    pix = np.take(pix, cut)
-    mixed = mix(np.take(flat, pix, axis=1), np.take(x, cut, axis=1), np.take(share, cut), scale)
-    for c in range(3):
-        flat[c][pix] = mixed[c]
+    put(cut, np.take(x, cut, axis=1), np.take(share, cut))
     return y
 
 

@@ -171,7 +171,7 @@ def run(model: str, threads: int, repeats: int) -> dict:
                              intrinsic.hair_share(bufs))
         vis, dist = intrinsic.shadow(bufs.height / intrinsic.height_scale(bufs), bufs.matte,
                                      comp.direction, lit=lam, distance=True)
-        turned = (bufs.matte > 0.5) & ~intrinsic.marched(bufs.matte, lam)
+        turned = intrinsic.marched(bufs.matte) & ~intrinsic.marched(bufs.matte, lam)
         fill_row = "penumbra, key lamp (the pixels turned from it filled from their neighbours)"
         rows[fill_row] = timed(lambda: intrinsic.penumbra(vis, dist, turned), repeats)
         rows["penumbra, key lamp, the plain blur (comparison)"] = timed(
