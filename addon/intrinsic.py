@@ -26,7 +26,8 @@ per-pixel change of the footage:
   screen-space cast shadow marched over the predicted height and a GGX highlight on skin; soft
   light (an overcast sky, a uniform world) gets neither, and pays nothing for them. On skin the
   target irradiance diffuses under the surface (``subsurface``), red furthest, as the light
-  stage renders it: terminators and shadow edges turn soft and warm. Hair (the subject away
+  stage renders it: terminators turn soft and warm, and a cast shadow's edge a little warm at
+  the light stage's own scale (``cast_subsurface``). Hair (the subject away
   from face skin above the chin, and the network's hair class below it) takes the light
   stage's wrapped lobe and the head's shadow (``hair_share``, ``behind_head``).
 
@@ -100,7 +101,10 @@ SSS_SIGMA_CM = (0.30, 0.14, 0.07)
 # ... brought to the working size by the face skin's size: the square root of its area taken as
 # this many centimetres. Six is half a real face's (~12): diffusion twice as wide as the light
 # stage's, chosen on the CroppedYale tune subjects (it also softens the terminator that the
-# predicted normals draw too sharp).
+# predicted normals draw too sharp). The light a cast shadow takes away diffuses at the light
+# stage's own scale instead (cast_subsurface): a shadow's edge has its own softness
+# (penumbra), and at twice the scale a nose's shadow on real footage read as a grey smear
+# across the cheek.
 SSS_FACE_CM = 6.0
 # The diffusion's colour (red against blue) keeps the light stage's own scale: its skin's square
 # root area over its pixels per centimetre, median 13.4 cm over the val frames (the network's
@@ -575,8 +579,8 @@ def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
     bleed in), SSS_SIGMA_CM wide at the scale SSS_FACE_CM gives the skin's size; with three
     channels, the colour is the one diffusion gives at the scale SSS_CHROMA_FACE_CM gives, and
     the light the wider scale adds beyond it has the light's colour (the luminance stays
-    SSS_FACE_CM's). A terminator and a cast shadow's edge turn soft and a little warm, as on
-    skin; off the skin nothing changes. ``alphas``, ``sigmas_cm``: other channels'
+    SSS_FACE_CM's). A terminator turns soft and a little warm, as on skin; off the skin nothing
+    changes. (What cast shadows take away diffuses apart: cast_subsurface.) ``alphas``, ``sigmas_cm``: other channels'
     (SSS_LUMINANCE: one luminance channel)."""
     area = float(skin.sum())
     if area < 16:
@@ -598,6 +602,30 @@ def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
     extra = y_out - y_hue
     return np.where(extra[None] >= 0, hue + extra[None] * tone[:, None, None],
                     hue * (y_out / np.maximum(y_hue, 1e-12))[None]).astype(irr.dtype)
+
+
+CAST_SHARE = 1e-3  # of the largest: less of a cast shadow's loss is not worth diffusing
+
+
+def cast_subsurface(loss: np.ndarray, skin: np.ndarray) -> np.ndarray:
+    """(3, h, w) the irradiance cast shadows take away (``loss``) diffused under the skin
+    (weights ``skin`` (h, w)) as subsurface diffuses it, at the light stage's own scale
+    (SSS_CHROMA_FACE_CM) rather than SSS_FACE_CM's twice as wide: the shadow's edge already has
+    its penumbra, and the wider diffusion is for the terminator of the predicted normals. Only
+    the window the loss reaches is computed (a shadow covers part of the face)."""
+    area = float(skin.sum())
+    # The penumbra's blur leaves a faint tail far from the shadow: it is taken away undiffused.
+    rows, cols = np.nonzero((loss > CAST_SHARE * float(loss.max())).any(0) & (skin > 0))
+    if area < 16 or not rows.size:
+        return loss
+    px_per_cm = math.sqrt(area) / SSS_CHROMA_FACE_CM
+    # The diffusion's reach around the loss: _diffuse widens the window by as much again, so
+    # every pixel the loss reaches sees all the skin its blur weighs.
+    r = blur_radius(max(SSS_SIGMA_CM) * px_per_cm)
+    sb = skin_bounds(skin > 0)
+    bounds = (max(int(rows.min()) - r, sb[0]), min(int(rows.max()) + 1 + r, sb[1]),
+              max(int(cols.min()) - r, sb[2]), min(int(cols.max()) + 1 + r, sb[3]))
+    return _diffuse(loss, skin, bounds, SSS_ALPHA, SSS_SIGMA_CM, px_per_cm)
 
 
 def skin_bounds(sk: np.ndarray) -> tuple[int, int, int, int]:
@@ -864,6 +892,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         occl = occlusion(sh, bufs.transfer, free_irradiance(sh, basis))
         e_t = e_t * occl[None]
     spec = np.zeros_like(e_t)
+    loss = None  # the irradiance the cast shadows take away (diffused apart: cast_subsurface)
     height = bufs.height / height_scale(bufs) if effects.shadows and effects.components else None
     for comp in effects.components:
         cos = np.tensordot(comp.direction, bufs.normal, axes=(0, 0))
@@ -874,11 +903,15 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
             vis = penumbra(*shadow(height, bufs.matte, comp.direction, lit=lam, distance=True),
                            turned=marched(bufs.matte) & ~marched(bufs.matte, lam))
             vis = vis * behind_head(cos, bufs.face, wrap, comp.direction)
-            e_t = e_t - (1.0 - vis)[None] * e_c * (1.0 if occl is None else occl[None])
+            cut = (1.0 - vis)[None] * e_c * (1.0 if occl is None else occl[None])
+            loss = cut if loss is None else loss + cut
         if effects.specular:
             s = specular(bufs.normal, comp.direction) * (vis if vis is not None else 1.0)
             spec += comp.irradiance[:, None, None] * (s * bufs.face)[None]
-    e_t = subsurface(np.maximum(e_t, 0.0), bufs.face * bufs.matte)
+    skin_w = bufs.face * bufs.matte
+    e_t = subsurface(np.maximum(e_t, 0.0), skin_w)
+    if loss is not None:
+        e_t = np.maximum(e_t - cast_subsurface(loss, skin_w), 0.0)
     # Bound the ratio relative to its typical value, so the bound does not depend on the light's
     # absolute power (the change stays linear in the light).
     typical = float(np.median(luminance(e_t)[fg])) if fg.any() else 0.0

@@ -658,6 +658,41 @@ def test_light_diffuses_under_skin_red_furthest():
     assert back[0] > back[1] > back[2]
 
 
+def test_a_cast_shadow_s_edge_on_skin_diffuses_at_the_light_stage_s_scale(monkeypatch):
+    """The light a cast shadow takes from skin diffuses at the light stage's own scale
+    (cast_subsurface, SSS_CHROMA_FACE_CM), whatever the terminator's wider scale (SSS_FACE_CM):
+    on a skin plane a wall's shadow is the same with the terminator's diffusion twice as wide
+    again, and its edge falls over more rows, and its umbra a few rows in is lighter, only when
+    the light stage's scale is taken wider."""
+    normal = np.zeros((3, S, S), np.float32)
+    normal[2] = 1.0
+    ones = np.ones((S, S), np.float32)
+    wall = np.zeros((S, S), np.float32)
+    wall[16:48, 29:35] = 20.0  # its shadow falls to its left, its upper edge at row 16
+    bufs = intrinsic.Buffers(normal, wall, np.full((3, S, S), 0.5, np.float32), ones, ones)
+    image = np.full((3, S, S), 0.2, np.float32)
+    light = lightvec.splat_direction(RAKING_RIGHT, 10.0)
+
+    def ratio():
+        return intrinsic.shade(image, bufs, light, keep_exposure=False).ratio
+
+    def red_edge():  # (rows between the open and the umbra level, the red ratio 6 rows in)
+        red = ratio()[0][4:30, 26]
+        t = (red - red.min()) / (red.max() - red.min())
+        return int(((t > 0.1) & (t < 0.9)).sum()), float(red[18] / red[0])
+
+    rows, umbra = red_edge()
+    assert ratio()[0][22, 26] < 0.3 * ratio()[0][4, 26]  # there is a shadow
+    with monkeypatch.context() as m:
+        m.setattr(intrinsic, "SSS_FACE_CM", intrinsic.SSS_FACE_CM / 2)
+        assert red_edge() == (rows, pytest.approx(umbra, rel=1e-4))
+    with monkeypatch.context() as m:
+        m.setattr(intrinsic, "SSS_CHROMA_FACE_CM", intrinsic.SSS_FACE_CM)
+        rows_wide, umbra_wide = red_edge()
+    assert rows_wide >= rows + 2, (rows, rows_wide)
+    assert umbra < 0.75 * umbra_wide, (umbra, umbra_wide)
+
+
 def test_hair_away_from_the_face_takes_the_wrapped_lobe():
     """A side lamp on a sphere: with no face skin (all hair) the far side just past the
     terminator gets light, as hair's wrapped lobe gives it; as face skin (Lambert) it stays
