@@ -176,6 +176,15 @@ def run(model: str, threads: int, repeats: int) -> dict:
         rows[fill_row] = timed(lambda: intrinsic.penumbra(vis, dist, turned), repeats)
         rows["penumbra, key lamp, the plain blur (comparison)"] = timed(
             lambda: intrinsic.penumbra(vis, dist), repeats)
+        # A narrow blur as the subsurface diffusion runs it (a value and its weight), by its
+        # taps (gaussian_blur up to TAPS_RADIUS), and by the two matrix products beside it.
+        pair = np.stack([bufs.matte, bufs.face])
+        h, w = pair.shape[1:]
+        rows["narrow blur, sigma 0.5 px, two planes (its taps)"] = timed(
+            lambda: intrinsic.gaussian_blur(pair, 0.5), repeats)
+        rows["narrow blur, sigma 0.5 px, two planes, by matrices (comparison)"] = timed(
+            lambda: intrinsic.blur_matrix(h, 0.5) @ pair @ intrinsic.blur_matrix(w, 0.5).T,
+            repeats)
         if bufs.transfer is not None:  # what the transfer's occlusion costs, in the same run
             plain = dataclasses.replace(bufs, transfer=None)
             rows["renderer, key lamp, the transfer left out (comparison)"] = timed(
