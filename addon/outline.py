@@ -318,21 +318,27 @@ def shares(e: np.ndarray, x: np.ndarray, level: float) -> np.ndarray:
 
 
 def _two_colour(colours: np.ndarray, x: np.ndarray):
-    """(alpha (P,), t (P,), t F (3, P), t B (3, P)) at pixels of colour ``x`` (3, P), from the
-    fit's ``colours`` enlarged there (7, P): F and B the subject's colour and the background's
-    beside the pixel, t the share the model takes. alpha, in [0, 1], is the pixel's colour
-    projected on the line from B to F, or, where more, its distance from B over F's (less
+    """(alpha (P,), t (P,), t (F - B) (3, P), t B (3, P)) at pixels of colour ``x`` (3, P), from
+    the fit's ``colours`` enlarged there (7, P): F and B the subject's colour and the
+    background's beside the pixel, t the share the model takes. alpha, in [0, 1], is the pixel's
+    colour projected on the line from B to F, or, where more, its distance from B over F's (less
     FAR_FLOOR of it): a thin part of the subject whose colour is not the core's beside it (an
     ear's skin beside dark hair) projects short on that line but lies as far from the screen.
     The colours come times t, which both ratios cancel."""
     fg, bg, t = colours[0:3], colours[3:6], colours[6]
     d = fg - bg
-    off = x * t - bg
-    dd = np.maximum(np.einsum("cp,cp->p", d, d), 1e-24)
-    along = np.einsum("cp,cp->p", off, d) / dd
-    far = np.sqrt(np.einsum("cp,cp->p", off, off) / dd)
-    far = (far - FAR_FLOOR) * np.float32(1.0 / (1.0 - FAR_FLOOR))
-    return np.clip(np.maximum(along, far), 0.0, 1.0), np.clip(t, 0.0, 1.0), fg, bg
+    off = x * t
+    off -= bg
+    inv = np.float32(1.0) / np.maximum(np.einsum("cp,cp->p", d, d), 1e-24)
+    along = np.einsum("cp,cp->p", off, d)
+    along *= inv
+    far = np.einsum("cp,cp->p", off, off)
+    far *= inv
+    np.sqrt(far, out=far)
+    far -= np.float32(FAR_FLOOR)
+    far *= np.float32(1.0 / (1.0 - FAR_FLOOR))
+    np.maximum(along, far, out=along)
+    return np.clip(along, 0.0, 1.0, out=along), np.clip(t, 0.0, 1.0), d, bg
 
 
 def split(weight: np.ndarray, matte: np.ndarray, colours: np.ndarray, x: np.ndarray,
@@ -346,19 +352,22 @@ def split(weight: np.ndarray, matte: np.ndarray, colours: np.ndarray, x: np.ndar
     channel by channel; faded in by the colours' share t."""
     w = np.maximum(weight, FLOOR)
     now = share * w  # the weight of the change the refit gives
-    alpha, t, fg, bg = _two_colour(colours, x)
-    alpha = np.minimum(alpha, matte * np.float32(1.0 / MATTE_WHOLE))
+    alpha, t, d, bg = _two_colour(colours, x)
+    np.minimum(alpha, matte * np.float32(1.0 / MATTE_WHOLE), out=alpha)
     alpha = np.where(weight >= UP_FLOOR, np.maximum(alpha, now), now)
-    part = fg * alpha  # alpha F and the pixel's whole, both times t
-    whole = bg * (1.0 - alpha)
-    whole += part
+    # alpha F over the pixel's whole, alpha F + (1 - alpha) B = B + alpha (F - B) (all times t)
+    whole = d * alpha
+    whole += bg
     np.maximum(whole, 1e-30, out=whole)
+    part = d  # _two_colour's, no longer needed: F, then alpha F
+    part += bg
+    part *= alpha
     part /= whole
     np.minimum(part, 1.0, out=part)
-    part -= now
-    part *= t
-    part += now
-    part /= w
+    # now + t (part - now), over w
+    inv = np.float32(1.0) / w
+    part *= t * inv
+    part += now * (np.float32(1.0) - t) * inv
     return part
 
 
