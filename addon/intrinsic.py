@@ -27,9 +27,9 @@ per-pixel change of the footage:
   light (an overcast sky, a uniform world) gets neither, and pays nothing for them. On skin the
   target irradiance diffuses under the surface (``subsurface``), red furthest, as the light
   stage renders it: terminators turn soft and warm, and a cast shadow's edge a little warm at
-  the light stage's own scale (``cast_subsurface``). Hair (the subject away
-  from face skin above the chin, and the network's hair class below it) takes the light
-  stage's wrapped lobe and the head's shadow (``hair_share``, ``behind_head``).
+  the light stage's own scale (``cast_subsurface``). Hair (the subject away from face skin
+  above the chin, and the network's hair class below it) takes the light stage's wrapped lobe
+  and the head's shadow (``hair_share``, ``behind_head``).
 
 Everything is numpy, channels first, at the working size; addon/portrait.py brings the change
 to the footage's full resolution as a ratio, so the footage keeps its identity and detail.
@@ -604,8 +604,8 @@ def subsurface(irr: np.ndarray, skin: np.ndarray, alphas=SSS_ALPHA,
     channels, the colour is the one diffusion gives at the scale SSS_CHROMA_FACE_CM gives, and
     the light the wider scale adds beyond it has the light's colour (the luminance stays
     SSS_FACE_CM's). A terminator turns soft and a little warm, as on skin; off the skin nothing
-    changes. (What cast shadows take away diffuses apart: cast_subsurface.) ``alphas``, ``sigmas_cm``: other channels'
-    (SSS_LUMINANCE: one luminance channel)."""
+    changes. (What cast shadows take away diffuses apart: cast_subsurface.) ``alphas``,
+    ``sigmas_cm``: other channels' (SSS_LUMINANCE: one luminance channel)."""
     area = float(skin.sum())
     if area < 16:
         return irr
