@@ -544,14 +544,20 @@ def blur_radius(sigma: float) -> int:
     return max(1, int(math.ceil(3.0 * sigma)))
 
 
+def blur_taps(sigma: float) -> np.ndarray:
+    """(2 blur_radius + 1,) float64: ``gaussian_blur``'s taps, offsets -r .. r, summing to 1."""
+    r = blur_radius(sigma)
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    return k / k.sum()
+
+
 @functools.lru_cache(maxsize=32)
 def blur_matrix(n: int, sigma: float) -> np.ndarray:
     """(n, n) the Gaussian blur of ``gaussian_blur`` along one axis of n samples as a matrix:
     taps cut at three sigma, the taps that fall past an edge on its edge sample. Read-only
     (cached)."""
     r = blur_radius(sigma)
-    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-    k = k / k.sum()
+    k = blur_taps(sigma)
     i = np.arange(n)
     d = i[None, :] - i[:, None]  # column minus row: the tap's offset
     m = np.where(np.abs(d) <= r, k[np.clip(d + r, 0, 2 * r)], 0.0)
@@ -580,8 +586,7 @@ def gaussian_blur(a: np.ndarray, sigma: float) -> np.ndarray:
     r = blur_radius(sigma)
     if r > TAPS_RADIUS:
         return np.matmul(np.matmul(blur_matrix(h, sigma), a), blur_matrix(w, sigma).T)
-    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-    k = (k / k.sum()).astype(np.float32)
+    k = blur_taps(sigma).astype(np.float32)
     for axis, n in ((a.ndim - 2, h), (a.ndim - 1, w)):
         pad = [(0, 0)] * a.ndim
         pad[axis] = (r, r)
