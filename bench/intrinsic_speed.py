@@ -185,6 +185,16 @@ def run(model: str, threads: int, repeats: int) -> dict:
         rows["narrow blur, sigma 0.5 px, two planes, by matrices (comparison)"] = timed(
             lambda: intrinsic.blur_matrix(h, 0.5) @ pair @ intrinsic.blur_matrix(w, 0.5).T,
             repeats)
+        # The coarse pass's change (ratio, highlight, weight, matte) enlarged to the grid, by
+        # small blocks (detail.enlarge_planar where the ratio has them) and by whole matrices.
+        coarse = np.zeros((8,) + detail.working_shape(*x.shape[1:], max(
+            int(size * portrait.COARSE), 16)), np.float32)
+        gh, gw = res.a.shape[1:]
+        enlarge_row = f"coarse change enlarged, {coarse.shape[1]}x{coarse.shape[2]} to {gh}x{gw}"
+        rows[enlarge_row] = timed(lambda: detail.enlarge_planar(coarse, gh, gw), repeats)
+        rows[enlarge_row + ", by whole matrices (comparison)"] = timed(
+            lambda: detail.linear_matrix(coarse.shape[1], gh) @ coarse
+            @ detail.linear_matrix(coarse.shape[2], gw).T, repeats)
         if bufs.transfer is not None:  # what the transfer's occlusion costs, in the same run
             plain = dataclasses.replace(bufs, transfer=None)
             rows["renderer, key lamp, the transfer left out (comparison)"] = timed(

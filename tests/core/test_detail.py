@@ -111,7 +111,8 @@ def test_working_shape(h, w, size, want):
 
 
 @pytest.mark.parametrize("shape,big", [((3, 7, 9), (20, 31)), ((8, 72, 128), (198, 352)),
-                                       ((2, 5, 5), (5, 12))])
+                                       ((2, 5, 5), (5, 12)), ((3, 7, 9), (131, 9)),
+                                       ((2, 6, 7), (13, 200)), ((1, 1, 1), (3, 4))])
 def test_enlarge_planar_is_resize_channels_first(shape, big):
     x = np.random.default_rng(1).random(shape).astype(np.float32)
     want = detail.resize(x.transpose(1, 2, 0), *big).transpose(2, 0, 1)
