@@ -4,10 +4,10 @@
         [--cache cache/intrinsic-longval --out bench/results/intrinsic_effects_long_hair]
 
 Held-out val frames (training/intrinsic/data.py, identities never trained on) are rendered under
-a soft source light, then relit by ``addon.intrinsic.shade`` to five target lights and compared
-with the light stage's own render under each target (its shadows, GGX skin, subsurface
-scattering). Two kinds of buffers: the light stage's exact ones, its light transport included
-(the renderer's own error), and, with ``--model``, the network's predictions from the
+a soft source light, then relit by ``addon.intrinsic.shade`` to seven target lights (targets)
+and compared with the light stage's own render under each target (its shadows, GGX skin,
+subsurface scattering). Two kinds of buffers: the light stage's exact ones, its light transport
+included (the renderer's own error), and, with ``--model``, the network's predictions from the
 camera-degraded picture, the mean of the picture's and its mirror image's as the product's face
 crop takes them (the product's error; its finer sampling of the box is left out: the cached
 frames are 128 pixels). Error: relative RMSE over the subject after one least-squares gain
@@ -59,8 +59,9 @@ def source_light() -> np.ndarray:
 
 
 def targets(bank) -> dict:
-    """Three lamps, the softest and the most sun-like HDRI of the val split's bank (by the share
-    of power in the brightest 3 x 3 cells), and a uniform world."""
+    """Three lamps, a rim lamp behind the subject with a dim fill from the camera (the portrait
+    lighting whose light lands on the silhouette), the softest and the most sun-like HDRI of the
+    val split's bank (by the share of power in the brightest 3 x 3 cells), and a uniform world."""
     envs = [np.clip(lighting_sampling.environment(bank, i, 0.0), 0, None) for i in range(len(bank))]
 
     def peak_share(lv):
@@ -71,6 +72,7 @@ def targets(bank) -> dict:
     shares = [peak_share(e) for e in envs]
     return {"key left": lamp([-1, 0.3, 0.5]), "key right": lamp([1, 0.2, 0.6]),
             "top": lamp([0, 1, 0.35]),
+            "rim and fill": lamp([0.6, 0.5, -0.7]) + lamp([0, 0, 1], 0.4, 0.0),
             "softest HDRI": envs[int(np.argmin(shares))].astype(np.float32),
             "sunniest HDRI": envs[int(np.argmax(shares))].astype(np.float32),
             "uniform": lightvec.uniform().astype(np.float32)}
