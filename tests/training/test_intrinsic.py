@@ -729,6 +729,35 @@ def test_train_only_last_keeps_the_rest_of_the_network_as_it_was():
     assert any(k.startswith("dec.0.") and "running_mean" in k for k in changed)
 
 
+def test_bright_crops_are_the_same_crops_normalised_brighter(frames, tmp_path):
+    """--bright P: a share P of a step's crops is the crop without it times a factor between 1
+    and BRIGHT_MAX / INPUT_LEVEL (their highlights clip at the network's input clamp), the rest
+    and the targets exactly as without it; a step's batch still depends on (seed, step) alone."""
+    from addon import intrinsic
+    from training.intrinsic import train
+
+    def step(*extra):
+        a = train.parser().parse_args(["--out", str(tmp_path), "--res", str(RES), "--batch", "4",
+                                       *extra])
+        return train.step_batch(frames, a, 3)
+
+    plain, bright, half, again = step(), step("--bright", "1"), step("--bright", "0.5"), step(
+        "--bright", "0.5")
+    for got in (bright, half):
+        torch.testing.assert_close(got[1], plain[1], rtol=0, atol=0)
+        torch.testing.assert_close(got[2], plain[2], rtol=0, atol=0)
+    torch.testing.assert_close(again[0], half[0], rtol=0, atol=0)
+    top = train.BRIGHT_MAX / intrinsic.INPUT_LEVEL
+    lit = plain[0] > 1e-3
+    for got in (bright, half):
+        f = torch.stack([(got[0][i][lit[i]] / plain[0][i][lit[i]]).median() for i in range(4)])
+        assert bool(((f >= 1 - 1e-5) & (f <= top + 1e-4)).all())
+        for i in range(4):  # one factor per crop
+            torch.testing.assert_close(got[0][i], plain[0][i] * f[i], rtol=1e-5, atol=1e-6)
+    assert bool((torch.stack([(bright[0][i][lit[i]] / plain[0][i][lit[i]]).median()
+                              for i in range(4)]) > 1.0 + 1e-3).all())
+
+
 def test_normals_by_light_scores_the_up_down_and_left_right_shape_apart(frames):
     """bench.normals_by_light's scores: the light stage's own normals score correlation 1 and no
     angle; noise on the up/down component (a network that cannot read that shape) lowers the

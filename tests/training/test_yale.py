@@ -453,6 +453,31 @@ def test_the_tune_split_reports_only_tune_subjects_and_never_overwrites_the_resu
     assert "give --json elsewhere" in capsys.readouterr().err
 
 
+def test_input_level_feeds_the_crops_at_that_level_for_the_run_only(toy, shared_data, yale_root,
+                                                                   tmp_path, monkeypatch, capsys):
+    """--input-level: the intrinsic networks' crops are normalised to that level while the run
+    relights (the experiment the training option --bright follows), and to the product's after
+    it; a level that is not positive is refused."""
+    from addon import intrinsic
+
+    shipped, seen = intrinsic.INPUT_LEVEL, []
+    run = ye.run
+
+    def spied(*args, **kwargs):
+        seen.append(intrinsic.INPUT_LEVEL)
+        return run(*args, **kwargs)
+
+    monkeypatch.setattr(ye, "run", spied)
+    out = tmp_path / "y.json"
+    assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--input-level", "0.8",
+                    "--data", str(shared_data), "--json", str(out), "--sheet", ""]) == 0
+    assert seen == [0.8] and intrinsic.INPUT_LEVEL == shipped
+    assert "--input-level 0.8" in json.loads(out.read_text())["command"]
+    with pytest.raises(SystemExit):
+        ye.main(["--onnx", str(toy), "--quick", "--input-level", "0", "--json", str(out)])
+    assert "--input-level must be positive" in capsys.readouterr().err
+
+
 def test_the_lambertian_ceilings_are_exact_on_a_lambertian_subject():
     """A subject that is exactly Lambertian, lit everywhere by every light (a sphere facing the
     lights, no attached shadows on the lit cap): the fit renders any lighting exactly, and so

@@ -89,7 +89,7 @@ import time
 
 import numpy as np
 
-from addon import api, hdri, lightvec, normalise
+from addon import api, hdri, intrinsic, lightvec, normalise
 from addon.errors import InputError
 from addon.intrinsic import SOURCE_FLOOR
 
@@ -1063,7 +1063,12 @@ def main(argv=None) -> int:
     p.add_argument("--split", choices=["test", "tune"], default="test",
                    help="tune: report the 10 tune subjects instead, to choose between variants "
                         "without looking at the test subjects (give --json elsewhere)")
+    p.add_argument("--input-level", type=float, help="feed the intrinsic networks' crops at this "
+                   "level instead of the product's (addon.intrinsic.INPUT_LEVEL): an experiment "
+                   "(its results are not the product's)")
     a = p.parse_args(argv)
+    if a.input_level is not None and not a.input_level > 0:
+        p.error("--input-level must be positive")
     if a.split == "tune" and pathlib.Path(a.json).resolve() == DEFAULT_JSON.resolve():
         p.error("--split tune would overwrite the test subjects' results; give --json elsewhere")
     data_root = pathlib.Path(a.data) if a.data else default_root().parents[1]
@@ -1074,12 +1079,17 @@ def main(argv=None) -> int:
     if not a.onnx:
         p.error("give at least one --onnx model (or --check-data)")
     m = report.machine()
+    level = intrinsic.INPUT_LEVEL
     try:
+        if a.input_level is not None:
+            intrinsic.INPUT_LEVEL = a.input_level
         res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
                   progress=lambda msg: print(msg, file=sys.stderr), split=a.split)
     except InputError as e:  # bad data or models: the message says what to do
         print(f"yale: {e}", file=sys.stderr)
         return 2
+    finally:
+        intrinsic.INPUT_LEVEL = level
     models = list(res["models"])
     table = markdown(res["results"], models, res["paired"])
     res.update({"table_markdown": table, "date": m["date"], "machine": report.machine_line(m),

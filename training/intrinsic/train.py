@@ -127,6 +127,24 @@ def prepare(batch: dict, gen: torch.Generator, strength: float = 1.0) -> torch.T
     return normalise_batch(img)
 
 
+# Crops normalised brighter than the product's INPUT_LEVEL (--bright): up to this level, log-uniform,
+# so the lit side's highlights clip at the network's input clamp. The shipped network, trained at
+# INPUT_LEVEL alone, relights real faces' up/down balance better when fed brighter crops, at a
+# cost in PSNR beyond about 0.8 (`training.eval.yale --split tune --input-level L`): a network
+# trained on both may keep the balance without the cost.
+BRIGHT_MAX = 1.2
+
+
+def brighten(img: torch.Tensor, gen: torch.Generator, p: float) -> torch.Tensor:
+    """A random share ``p`` of the normalised batch ``img`` (N, 3, H, W) made brighter: times a
+    factor log-uniform in [1, BRIGHT_MAX / INPUT_LEVEL]."""
+    n = img.shape[0]
+    pick = torch.rand(n, generator=gen) < p
+    top = math.log(BRIGHT_MAX / renderer.INPUT_LEVEL)
+    f = torch.exp(top * torch.rand(n, generator=gen))
+    return img * torch.where(pick, f, torch.ones_like(f)).view(-1, 1, 1, 1)
+
+
 def step_batch(ds, a, step: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(input, target, fg) of the run's batch ``step`` (counted from --start-step's batch index):
     the frames, lights, zoom, frame cut and camera all drawn from (seed, step) alone."""
@@ -137,7 +155,10 @@ def step_batch(ds, a, step: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
         batch = zoom(batch, gen, a.zoom)
     if a.cut > 0:
         batch = frame_cut(batch, gen, a.cut)
-    return prepare(batch, gen), batch["target"], batch["fg"]
+    img = prepare(batch, gen)
+    if a.bright > 0:  # drawn last: the rest of the batch is as without it
+        img = brighten(img, gen, a.bright)
+    return img, batch["target"], batch["fg"]
 
 
 class StepBatches(torch.utils.data.IterableDataset):
@@ -361,6 +382,8 @@ def parser() -> argparse.ArgumentParser:
                     "environments turned upside down (data.sample_light)")
     ap.add_argument("--studio", type=float, default=0.0, help="share of training lightings "
                     "that are one near-white lamp from the front (data.studio_lamp)")
+    ap.add_argument("--bright", type=float, default=0.0, help="share of training crops "
+                    "normalised brighter than the product's level, up to BRIGHT_MAX (brighten)")
     ap.add_argument("--up-weight", type=float, default=1.0, help="the normals' up/down "
                     "component's error counts this many times the others' (model.losses)")
     ap.add_argument("--albedo-weight", type=float, default=ALBEDO_WEIGHT, help="the albedo "
