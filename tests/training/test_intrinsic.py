@@ -734,7 +734,7 @@ def test_bright_crops_are_the_same_crops_normalised_brighter(frames, tmp_path):
     and BRIGHT_MAX / INPUT_LEVEL (their highlights clip at the network's input clamp), the rest
     and the targets exactly as without it; a step's batch still depends on (seed, step) alone."""
     from addon import intrinsic
-    from training.intrinsic import train
+    from training.intrinsic import export, train
 
     def step(*extra):
         a = train.parser().parse_args(["--out", str(tmp_path), "--res", str(RES), "--batch", "4",
@@ -756,6 +756,11 @@ def test_bright_crops_are_the_same_crops_normalised_brighter(frames, tmp_path):
             torch.testing.assert_close(got[0][i], plain[0][i] * f[i], rtol=1e-5, atol=1e-6)
     assert bool((torch.stack([(bright[0][i][lit[i]] / plain[0][i][lit[i]]).median()
                               for i in range(4)]) > 1.0 + 1e-3).all())
+    # the card's training command carries it (and the albedo's weight, which shapes a run too)
+    recipe = {"width": "small", "res": 128, "steps": 10, "out": "runs/x", "bright": 0.5,
+              "albedo_weight": 1.5}
+    assert "--bright 0.5" in export.train_command(recipe)
+    assert "--albedo-weight 1.5" in export.train_command(recipe)
 
 
 def test_normals_by_light_scores_the_up_down_and_left_right_shape_apart(frames):

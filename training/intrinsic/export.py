@@ -216,8 +216,8 @@ def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20)
 
 TRAIN_ARGS = ("width", "res", "cache", "val_cache", "minutes", "steps", "batch", "lr", "ema",
               "seed", "threads", "val_n", "val_every", "zoom", "cut", "face_weight",
-              "gradient_weight", "start_step", "init", "sky_flip", "studio", "up_weight", "device",
-              "workers", "out")
+              "gradient_weight", "start_step", "init", "sky_flip", "studio", "up_weight",
+              "albedo_weight", "bright", "device", "workers", "out")
 
 
 def train_command(recipe: dict) -> str:
