@@ -57,6 +57,11 @@ MATTE_BLUR = 1.0  # ... of the matte smoothed by this Gaussian sigma, in working
 FEATHER = 0.12  # share of the crop's side over which the face crop fades into the coarse pass
 
 
+def coarse_size(size: int) -> int:
+    """The coarse pass's working size for a network of working size ``size`` (COARSE of it)."""
+    return max(int(size * COARSE), 16)
+
+
 @dataclass(frozen=True)
 class FrameResult:
     """out = up(a) * x + up(b), with (a, b) on a grid of the frame (the pipeline's finish applies
@@ -315,8 +320,7 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     if covers:
         coarse = np.zeros((8, gh, gw), np.float32)
     else:
-        coarse_size = max(int(size * COARSE), 16)
-        small = fr.shrink_planar(grid, *detail.working_shape(h, w, coarse_size))
+        small = fr.shrink_planar(grid, *detail.working_shape(h, w, coarse_size(size)))
         # Diffuse only: at this scale (a 1080p frame's 15 pixels a sample) cast shadows are
         # blocks, and highlights fall on face skin, which the face crop covers. One network pass
         # (no mirror image): the face crop is where the buffers' errors show.

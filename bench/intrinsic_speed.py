@@ -187,8 +187,8 @@ def run(model: str, threads: int, repeats: int) -> dict:
             repeats)
         # The coarse pass's change (ratio, highlight, weight, matte) enlarged to the grid, by
         # small blocks (detail.enlarge_planar where the ratio has them) and by whole matrices.
-        coarse = np.zeros((8,) + detail.working_shape(*x.shape[1:], max(
-            int(size * portrait.COARSE), 16)), np.float32)
+        coarse = np.zeros((8,) + detail.working_shape(*x.shape[1:], portrait.coarse_size(size)),
+                          np.float32)
         gh, gw = res.a.shape[1:]
         enlarge_row = f"coarse change enlarged, {coarse.shape[1]}x{coarse.shape[2]} to {gh}x{gw}"
         rows[enlarge_row] = timed(lambda: detail.enlarge_planar(coarse, gh, gw), repeats)

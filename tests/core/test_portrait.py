@@ -179,7 +179,7 @@ def apply(x, res):
 def margin(h, w, size=32):
     """How far the change may spread past the disc: the coarse pass's pixels (it runs at
     portrait.COARSE times the working size), enlarged bilinearly, reach 2.5 of them."""
-    return 2.5 * max(h, w) / max(int(size * portrait.COARSE), 16)
+    return 2.5 * max(h, w) / portrait.coarse_size(size)
 
 
 # ---- the session -----------------------------------------------------------------------------
