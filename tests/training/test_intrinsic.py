@@ -849,8 +849,8 @@ def test_renderer_ceiling_swaps_one_exact_buffer_in_where_the_light_stage_has_it
 
 def test_batches_made_by_workers_are_the_batches_made_inline(frames, shared_data, tmp_path):
     """--workers: a step's batch is a pure function of (seed, step), so batches made ahead in
-    worker processes (reading frames from the disk cache, not keeping them) are the inline ones,
-    in step order."""
+    worker processes (reading frames from the disk cache, not keeping them, or sharing the frames
+    --preload read) are the inline ones, in step order."""
     from training.intrinsic import data, train
 
     root = frames.folder.parent
@@ -871,6 +871,19 @@ def test_batches_made_by_workers_are_the_batches_made_inline(frames, shared_data
     assert not torch.equal(first[0][0], first[1][0])
     again = train.step_batch(ds, a, 1)
     torch.testing.assert_close(again[0], first[1][0], rtol=0, atol=0)
+    # --preload: the frames and their targets read once before the workers fork, shared by them
+    a.preload = True
+    kept = data.IntrinsicFrames("train", RES, a.seed, root, shared_data)
+    kept.preload(progress=None)
+    assert sorted(kept._frames) == list(range(kept.n))
+    shared = train.batches(kept, a)
+    for want in first:
+        for w, g in zip(want, next(shared)):
+            torch.testing.assert_close(g, w, rtol=0, atol=0)
+    for f in kept._frames.values():  # samples (flipped or not) leave the kept target as it was
+        np.testing.assert_array_equal(f[data.KEPT_TARGET], data.static_target(f))
+    with pytest.raises(ValueError):
+        lean.preload(progress=None)
 
 
 def test_new_shadows_on_skin_are_as_warm_as_the_light_stage_s(frames, monkeypatch):
