@@ -217,8 +217,8 @@ def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo
 class IntrinsicFrames:
     """Map-style dataset over a built frame folder: sample ``idx`` is a pure function of
     (seed, split, idx). Frames stay in memory once read (a 128-px frame is about 6 MB with its
-    target), unless ``keep_frames`` is False (many processes reading one cache share the system's file cache
-    instead of each holding every frame)."""
+    target), unless ``keep_frames`` is False (many processes reading one cache share the
+    system's file cache instead of each holding every frame)."""
 
     def __init__(self, split: str, res: int, seed: int = 0, cache_dir=None, data_root=None,
                  varied_backdrops: bool = True, length: int = 10 ** 7, sky_flip: float = 0.0,
