@@ -931,3 +931,37 @@ def test_diffusion_colour_at_its_own_scale_keeps_the_luminance():
     dark = (skin > 0) & (xx >= 33) & (xx < 38)  # just past the terminator
     warm = lambda x: np.log(x[0][dark] / x[2][dark]).mean()  # noqa: E731
     assert 0 < warm(out) < 0.6 * warm(wide)
+
+
+def test_a_quick_export_measures_no_test_set_and_its_card_loads(shared_data, tmp_path,
+                                                                monkeypatch):
+    """export --eval 0 (a run's snapshots, to be measured on real faces): the file and a card
+    the add-on loads, the val identities' buffer errors, no test-set figures and a note saying
+    so; a negative count is refused with a message."""
+    import json
+
+    from addon import engine
+    from training.intrinsic import data, export, train
+    from training.intrinsic.model import IntrinsicNet
+
+    cache = tmp_path / "cache"
+    data.build("val", 128, 2, cache, data_root=shared_data, progress=None)
+    monkeypatch.setattr(data, "DEFAULT_OUT", cache)
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.manual_seed(0)
+    net = IntrinsicNet("small", True, True)
+    torch.save({"state_dict": net.state_dict(), "width": "small", "step": 7}, run / "best.pt")
+    recipe = {**vars(train.parser().parse_args(["--out", str(run), "--hair"])),
+              "render_version": data.renderer_version()}
+    (run / "recipe.json").write_text(json.dumps(recipe))
+    out = tmp_path / "models"
+    export.main(["--run", str(run), "--name", "quick", "--preset", "quick", "--out", str(out),
+                 "--eval", "0"])
+    card = json.loads((out / "quick.json").read_text())
+    assert "model" not in card["metrics"] and "--eval 0" in card["metrics"]["note"]
+    assert card["metrics"]["val_buffers"]["samples"] == 96
+    assert card["training"]["recipe"]["exported_checkpoint"]["step"] == 7
+    assert engine.load_card(out / "quick.onnx").name == "quick"
+    with pytest.raises(SystemExit):
+        export.main(["--run", str(run), "--out", str(out), "--eval", "-1"])

@@ -306,7 +306,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--preset", default="portrait")
     ap.add_argument("--out", default=str(ROOT / "models"))
     ap.add_argument("--working-size", type=int, default=128)
-    ap.add_argument("--eval", type=int, default=64, help="held-out test samples for the card")
+    ap.add_argument("--eval", type=int, default=64, help="held-out test samples for the card "
+                    "(0: none, a quick export, e.g. of a run's --keep-every snapshots to measure "
+                    "on real faces)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--recommended", action="store_true",
                     help="mark the card as the recommended preset (the panel's default)")
@@ -372,7 +374,10 @@ def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
 
 
 def main(argv=None):
-    a = parser().parse_args(argv)
+    ap = parser()
+    a = ap.parse_args(argv)
+    if a.eval < 0:
+        ap.error("--eval takes a number of samples, 0 or more")
     run = pathlib.Path(a.run)
     state = torch.load(run / a.checkpoint, map_location="cpu")
     net = IntrinsicNet(state["width"], has_transfer(state["state_dict"]),
@@ -438,8 +443,11 @@ def main(argv=None):
     # presets' cards), and each buffer against the light stage on val identities.
     from ..eval import evaluate, predictors
 
-    metrics = evaluate.card_metrics(predictors.product_predictor(onnx_path, a.threads),
-                                    evaluate.heldout_dataset(128), a.eval, 128)
+    if a.eval:
+        metrics = evaluate.card_metrics(predictors.product_predictor(onnx_path, a.threads),
+                                        evaluate.heldout_dataset(128), a.eval, 128)
+    else:  # a quick export (a run's snapshots, to be measured on real faces): no test set
+        metrics = {"note": "exported with --eval 0: the held-out test set was not measured"}
     forward = onnx_forward(onnx_path) if a.int8 or a.graft_onto else net
     metrics["val_buffers"] = val_metrics(forward)
     if a.long_hair_val:
@@ -452,7 +460,8 @@ def main(argv=None):
     card["metrics"] = metrics
     assert engine.file_sha256(onnx_path) == onnx_sha
     card_path.write_text(json.dumps(card, indent=1) + "\n")
-    print(json.dumps({k: metrics[k] for k in ("model", "identity", "val_buffers")}, indent=1), ms)
+    print(json.dumps({k: metrics[k] for k in ("model", "identity", "val_buffers", "note")
+                      if k in metrics}, indent=1), ms)
 
 
 if __name__ == "__main__":
