@@ -216,9 +216,9 @@ def sample(a: dict, rng: np.random.Generator, bank, pool, photo_bank=None, photo
 
 class IntrinsicFrames:
     """Map-style dataset over a built frame folder: sample ``idx`` is a pure function of
-    (seed, split, idx). Frames stay in memory once read (a 128-px frame is about 6 MB with its
-    target), unless ``keep_frames`` is False (many processes reading one cache share the
-    system's file cache instead of each holding every frame)."""
+    (seed, split, idx). Frames stay in memory once read (a 128-px frame is about 4 MB, 6 MB
+    once sampled, with its target), unless ``keep_frames`` is False (many processes reading one
+    cache share the system's file cache instead of each holding every frame)."""
 
     def __init__(self, split: str, res: int, seed: int = 0, cache_dir=None, data_root=None,
                  varied_backdrops: bool = True, length: int = 10 ** 7, sky_flip: float = 0.0,
@@ -253,10 +253,16 @@ class IntrinsicFrames:
         if not self.keep_frames:
             return load_frame(frame_path(self.folder, i))
         if i not in self._frames:
-            a = load_frame(frame_path(self.folder, i))
-            a[KEPT_TARGET] = static_target(a)  # computed once, not for every sample
-            self._frames[i] = a
+            self._frames[i] = load_frame(frame_path(self.folder, i))
         return self._frames[i]
+
+    def _sampled_frame(self, i: int) -> dict:
+        """frame(i) for samples: a kept one holds its static_target beside its arrays, computed
+        once rather than for every sample (frame's other readers need none)."""
+        a = self.frame(i)
+        if self.keep_frames and KEPT_TARGET not in a:
+            a[KEPT_TARGET] = static_target(a)
+        return a
 
     def preload(self, progress=print) -> None:
         """Read every frame into memory now (keep_frames): worker processes forked after this
@@ -266,13 +272,13 @@ class IntrinsicFrames:
             raise ValueError("preload needs keep_frames")
         t0 = time.perf_counter()
         for i in range(self.n):
-            self.frame(i)
+            self._sampled_frame(i)
             if progress and ((i + 1) % 256 == 0 or i + 1 == self.n):
                 progress(f"preloaded {i + 1}/{self.n} frames, {time.perf_counter() - t0:.0f} s")
 
     def __getitem__(self, idx: int) -> dict:
         rng = np.random.default_rng([self.seed, SPLITS[self.split], int(idx), 77])
-        a = self.frame(int(rng.integers(self.n)))
+        a = self._sampled_frame(int(rng.integers(self.n)))
         return sample(a, rng, self.bank, self.pool, self.photo_bank, self.photo_pool,
                       self.sky_flip, self.studio)
 

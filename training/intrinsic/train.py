@@ -131,7 +131,8 @@ def prepare(batch: dict, gen: torch.Generator, strength: float = 1.0) -> torch.T
 # log-uniform, so the lit side's highlights clip at the network's input clamp. The shipped
 # network, trained at INPUT_LEVEL alone, relights real faces' up/down balance better when fed
 # brighter crops, at a cost in PSNR beyond about 0.8 (`training.eval.yale --split tune
-# --input-level L`): a network trained on both may keep the balance without the cost.
+# --input-level L`); trained on them, it relights that balance worse than the same training
+# without them (models/research/portrait-bright.json's note).
 BRIGHT_MAX = 1.2
 
 
