@@ -134,12 +134,14 @@ def luminance(chw: np.ndarray) -> np.ndarray:
     return np.tensordot(np.asarray(LUMA, np.float32), chw, axes=(0, 0))
 
 
-def exposure_scale(image_chw: np.ndarray) -> float:
-    """The scale that puts the crop's 90th luminance percentile at INPUT_LEVEL (1 for black)."""
+def exposure_scale(image_chw: np.ndarray, level: float | None = None) -> float:
+    """The scale that puts the crop's 90th luminance percentile at ``level`` (default
+    INPUT_LEVEL; 1 for black)."""
+    level = INPUT_LEVEL if level is None else level
     lum = luminance(image_chw)
     finite = lum[np.isfinite(lum)]
     q = float(np.quantile(finite, INPUT_QUANTILE)) if finite.size else 0.0
-    return INPUT_LEVEL / q if q > 1e-8 else 1.0
+    return level / q if q > 1e-8 else 1.0
 
 
 @dataclass(frozen=True)

@@ -250,7 +250,8 @@ def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(t
     """run_planar(mirror=True): each buffer is the mean of the image's and the mirror image's
     mirrored back, the normal's x and the transfer's x-odd coefficients negated; so mirroring
     the image mirrors the result exactly. The face crop's passes use it; the framing passes
-    and the coarse pass over the whole frame do not."""
+    and the coarse pass over the whole frame do not. The finer sampling's pass alone is fed
+    brighter (FINER_LEVEL)."""
     # The shipped network (a learned one: its two passes differ) on the demo's first frame.
     root = pathlib.Path(__file__).resolve().parents[2]
     sess = engine.new_session(root / "models" / "relight-portrait.onnx",
@@ -279,13 +280,14 @@ def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(t
     # which passes mirror: every relighting pass, no framing pass
     sess = engine.new_session(write_standin(tmp_path, "mirror"),
                               providers=["CPUExecutionProvider"], threads=1, spin=False)
-    seen = []
+    seen, levels = [], []
 
     class Spy:
         card = sess.card
 
         def run_planar(self, image, mirror=False):
             seen.append((mirror, image.shape[1]))
+            levels.append(float(np.quantile(intrinsic.luminance(image), intrinsic.INPUT_QUANTILE)))
             return sess.run_planar(image, mirror=mirror)
 
     wide = chw(frame(96, 160, (110.0, 48.0), 20.0))
@@ -296,6 +298,10 @@ def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(t
     size = sess.card.working_size  # the coarse pass, the face crop, its finer sampling
     assert [m for m, _ in seen] == [False] + [portrait.MIRROR] * 2
     assert [n for _, n in seen][1:] == [size, round(size * portrait.ZOOM)]
+    # each pass normalised to its level: the finer sampling brighter (FINER_LEVEL)
+    assert portrait.FINER_LEVEL > intrinsic.INPUT_LEVEL
+    np.testing.assert_allclose(levels[-3:], [intrinsic.INPUT_LEVEL] * 2 + [portrait.FINER_LEVEL],
+                               rtol=1e-4)
 
 
 def test_a_finer_sampling_s_buffers_are_shrunk_to_the_crop_and_averaged():
