@@ -304,6 +304,30 @@ def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(t
                                rtol=1e-4)
 
 
+def test_the_face_crop_keeps_its_own_albedo_and_averages_the_rest_with_the_finer_pass():
+    """portrait.face_buffers: the finer sampling, fed brighter, clips the highlights its albedo
+    would read, so the albedo is the crop's own pass's; the other buffers are the mean of the
+    two passes (mean_buffers of the crop's and the finer pass shrunk to the crop)."""
+    root = pathlib.Path(__file__).resolve().parents[2]
+    sess = engine.new_session(root / "models" / "relight-portrait.onnx",
+                              providers=["CPUExecutionProvider"], threads=1, spin=False)
+    from training.lightstage.png import read_png
+    src = read_png(root / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
+    x = np.ascontiguousarray(src.transpose(2, 0, 1) ** 2.2)
+    box = portrait.find_box(sess, x)
+    size = sess.card.working_size
+    crop, valid, got = portrait.face_buffers(sess, x, box, size)
+    own = portrait.buffers(sess, crop, valid, mirror=portrait.MIRROR)
+    finer = portrait.buffers(sess, *portrait.crop_planar(x, box, round(size * portrait.ZOOM)),
+                             mirror=portrait.MIRROR, level=portrait.FINER_LEVEL)
+    mean = portrait.mean_buffers(own, portrait.shrunk(finer, size))
+    np.testing.assert_array_equal(got.albedo, own.albedo)
+    assert np.abs(mean.albedo - own.albedo).max() > 1e-3  # the mean's albedo would differ
+    for name in ("normal", "height", "matte", "face", "transfer"):
+        np.testing.assert_allclose(getattr(got, name), getattr(mean, name), atol=1e-6)
+    assert np.degrees(np.arccos(np.clip((got.normal * own.normal).sum(0), -1, 1))).max() > 1.0
+
+
 def test_a_finer_sampling_s_buffers_are_shrunk_to_the_crop_and_averaged():
     """portrait.shrunk: buffers of the same box at a larger size come back at the crop's size,
     area-averaged, the normals unit, the height in the crop's pixels; mean_buffers averages
