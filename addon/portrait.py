@@ -138,11 +138,11 @@ ZOOM = 1.25
 # this level, not intrinsic.INPUT_LEVEL, so its highlights clip. The network reads a real face's
 # up-down shape better so; its albedo, which the clipping flattens, is left out of the mean (the
 # crop's own is kept). On the CroppedYale tune subjects (36 pairs each) top/bottom balance
-# correlation 0.811 -> 0.843 at 20.38 dB; 0.8 gave 0.828 (20.40 dB), 1.2 0.849 but 20.34 dB;
-# left/right 0.985 throughout. With the bright albedo in the mean the synthetic test set's
-# rmse_level_fit was 0.0577 against 0.0570 (0.0572 without it), and with the matte and skin
-# kept too 0.0573. All of the crop's passes at 1.0 cost 0.07 dB there, and a third pass at 1.0
-# whose normals alone were taken gave 0.834, for the time of that pass.
+# correlation 0.811 -> 0.843 at 20.38 dB, left/right 0.985; 1.2 gave 0.848 but 20.33 dB (and,
+# with the bright albedo in the mean, 0.8 0.828 at 20.40 dB). With the bright albedo in the
+# mean the synthetic test set's rmse_level_fit was 0.0577 against 0.0570 (0.0572 without it),
+# and with the matte and skin kept too 0.0573. All of the crop's passes at 1.0 cost 0.07 dB
+# there, and a third pass at 1.0 whose normals alone were taken gave 0.834, for that pass's time.
 FINER_LEVEL = 1.0
 
 
