@@ -135,14 +135,19 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
 # measured with the finer crop enlarged from the working size's.
 ZOOM = 1.25
 # The finer sampling is fed brighter than the other passes: its 90th luminance percentile at
-# this level, not intrinsic.INPUT_LEVEL, so its highlights clip. The network reads a real face's
-# up-down shape better so; its albedo, which the clipping flattens, is left out of the mean (the
-# crop's own is kept). On the CroppedYale tune subjects (36 pairs each) top/bottom balance
-# correlation 0.811 -> 0.843 at 20.38 dB, left/right 0.985; 1.2 gave 0.848 but 20.33 dB (and,
-# with the bright albedo in the mean, 0.8 0.828 at 20.40 dB). With the bright albedo in the
-# mean the synthetic test set's rmse_level_fit was 0.0577 against 0.0570 (0.0572 without it),
-# and with the matte and skin kept too 0.0573. All of the crop's passes at 1.0 cost 0.07 dB
-# there, and a third pass at 1.0 whose normals alone were taken gave 0.834, for that pass's time.
+# this level, not intrinsic.INPUT_LEVEL, so its highlights clip. Its normals then turn the
+# forehead further up against the chin, further from photometric stereo's on CroppedYale
+# (training.eval.yale_normals, tune: tilt +0.101 -> +0.125 against the truth's +0.063, mean
+# angle 19.7 -> 20.2 deg), yet the relit faces' up-down balance follows the real light's
+# better: it answered the target's balance too weakly and kept too much of the input's (on the
+# test subjects, relit = a truth + b input with a, b 0.62, 0.26 before, 0.70, 0.20 after). Its
+# albedo, which the clipping flattens, is left out of the mean (the crop's own is kept). On the
+# CroppedYale tune subjects (36 pairs each) top/bottom balance correlation 0.811 -> 0.843 at
+# 20.38 dB, left/right 0.985; 1.2 gave 0.848 but 20.33 dB (and, with the bright albedo in the
+# mean, 0.8 0.828 at 20.40 dB). With the bright albedo in the mean the synthetic test set's
+# rmse_level_fit was 0.0577 against 0.0570 (0.0572 without it), and with the matte and skin
+# kept too 0.0573. All of the crop's passes at 1.0 cost 0.07 dB there, and a third pass at 1.0
+# whose normals alone were taken gave 0.834, for that pass's time.
 FINER_LEVEL = 1.0
 
 
