@@ -140,7 +140,7 @@ ZOOM = 1.25
 # (training.eval.yale_normals, tune: tilt +0.101 -> +0.125 against the truth's +0.063, mean
 # angle 19.7 -> 20.2 deg), yet the relit faces' up-down balance follows the real light's
 # better: it answered the target's balance too weakly and kept too much of the input's (on the
-# test subjects, relit = a truth + b input with a, b 0.62, 0.26 before, 0.70, 0.20 after). Its
+# test subjects, relit = a truth + b input with a, b 0.62, 0.26 before, 0.71, 0.20 after). Its
 # albedo, which the clipping flattens, is left out of the mean (the crop's own is kept). On the
 # CroppedYale tune subjects (36 pairs each) top/bottom balance correlation 0.811 -> 0.843 at
 # 20.38 dB, left/right 0.985; 1.2 gave 0.848 but 20.33 dB (and, with the bright albedo in the
