@@ -1064,8 +1064,9 @@ def main(argv=None) -> int:
                    help="tune: report the 10 tune subjects instead, to choose between variants "
                         "without looking at the test subjects (give --json elsewhere)")
     p.add_argument("--input-level", type=float, help="feed the intrinsic networks' crops at this "
-                   "level instead of the product's (addon.intrinsic.INPUT_LEVEL): an experiment "
-                   "(its results are not the product's)")
+                   "level instead of the product's (addon.intrinsic.INPUT_LEVEL; the face crop's "
+                   "finer sampling keeps addon.portrait.FINER_LEVEL): an experiment (its results "
+                   "are not the product's)")
     a = p.parse_args(argv)
     if a.input_level is not None and not a.input_level > 0:
         p.error("--input-level must be positive")
