@@ -162,7 +162,8 @@ def downsample(image: np.ndarray, world_to_frame: np.ndarray | None = None,
     width = max(int(max_width), MIN_WIDTH)
     # Small maps are enlarged (exactly: nearest neighbour) to the working width, large ones box-
     # reduced to it: every pixel lands whole in one cell, so the working width bounds the
-    # energy error of one dominant pixel (measured worst per-cell coverage error 1.9% at 1024, 4.6% at 512).
+    # energy error of one dominant pixel (worst per-cell coverage error over 150 random pitches
+    # and yaws: 3.5% at 1024, 9.3% at 512).
     if rgb.shape[1] > width:
         src, omega = _block_reduce(rgb, width)
     else:
