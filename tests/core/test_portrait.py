@@ -140,6 +140,18 @@ def session(model):
     return engine.new_session(model, providers=["CPUExecutionProvider"], threads=1, spin=False)
 
 
+@pytest.fixture(scope="module")
+def shipped():
+    """The shipped Portrait network (a learned one: its passes differ) and the demo's first
+    frame, (3, H, W) linear."""
+    root = pathlib.Path(__file__).resolve().parents[2]
+    sess = engine.new_session(root / "models" / "relight-portrait.onnx",
+                              providers=["CPUExecutionProvider"], threads=1, spin=False)
+    from training.lightstage.png import read_png
+    src = read_png(root / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
+    return sess, np.ascontiguousarray(src.transpose(2, 0, 1) ** 2.2)
+
+
 # ---- frames --------------------------------------------------------------------------------
 
 def frame(h, w, centre=None, radius=0.0, seed=0):
@@ -246,19 +258,15 @@ def test_a_model_with_the_hair_class_gives_the_renderer_its_hair(tmp_path, sessi
     assert np.isfinite(apply(big, r)).all()
 
 
-def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(tmp_path):
+def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(tmp_path,
+                                                                              shipped):
     """run_planar(mirror=True): each buffer is the mean of the image's and the mirror image's
     mirrored back, the normal's x and the transfer's x-odd coefficients negated; so mirroring
     the image mirrors the result exactly. The face crop's passes use it; the framing passes
     and the coarse pass over the whole frame do not. The finer sampling's pass alone is fed
     brighter (FINER_LEVEL)."""
-    # The shipped network (a learned one: its two passes differ) on the demo's first frame.
-    root = pathlib.Path(__file__).resolve().parents[2]
-    sess = engine.new_session(root / "models" / "relight-portrait.onnx",
-                              providers=["CPUExecutionProvider"], threads=1, spin=False)
-    from training.lightstage.png import read_png
-    src = read_png(root / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
-    x = np.ascontiguousarray(src[:128, :128].transpose(2, 0, 1) ** 2.2)
+    sess, full = shipped  # a learned network: its two passes differ
+    x = np.ascontiguousarray(full[:, :128, :128])
     flip = np.ascontiguousarray(x[:, :, ::-1])
     a, b, m = sess.run_planar(x), sess.run_planar(flip), sess.run_planar(x, mirror=True)
     odd = list(contract.TRANSFER_X_ODD)
@@ -304,16 +312,11 @@ def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(t
                                rtol=1e-4)
 
 
-def test_the_face_crop_keeps_its_own_albedo_and_averages_the_rest_with_the_finer_pass():
+def test_the_face_crop_keeps_its_own_albedo_and_averages_the_rest_with_the_finer_pass(shipped):
     """portrait.face_buffers: the finer sampling, fed brighter, clips the highlights its albedo
     would read, so the albedo is the crop's own pass's; the other buffers are the mean of the
     two passes (mean_buffers of the crop's and the finer pass shrunk to the crop)."""
-    root = pathlib.Path(__file__).resolve().parents[2]
-    sess = engine.new_session(root / "models" / "relight-portrait.onnx",
-                              providers=["CPUExecutionProvider"], threads=1, spin=False)
-    from training.lightstage.png import read_png
-    src = read_png(root / "demo" / "frames" / "frame_0001.png").astype(np.float32) / 255.0
-    x = np.ascontiguousarray(src.transpose(2, 0, 1) ** 2.2)
+    sess, x = shipped
     box = portrait.find_box(sess, x)
     size = sess.card.working_size
     crop, valid, got = portrait.face_buffers(sess, x, box, size)
