@@ -911,22 +911,23 @@ def poisson(fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
 
 
 def shadow_height(bufs: Buffers) -> np.ndarray:
-    """(h, w) the height, in pixels, over which the cast shadows are marched: the predicted
-    height (height_scale brings it to the normals' slopes) plus the correction, integrated by
-    poisson, that gives it the normals' slopes wherever they can say (SHADOW_STEP). The shading
-    follows the normals, so the shadows follow the same shape: the brow's overhang that darkens
-    the eye socket under a high light is in the normals before it is in the height; and the
-    height's own steps stay exact, as a correction spreads only itself. Over the predicted
-    height alone, cast shadows under CroppedYale's real normals (photometric stereo's, the
-    network's other buffers kept) answered the target's up/down balance at 0.818 on the tune
-    subjects; with this correction 0.878 (0.869 -> 0.879 by rank; training.eval.yale_normals
-    --split tune --relight --pairs 36). The network's own normals read the same either way
-    (0.843, 0.841). Integrating the normals' slopes alone, the height's steps only where the
-    normals cannot say, read 0.905, but the least squares spread the steps out too: the light
+    """(h, w) the height, in pixels, over which the cast shadows are marched: the predicted height
+    (height_scale brings it to the normals' slopes) plus the correction, integrated by poisson,
+    that gives it the normals' slopes wherever they can say (SHADOW_STEP). The shading follows
+    the normals, so the shadows follow the same shape: the brow's overhang that darkens the eye
+    socket under a high light is in the normals before it is in the height. Where the normals
+    cannot say, and off the subject, the height's own differences stand, so its steps and its
+    standing out from the backdrop are kept. Over the predicted height alone, cast shadows
+    under CroppedYale's real normals (photometric stereo's, the network's other buffers kept)
+    answered the target's up/down balance at 0.818 on the tune subjects; with this correction
+    0.878 (0.869 -> 0.879 by rank; training.eval.yale_normals --split tune --relight --pairs
+    36). The network's own normals read the same either way (0.843, 0.841). Integrating the
+    normals' slopes with the height's steps on the subject alone, its outline held at the
+    backdrop's level, read 0.905, but the least squares then flattened the steps: the light
     stage's top light lost most of the jaw's shadow on the neck (bench.intrinsic_effects,
     "auto": exact buffers 0.1716 -> 0.1812, the network's 0.3196 -> 0.3434), where this keeps
-    them (0.1714, 0.3255). Keeping only the correction's detail (less its Gaussian blur over the
-    subject, sigma 8 or 16 pixels) read 0.857 and 0.862."""
+    them (0.1714, 0.3255). Keeping only the correction's detail (less its Gaussian blur over
+    the subject, sigma 8 or 16 pixels) read 0.857 and 0.862."""
     n = bufs.normal
     nz = np.maximum(n[2], 1e-3)
     p, q = -n[0] / nz, n[1] / nz  # dh/dx and dh/dy: image y runs down, the normal's y up

@@ -415,6 +415,22 @@ def test_the_shadows_height_is_the_normals_shape_where_the_predicted_height_disa
     np.testing.assert_allclose(got - got[0, 0], block, atol=1e-3)
 
 
+def test_the_shadows_height_keeps_the_predicted_steps_and_the_subject_over_its_backdrop():
+    """A head (a disc 30 pixels out) over a neck (10 out) on a backdrop, all facing the camera:
+    no normal holds the steps, so they stay the height's, to the pixel. (Integrating with the
+    subject's outline held at the backdrop's level, the head stood 1.7 pixels out.)"""
+    yy, xx = np.mgrid[:S, :S].astype(np.float64)
+    head = (xx - 32) ** 2 + (yy - 28) ** 2 < 18 ** 2
+    matte = head | ((np.abs(xx - 32) < 8) & (yy > 28))
+    height = np.where(head, 30.0, np.where(matte, 10.0, 0.0))
+    flat = np.zeros((3, S, S))
+    flat[2] = 1.0
+    bufs = shadow_buffers(height, flat)
+    bufs = dataclasses.replace(bufs, matte=matte.astype(np.float32))
+    got = intrinsic.shadow_height(bufs)
+    np.testing.assert_allclose(got - got[0, 0], height, atol=1e-3)
+
+
 def test_a_brow_the_normals_hold_shades_the_eye_under_a_high_light():
     """A ridge above a flat band (a brow over the eye), in the normals but not in the predicted
     height: a light from high above casts the ridge's shadow below it."""
