@@ -864,27 +864,16 @@ SHADOW_SLOPE_MAX = 3.0
 SHADOW_STEP = 1.5
 
 
-def dct2(x: np.ndarray, axis: int) -> np.ndarray:
-    """The unnormalised DCT-II of ``x`` along ``axis`` (sum_n x_n cos(pi k (2n + 1) / 2N)),
-    through one complex FFT of the same length (Makhoul's reordering)."""
-    n = x.shape[axis]
-    x = np.moveaxis(x, axis, -1)
-    v = np.concatenate([x[..., ::2], x[..., 1::2][..., ::-1]], -1)
-    out = (np.fft.fft(v, axis=-1) * np.exp(-0.5j * np.pi * np.arange(n) / n)).real
-    return np.moveaxis(out, -1, axis)
-
-
-def idct2(c: np.ndarray, axis: int) -> np.ndarray:
-    """The inverse of dct2 along ``axis``."""
-    n = c.shape[axis]
-    c = np.moveaxis(c, axis, -1)
-    flipped = np.concatenate([np.zeros_like(c[..., :1]), c[..., :0:-1]], -1)  # c[N - k], c[N] = 0
-    v = np.fft.ifft((c - 1j * flipped) * np.exp(0.5j * np.pi * np.arange(n) / n), axis=-1).real
-    out = np.empty_like(v)
-    half = (n + 1) // 2
-    out[..., ::2] = v[..., :half]
-    out[..., 1::2] = v[..., half:][..., ::-1]
-    return np.moveaxis(out, -1, axis)
+@functools.lru_cache(maxsize=8)
+def _dct_matrices(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n, n) float32: the unnormalised DCT-II (row k: cos(pi k (2m + 1) / 2n)) and its inverse.
+    As matrix products they ran three times as fast as numpy's FFT (in double precision, with
+    Makhoul's reordering) at 128 pixels here."""
+    k, m = np.arange(n)[:, None], np.arange(n)[None, :]
+    c = np.cos(np.pi * k * (2 * m + 1) / (2 * n))
+    w = np.full(n, 2.0 / n)
+    w[0] = 1.0 / n
+    return c.astype(np.float32), (c.T * w[None, :]).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=8)
@@ -892,22 +881,23 @@ def _neumann_eigenvalues(h: int, w: int) -> np.ndarray:
     lam = ((2.0 * np.cos(np.pi * np.arange(h) / h) - 2.0)[:, None]
            + (2.0 * np.cos(np.pi * np.arange(w) / w) - 2.0)[None, :])
     lam[0, 0] = 1.0  # the mean is free; poisson sets it to 0
-    return lam
+    return lam.astype(np.float32)
 
 
 def poisson(fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
-    """(h, w) the field whose forward differences best fit ``fx`` (h, w - 1: f[:, x + 1] - f[:,
-    x]) and ``fy`` (h - 1, w) in least squares, of mean 0: the Poisson equation with reflecting
-    edges, solved exactly in the DCT's basis."""
+    """(h, w) float32 the field whose forward differences best fit ``fx`` (h, w - 1: f[:, x + 1]
+    - f[:, x]) and ``fy`` (h - 1, w) in least squares, of mean 0: the Poisson equation with
+    reflecting edges, solved exactly in the DCT's basis (its eigenvectors)."""
     h, w = fx.shape[0], fy.shape[1]
-    div = np.zeros((h, w))
+    div = np.zeros((h, w), np.float32)
     div[:, :-1] += fx
     div[:, 1:] -= fx
     div[:-1] += fy
     div[1:] -= fy
-    c = dct2(dct2(div, 0), 1) / _neumann_eigenvalues(h, w)
+    (ch, ih), (cw, iw) = _dct_matrices(h), _dct_matrices(w)
+    c = (ch @ div @ cw.T) / _neumann_eigenvalues(h, w)
     c[0, 0] = 0.0
-    return idct2(idct2(c, 1), 0)
+    return ih @ c @ iw.T
 
 
 def shadow_height(bufs: Buffers) -> np.ndarray:
@@ -934,7 +924,7 @@ def shadow_height(bufs: Buffers) -> np.ndarray:
     fg = bufs.matte > 0.5
     ok = fg & (n[2] > SHADOW_GRAZING) & (np.abs(p) < SHADOW_SLOPE_MAX) & (
         np.abs(q) < SHADOW_SLOPE_MAX)
-    h = (bufs.height / height_scale(bufs)).astype(np.float64)
+    h = (bufs.height / height_scale(bufs)).astype(np.float32)
     dx, dy = np.diff(h, axis=1), np.diff(h, axis=0)
     fx = np.where(ok[:, 1:] & ok[:, :-1] & (np.abs(dx) < SHADOW_STEP),
                   0.5 * (p[:, 1:] + p[:, :-1]) - dx, 0.0)
