@@ -929,7 +929,7 @@ def shadow_height(bufs: Buffers) -> np.ndarray:
     fx = np.where(ok[:, 1:] & ok[:, :-1] & (np.abs(dx) < SHADOW_STEP),
                   0.5 * (p[:, 1:] + p[:, :-1]) - dx, 0.0)
     fy = np.where(ok[1:] & ok[:-1] & (np.abs(dy) < SHADOW_STEP), 0.5 * (q[1:] + q[:-1]) - dy, 0.0)
-    return (h + poisson(fx, fy)).astype(np.float32)
+    return h + poisson(fx, fy)  # both float32
 
 
 def specular(normal: np.ndarray, direction: np.ndarray,

@@ -403,6 +403,13 @@ def test_poisson_is_the_least_squares_field_of_the_differences(shape):
     np.testing.assert_allclose(got, want, atol=2e-4)
 
 
+def normals_of(height):
+    """(3, h, w) the unit normals of a height field (image y down, the normal's y up)."""
+    gy, gx = np.gradient(height)
+    normal = np.stack([-gx, gy, np.ones_like(height)])
+    return normal / np.linalg.norm(normal, axis=0)
+
+
 def shadow_buffers(height, normal):
     ones = np.ones(height.shape, np.float32)
     return intrinsic.Buffers(normal.astype(np.float32), height.astype(np.float32),
@@ -416,9 +423,7 @@ def test_the_shadows_height_is_the_normals_shape_where_the_predicted_height_disa
     the normals cannot hold (a block facing the camera) comes from the height."""
     yy, xx = np.mgrid[:S, :S].astype(np.float64)
     bump = 12.0 * np.exp(-((xx - 20) ** 2 + (yy - 30) ** 2) / (2 * 6.0 ** 2))
-    gy, gx = np.gradient(bump)
-    normal = np.stack([-gx, gy, np.ones_like(bump)])
-    normal /= np.linalg.norm(normal, axis=0)
+    normal = normals_of(bump)
     block = np.zeros((S, S))
     block[20:40, 40:55] = 15.0
     got = intrinsic.shadow_height(shadow_buffers(block, normal))
@@ -426,9 +431,7 @@ def test_the_shadows_height_is_the_normals_shape_where_the_predicted_height_disa
     offset = float(np.median(got - want))
     assert np.abs(got - want - offset).max() < 0.6, np.abs(got - want - offset).max()
     # the block alone, its sides only in the height: kept to the pixel
-    flat = np.zeros_like(normal)
-    flat[2] = 1.0
-    got = intrinsic.shadow_height(shadow_buffers(block, flat))
+    got = intrinsic.shadow_height(shadow_buffers(block, normals_of(np.zeros((S, S)))))
     np.testing.assert_allclose(got - got[0, 0], block, atol=1e-3)
 
 
@@ -440,9 +443,7 @@ def test_the_shadows_height_keeps_the_predicted_steps_and_the_subject_over_its_b
     head = (xx - 32) ** 2 + (yy - 28) ** 2 < 18 ** 2
     matte = head | ((np.abs(xx - 32) < 8) & (yy > 28))
     height = np.where(head, 30.0, np.where(matte, 10.0, 0.0))
-    flat = np.zeros((3, S, S))
-    flat[2] = 1.0
-    bufs = shadow_buffers(height, flat)
+    bufs = shadow_buffers(height, normals_of(np.zeros((S, S))))
     bufs = dataclasses.replace(bufs, matte=matte.astype(np.float32))
     got = intrinsic.shadow_height(bufs)
     np.testing.assert_allclose(got - got[0, 0], height, atol=1e-3)
@@ -453,9 +454,7 @@ def test_a_brow_the_normals_hold_shades_the_eye_under_a_high_light():
     height: a light from high above casts the ridge's shadow below it."""
     yy, xx = np.mgrid[:S, :S].astype(np.float64)
     ridge = 8.0 * np.exp(-((yy - 24) ** 2) / (2 * 2.5 ** 2))
-    gy, gx = np.gradient(ridge)
-    normal = np.stack([-gx, gy, np.ones_like(ridge)])
-    normal /= np.linalg.norm(normal, axis=0)
+    normal = normals_of(ridge)
     bufs = shadow_buffers(np.zeros((S, S)), normal)
     light = lightvec.splat_direction(unit([0.0, 0.94, 0.34]), 10.0)
     ratio = intrinsic.shade(np.full((3, S, S), 0.2, np.float32), bufs, light,
