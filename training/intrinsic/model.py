@@ -176,9 +176,52 @@ def normal_gradient(normal: torch.Tensor, t_n: torch.Tensor, face: torch.Tensor)
     return out
 
 
+LOW_SIGMA = 6.0  # pixels at the working size: the band of the face's shape a relit face's up/down needs
+
+
+def gaussian_kernel(sigma: float) -> torch.Tensor:
+    """A normalised 1-D Gaussian of ``sigma`` pixels, cut at three sigma."""
+    r = max(1, int(round(3 * sigma)))
+    x = torch.arange(-r, r + 1, dtype=torch.float32)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    return k / k.sum()
+
+
+def masked_low(x: torch.Tensor, mask: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the Gaussian low band of ``x`` (B, C, H, W) over ``mask`` (B, 1, H, W) alone, the
+    blurred mask): the blur of x * mask divided by the blur of the mask, so the backdrop
+    does not leak into the subject's edge. Edges replicate."""
+    k = gaussian_kernel(sigma).to(x)
+    r = k.numel() // 2
+    both = torch.cat([x * mask, mask], 1)
+    c = both.size(1)
+    both = tf.pad(both, (r, r, r, r), mode="replicate")
+    both = tf.conv2d(both, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    both = tf.conv2d(both, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+    m = both[:, -1:]
+    return both[:, :-1] / m.clamp(min=1e-6), m
+
+
+def normal_low_band(normal: torch.Tensor, t_n: torch.Tensor, fg: torch.Tensor,
+                    sigma: float = LOW_SIGMA, up_weight: float = 1.0) -> torch.Tensor:
+    """How far the predicted normals' Gaussian low band (``sigma`` pixels, over the subject
+    ``fg`` alone: masked_low) is from the truth's: the mean absolute difference per component
+    (the up/down one ``up_weight`` times) where the blurred subject covers at least half. On real
+    faces this band (the face's shape at a few pixels of 128) sets a relit face's up/down
+    balance, its detail the rest (training.eval.yale_normals --low-sigma)."""
+    p, m = masked_low(normal, fg, sigma)
+    t, _ = masked_low(t_n, fg, sigma)
+    w = (m > 0.5).float() * fg
+    err = (p - t).abs()
+    if up_weight != 1.0:
+        err = err * err.new_tensor([1.0, up_weight, 1.0]).view(1, 3, 1, 1)
+    return (err * w).sum() / (3 * w.sum()).clamp(min=1.0)
+
+
 def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.0,
            gradient_weight: float = 0.0, up_weight: float = 1.0,
-           albedo_weight: float = ALBEDO_WEIGHT) -> dict:
+           albedo_weight: float = ALBEDO_WEIGHT, low_weight: float = 0.0,
+           low_sigma: float = LOW_SIGMA) -> dict:
     """Per-buffer losses against the light stage's exact buffers (data.TARGETS order: normal 3,
     height 1, albedo 3, matte 1, face 1, transfer 16, hair 1); ``fg`` (B, 1, H, W) where the
     subject's buffers exist. The hair class's loss (``hair``, over the whole picture) joins the
@@ -189,7 +232,8 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
     loss; ``up_weight``: the up/down component's absolute error counts this many times the
     others' (a face varies less up and down than across, so a flattened up/down shape costs
     little in the angle, yet it sets the balance of a light from above or below);
-    ``albedo_weight``: the albedo loss's weight in the total."""
+    ``albedo_weight``: the albedo loss's weight in the total; ``low_weight``: the normals' low
+    band's error (normal_low_band, ``low_sigma`` pixels) joins the normal loss this many times."""
     normal, height, albedo, parsing, *transfer = pred
     n = fg.sum((2, 3)).clamp(min=1.0)  # (B, 1)
 
@@ -211,6 +255,8 @@ def losses(pred, target: torch.Tensor, fg: torch.Tensor, face_weight: float = 0.
     l_normal = mean_w(1.0 - cos).mean() + 0.5 * mean_w(err).mean()
     if gradient_weight:
         l_normal = l_normal + gradient_weight * normal_gradient(normal, t_n, fg * t_f)
+    if low_weight:
+        l_normal = l_normal + low_weight * normal_low_band(normal, t_n, fg, low_sigma, up_weight)
     d = height - t_h
     d = d - mean_fg(d)[..., None, None]
     l_height = mean_fg(d.abs()).mean() / 10.0

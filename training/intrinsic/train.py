@@ -32,7 +32,7 @@ import torch
 from addon import intrinsic as renderer
 
 from . import camera, data
-from .model import ALBEDO_WEIGHT, HAIR_TARGET, IntrinsicNet, load_weights, losses
+from .model import ALBEDO_WEIGHT, HAIR_TARGET, LOW_SIGMA, IntrinsicNet, load_weights, losses
 
 
 def normalise_batch(img: torch.Tensor) -> torch.Tensor:
@@ -316,7 +316,7 @@ def train(a) -> pathlib.Path:
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=a.bf16):
             pred = model(inp)
         ls = losses(pred, target, fg, a.face_weight, a.gradient_weight, a.up_weight,
-                    a.albedo_weight)
+                    a.albedo_weight, a.low_weight, a.low_sigma)
         opt.zero_grad(set_to_none=True)
         ls["total"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
@@ -392,6 +392,10 @@ def parser() -> argparse.ArgumentParser:
                     "normalised brighter than the product's level, up to BRIGHT_MAX (brighten)")
     ap.add_argument("--up-weight", type=float, default=1.0, help="the normals' up/down "
                     "component's error counts this many times the others' (model.losses)")
+    ap.add_argument("--low-weight", type=float, default=0.0, help="weight of the normals' "
+                    "Gaussian low band's error in the normal loss (model.normal_low_band)")
+    ap.add_argument("--low-sigma", type=float, default=LOW_SIGMA, help="that band's Gaussian, "
+                    "pixels at --res")
     ap.add_argument("--albedo-weight", type=float, default=ALBEDO_WEIGHT, help="the albedo "
                     "loss's weight in the total (model.losses)")
     ap.add_argument("--train-only", default="all", choices=sorted(TRAIN_ONLY), help="train "
