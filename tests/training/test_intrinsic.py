@@ -697,28 +697,33 @@ def test_low_band_loss_sees_the_faces_broad_shape_not_its_detail():
     fg = torch.zeros(1, 1, h, w)
     fg[..., 8:40, 10:38] = 1.0
     yy = torch.linspace(-0.5, 0.5, h).view(1, 1, h, 1).expand(1, 1, h, w)
-    truth = torch.nn.functional.normalize(torch.cat([torch.zeros_like(yy), yy, torch.ones_like(yy)], 1), dim=1)
+    unit = torch.nn.functional.normalize
+    truth = unit(torch.cat([torch.zeros_like(yy), yy, torch.ones_like(yy)], 1), dim=1)
 
     def with_y(dy):
         n = truth.clone()
         n[:, 1:2] += dy
-        return torch.nn.functional.normalize(n, dim=1)
+        return unit(n, dim=1)
 
-    ripple = 0.3 * (torch.arange(w) % 2 * 2 - 1).float().view(1, 1, 1, w).expand(1, 1, h, w)
-    ripple = ripple * (torch.arange(h) % 2 * 2 - 1).float().view(1, 1, h, 1)
+    sign = (torch.arange(w) % 2 * 2 - 1).float()  # +-1 from pixel to pixel
+    ripple = 0.3 * sign.view(1, 1, 1, w) * sign[:h].view(1, 1, h, 1)
     tilt = torch.full((1, 1, h, w), 0.3)
     assert float(normal_low_band(truth, truth, fg)) < 1e-6
-    assert float(normal_low_band(with_y(ripple), truth, fg)) < 0.2 * float(normal_low_band(with_y(tilt), truth, fg))
+    tilted = float(normal_low_band(with_y(tilt), truth, fg))
+    assert float(normal_low_band(with_y(ripple), truth, fg)) < 0.2 * tilted
     off = with_y(tilt) * fg + with_y(-3 * tilt) * (1 - fg)
-    assert float(normal_low_band(off, truth, fg)) == pytest.approx(float(normal_low_band(with_y(tilt), truth, fg)), rel=1e-5)
+    assert float(normal_low_band(off, truth, fg)) == pytest.approx(tilted, rel=1e-5)
     assert float(normal_low_band(truth, truth * fg, fg)) < 1e-6
     low, cover = masked_low(torch.ones(1, 1, h, w), fg, 6.0)
-    assert torch.allclose(low[cover > 1e-3], torch.ones(1), atol=1e-5)  # a constant stays itself at the edge
+    assert torch.allclose(low[cover > 1e-3], torch.ones(1), atol=1e-5)  # a constant, to the edge
 
     t = torch.cat([truth, torch.zeros(1, 6, h, w), fg, fg], 1)
-    pred = (with_y(tilt), torch.zeros(1, 1, h, w), torch.zeros(1, 3, h, w) + 0.5, torch.cat([fg, fg], 1))
+    pred = (with_y(tilt), torch.zeros(1, 1, h, w), torch.full((1, 3, h, w), 0.5),
+            torch.cat([fg, fg], 1))
     plain, low_w = losses(pred, t, fg)["normal"], losses(pred, t, fg, low_weight=2.0)["normal"]
-    assert float(low_w - plain) == pytest.approx(2.0 * float(normal_low_band(pred[0], truth, fg)), rel=1e-4)
+    assert float(low_w - plain) == pytest.approx(2.0 * tilted, rel=1e-4)
+    rippled = losses((with_y(ripple), *pred[1:]), t, fg)["normal"]
+    assert float(rippled) > 0.5 * float(plain)  # which the per-pixel loss pays for
 
 
 def test_albedo_weight_sets_the_albedo_terms_share_of_the_total(frames):

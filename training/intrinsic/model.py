@@ -176,7 +176,7 @@ def normal_gradient(normal: torch.Tensor, t_n: torch.Tensor, face: torch.Tensor)
     return out
 
 
-LOW_SIGMA = 6.0  # pixels at the working size: the band of the face's shape a relit face's up/down needs
+LOW_SIGMA = 6.0  # pixels at 128: the band of the face's shape that sets a relit face's up/down
 
 
 def gaussian_kernel(sigma: float) -> torch.Tensor:
@@ -187,7 +187,8 @@ def gaussian_kernel(sigma: float) -> torch.Tensor:
     return k / k.sum()
 
 
-def masked_low(x: torch.Tensor, mask: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
+def masked_low(x: torch.Tensor, mask: torch.Tensor,
+               sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
     """(the Gaussian low band of ``x`` (B, C, H, W) over ``mask`` (B, 1, H, W) alone, the
     blurred mask): the blur of x * mask divided by the blur of the mask, so the backdrop
     does not leak into the subject's edge. Edges replicate."""
