@@ -972,6 +972,39 @@ def test_diffusion_colour_at_its_own_scale_keeps_the_luminance():
     assert 0 < warm(out) < 0.6 * warm(wide)
 
 
+def test_init_share_averages_a_run_with_the_checkpoint_it_started_from(tmp_path):
+    """export --init-share S: each float weight and batch statistic is (1 - S) the run's plus S
+    its --init checkpoint's, integer counters stay the run's, and S 0 is the run itself; a run
+    without --init, an init checkpoint that is not there, another network and a share outside
+    [0, 1) are refused with a message."""
+    from training.intrinsic import export
+    from training.intrinsic.model import IntrinsicNet
+
+    torch.manual_seed(0)
+    start = IntrinsicNet("small", True, True).state_dict()
+    run = {k: v + torch.randn_like(v) if v.is_floating_point() else v + 4
+           for k, v in start.items()}  # batch statistics moved too
+    init = tmp_path / "start.pt"
+    torch.save({"state_dict": start, "width": "small"}, init)
+    recipe = {"init": str(init)}
+    mixed = export.with_init(run, recipe, 0.25)
+    assert set(mixed) == set(run)
+    for k, v in run.items():
+        if v.is_floating_point():
+            torch.testing.assert_close(mixed[k], 0.75 * v + 0.25 * start[k])
+            assert not torch.equal(mixed[k], v)
+        else:
+            assert torch.equal(mixed[k], v)
+    assert all(torch.equal(export.with_init(run, recipe, 0.0)[k], v) for k, v in run.items())
+    torch.save({"state_dict": IntrinsicNet("small", True, False).state_dict()},
+               tmp_path / "other.pt")
+    for bad_recipe, share in (({}, 0.5), ({"init": str(tmp_path / "gone.pt")}, 0.5),
+                              ({"init": str(tmp_path / "other.pt")}, 0.5),
+                              (recipe, 1.0), (recipe, -0.1)):
+        with pytest.raises(SystemExit, match="--init-share"):
+            export.with_init(run, bad_recipe, share)
+
+
 def test_a_quick_export_measures_no_test_set_and_its_card_loads(shared_data, tmp_path,
                                                                 monkeypatch):
     """export --eval 0 (a run's snapshots, to be measured on real faces): the file and a card

@@ -57,6 +57,16 @@ def test_an_intrinsic_card_reproduces_its_export_with_the_int8_flag_it_was_made_
     assert args.long_hair_val == "cache/intrinsic-longval" and not args.int8
 
 
+def test_an_intrinsic_card_averaged_with_its_start_reproduces_the_same_average():
+    """A card exported with --init-share records the share; reproduce exports with it."""
+    card = {**_card(preset="portrait", name="relight-portrait"),
+            "contract": contract.INTRINSIC_CONTRACT}
+    assert "--init-share" not in reproduce.commands(card)[-1]
+    card["training"]["init_share"] = {"share": 0.25, "init": "runs/a/best.pt"}
+    last = reproduce.commands(card)[-1]
+    assert intrinsic_export.parser().parse_args(shlex.split(last)[3:]).init_share == 0.25
+
+
 def test_a_grafted_card_reproduces_its_graft_and_names_the_file_it_needs():
     """A card whose hair head was grafted onto a file exports with --graft-onto that file (not
     --int8: the file is already quantised), and reproduce says which version of the file the

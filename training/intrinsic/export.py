@@ -317,10 +317,36 @@ def parser() -> argparse.ArgumentParser:
                          "training.intrinsic.data --split val --long-hair 1 --out CACHE)")
     ap.add_argument("--int8", action="store_true",
                     help="ship the network quantised to int8 (INT8_KEEP_FLOAT's layers float)")
+    ap.add_argument("--init-share", type=float, default=0.0, metavar="S",
+                    help="export the checkpoint's weights averaged with those of the run's --init "
+                         "checkpoint, S being the init's share (0 <= S < 1; with_init)")
     ap.add_argument("--graft-onto", metavar="ONNX",
                     help="add the run's hair head to this file (the one the run's --init was "
                          "rebuilt from) instead of exporting the whole network (graft.py)")
     return ap
+
+
+def with_init(state_dict: dict, recipe: dict, share: float) -> dict:
+    """The run's weights averaged with its --init checkpoint's, ``share`` being the init's: a
+    fine-tune and the network it started from lie in one basin, so every weight and batch
+    statistic is interpolated between the two (integer counters stay the run's). A fine-tune
+    on the light stage's frames alone improved them and lowered real faces' up/down balance;
+    halfway back to its start kept the start's balance and most of the fine-tune's gain in
+    PSNR (training/README.md, the fine-tunes' table)."""
+    if not 0.0 <= share < 1.0:
+        raise SystemExit(f"--init-share {share:g}: give the init's share, from 0 up to below 1.")
+    init = recipe.get("init")
+    if not init:
+        raise SystemExit("--init-share: this run did not start from a checkpoint (no --init).")
+    if not pathlib.Path(init).is_file():
+        raise SystemExit(f"--init-share: the run's --init checkpoint {init} is not here; put it "
+                         "back (training.run.reproduce makes it) or export without the option.")
+    other = torch.load(init, map_location="cpu")["state_dict"]
+    if set(other) != set(state_dict) or any(other[k].shape != v.shape
+                                            for k, v in state_dict.items()):
+        raise SystemExit(f"--init-share: {init} is another network than the run's checkpoint.")
+    return {k: ((1.0 - share) * v + share * other[k]).to(v.dtype) if v.is_floating_point()
+            else v for k, v in state_dict.items()}
 
 
 def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
@@ -380,6 +406,9 @@ def main(argv=None):
         ap.error("--eval takes a number of samples, 0 or more")
     run = pathlib.Path(a.run)
     state = torch.load(run / a.checkpoint, map_location="cpu")
+    recipe = json.loads((run / "recipe.json").read_text())
+    if a.init_share:
+        state = {**state, "state_dict": with_init(state["state_dict"], recipe, a.init_share)}
     net = IntrinsicNet(state["width"], has_transfer(state["state_dict"]),
                        has_hair(state["state_dict"]))
     net.load_state_dict(state["state_dict"])
@@ -402,7 +431,6 @@ def main(argv=None):
             quant = quantise(float_path, onnx_path, calibration, check, a.working_size)
         finally:
             float_path.unlink(missing_ok=True)
-    recipe = json.loads((run / "recipe.json").read_text())
     ms = {str(t): time_onnx(onnx_path, t, a.working_size) for t in (1, 2)}
     card_path = out / f"{a.name}.json"
     onnx_sha = engine.file_sha256(onnx_path)
@@ -430,6 +458,11 @@ def main(argv=None):
         "architecture": {"kind": "U-Net, dense 3x3", "width": state["width"],
                          "parameters": sum(p.numel() for p in net.parameters())},
     }
+    if a.init_share:
+        card["training"]["init_share"] = {
+            "share": a.init_share, "init": recipe["init"],
+            "what": "the exported weights are the checkpoint's averaged with the run's --init "
+                    "checkpoint's, this being the init's share"}
     if worst is not None:
         card["onnx_check_max_abs"] = worst
     if graft_record:

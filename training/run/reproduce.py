@@ -109,6 +109,7 @@ def commands(card: dict) -> list[str]:
         name = name[: -len("-int8")]
     checkpoint = (recipe.get("exported_checkpoint") or {}).get("file", "best.pt")
     if card.get("contract") == contract.INTRINSIC_CONTRACT:
+        share = card["training"].get("init_share")  # export --init-share
         long_hair = (card.get("metrics") or {}).get("val_buffers_long_hair") or {}
         long_val = shlex.split(long_hair.get("command", ""))
         out.append(f"python -m training.intrinsic.export --run {recipe['args']['out']} "
@@ -116,6 +117,7 @@ def commands(card: dict) -> list[str]:
                    + (" --recommended" if card.get("recommended") is True else "")
                    + (f" --long-hair-val {long_val[long_val.index('--out') + 1]}"
                       if "--out" in long_val else "")
+                   + (f" --init-share {share['share']:g}" if share else "")
                    + (f" --graft-onto {card['graft']['onnx']}" if card.get("graft")
                       else " --int8" if card.get("quantisation") else ""))
         return out
