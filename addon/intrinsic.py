@@ -579,6 +579,33 @@ def blur_matrix(n: int, sigma: float) -> np.ndarray:
 TAPS_RADIUS = 3
 
 
+@functools.lru_cache(maxsize=32)
+def _blur_taps32(sigma: float) -> tuple[float, ...]:
+    """blur_taps(sigma) rounded to float32, as gaussian_blur adds them (cached)."""
+    return tuple(float(v) for v in blur_taps(sigma).astype(np.float32))
+
+
+def _edge_padded(a: np.ndarray, axis: int, r: int) -> np.ndarray:
+    """``a`` extended by ``r`` samples at both ends of ``axis``, each end repeating its edge
+    sample (np.pad's "edge" mode, without its overhead)."""
+    n = a.shape[axis]
+    shape = list(a.shape)
+    shape[axis] = n + 2 * r
+    p = np.empty(shape, a.dtype)
+    at = [slice(None)] * a.ndim
+
+    def put(dst: slice, src: slice) -> None:
+        at[axis] = src
+        value = a[tuple(at)]
+        at[axis] = dst
+        p[tuple(at)] = value
+
+    put(slice(r, r + n), slice(None))
+    put(slice(0, r), slice(0, 1))
+    put(slice(r + n, n + 2 * r), slice(n - 1, n))
+    return p
+
+
 def gaussian_blur(a: np.ndarray, sigma: float) -> np.ndarray:
     """(..., h, w) separable Gaussian blur over the last two axes (edges extended), sigma in
     pixels, cut at three sigma: two matrix products (blur_matrix), far cheaper than a tap loop
@@ -589,17 +616,20 @@ def gaussian_blur(a: np.ndarray, sigma: float) -> np.ndarray:
     r = blur_radius(sigma)
     if r > TAPS_RADIUS:
         return np.matmul(np.matmul(blur_matrix(h, sigma), a), blur_matrix(w, sigma).T)
-    k = blur_taps(sigma).astype(np.float32)
+    k = _blur_taps32(sigma)
     for axis, n in ((a.ndim - 2, h), (a.ndim - 1, w)):
-        pad = [(0, 0)] * a.ndim
-        pad[axis] = (r, r)
-        p = np.pad(a, pad, mode="edge")  # the taps past an edge on its edge sample
+        p = _edge_padded(a, axis, r)  # the taps past an edge on its edge sample
         cut = [slice(None)] * a.ndim
         out = None
+        tmp = None
         for i in range(2 * r + 1):
             cut[axis] = slice(i, i + n)
-            t = p[tuple(cut)] * k[i]
-            out = t if out is None else np.add(out, t, out=out)
+            if out is None:
+                out = np.multiply(p[tuple(cut)], np.float32(k[i]))
+                tmp = np.empty_like(out)
+            else:
+                np.multiply(p[tuple(cut)], np.float32(k[i]), out=tmp)
+                np.add(out, tmp, out=out)
         a = out
     return a
 
