@@ -306,10 +306,61 @@ def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(t
     size = sess.card.working_size  # the coarse pass, the face crop, its finer sampling
     assert [m for m, _ in seen] == [False] + [portrait.MIRROR] * 2
     assert [n for _, n in seen][1:] == [size, round(size * portrait.ZOOM)]
-    # each pass normalised to its level: the finer sampling brighter (FINER_LEVEL)
+    # each pass normalised to its level: the finer sampling brighter (FINER_LEVEL); the lift
+    # keeps the level (up to the quantile's interpolation between two pixels, which a curve
+    # moves a little)
     assert portrait.FINER_LEVEL > intrinsic.INPUT_LEVEL
     np.testing.assert_allclose(levels[-3:], [intrinsic.INPUT_LEVEL] * 2 + [portrait.FINER_LEVEL],
-                               rtol=1e-4)
+                               rtol=1e-3)
+
+
+def test_the_lift_raises_shadows_keeps_the_level_and_every_pixel_s_colour():
+    """portrait.lifted: each pixel's luminance over the level to the power INPUT_LIFT, its
+    colour kept; the level and black stay where they are, and the order of the tones too."""
+    rng = np.random.default_rng(5)
+    x = rng.random((3, 16, 20), dtype=np.float32) * np.float32(1.5)
+    x[:, 0, 0] = 0.0
+    level = 0.6
+    y = portrait.lifted(x, level)
+    assert y.dtype == np.float32 and y.shape == x.shape
+    lx, ly = intrinsic.luminance(x), intrinsic.luminance(y)
+    ok = lx > 1e-3
+    np.testing.assert_allclose(ly[ok], level * (lx[ok] / level) ** portrait.INPUT_LIFT, rtol=1e-4)
+    np.testing.assert_allclose((y / ly)[:, ok], (x / lx)[:, ok], rtol=1e-4)  # chromaticity
+    assert (y[:, 0, 0] == 0).all()
+    order = np.argsort(lx.ravel())
+    assert (np.diff(ly.ravel()[order]) >= -1e-6).all()
+    grey = np.full((3, 2, 2), level, np.float32)
+    np.testing.assert_allclose(portrait.lifted(grey, level), grey, rtol=1e-6)
+    assert portrait.INPUT_LIFT < 1.0  # shadows come up
+    dark = np.full((3, 1, 1), 0.1 * level, np.float32)
+    assert float(portrait.lifted(dark, level)[0, 0, 0]) > 1.5 * 0.1 * level
+    assert portrait.lifted(x, level, power=1.0) is x
+
+
+def test_every_pass_feeds_the_network_its_lifted_crop(tmp_path):
+    """portrait.buffers: the network's input is the crop normalised to the pass's level, then
+    lifted (INPUT_LIFT), for the framing, coarse, face and finer passes alike."""
+    sess = engine.new_session(write_standin(tmp_path, "lift"),
+                              providers=["CPUExecutionProvider"], threads=1, spin=False)
+    fed = []
+
+    class Spy:
+        card = sess.card
+
+        def run_planar(self, image, mirror=False):
+            fed.append(image.copy())
+            return sess.run_planar(image, mirror=mirror)
+
+    wide = chw(frame(96, 160, (110.0, 48.0), 20.0))
+    crop, valid = portrait.crop_planar(wide, framing.Box(110.0, 48.0, 64.0), 32)
+    for level in (None, portrait.FINER_LEVEL):
+        fed.clear()
+        portrait.buffers(Spy(), crop, valid, level=level)
+        lv = intrinsic.INPUT_LEVEL if level is None else level
+        want = portrait.lifted(crop * np.float32(intrinsic.exposure_scale(crop, lv)), lv)
+        np.testing.assert_allclose(fed[0], want, rtol=1e-6, atol=1e-7)
+        assert np.abs(fed[0] - crop * np.float32(intrinsic.exposure_scale(crop, lv))).max() > 1e-3
 
 
 def test_the_face_crop_keeps_its_own_albedo_and_averages_the_rest_with_the_finer_pass(shipped):
