@@ -126,10 +126,12 @@ MIRROR = True
 INPUT_LIFT = 0.8
 
 
-def lifted(x: np.ndarray, level: float, power: float = INPUT_LIFT) -> np.ndarray:
-    """(3, h, w) ``x`` with each pixel's luminance relative to ``level`` raised to ``power``,
-    its chromaticity kept: a monotone curve through 0 and ``level``, so a crop normalised to
-    ``level`` (intrinsic.exposure_scale) keeps its 90th luminance percentile there."""
+def lifted(x: np.ndarray, level: float, power: float | None = None) -> np.ndarray:
+    """(3, h, w) ``x`` with each pixel's luminance relative to ``level`` raised to ``power``
+    (default INPUT_LIFT), its chromaticity kept: a monotone curve through 0 and ``level``, so a
+    crop normalised to ``level`` (intrinsic.exposure_scale) keeps its 90th luminance
+    percentile there."""
+    power = INPUT_LIFT if power is None else power
     if power == 1.0:
         return x
     rel = np.maximum(intrinsic.luminance(x), 1e-8) / np.float32(level)

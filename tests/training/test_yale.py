@@ -453,6 +453,41 @@ def test_the_tune_split_reports_only_tune_subjects_and_never_overwrites_the_resu
     assert "give --json elsewhere" in capsys.readouterr().err
 
 
+def test_input_lift_and_compare_lift_set_the_lift_while_they_relight(toy, shared_data, yale_root,
+                                                                     tmp_path, monkeypatch,
+                                                                     capsys):
+    """--input-lift: the whole run's crops are lifted by that power, and the product's after it;
+    --compare-lift: the first model again at that power, on the same pairs, reported beside it
+    with its paired balance gain; a power outside (0, 1] is refused."""
+    from addon import api, portrait
+
+    shipped, seen = portrait.INPUT_LIFT, []
+    relight = api.relight_image
+
+    def spied(*args, **kwargs):
+        seen.append(portrait.INPUT_LIFT)
+        return relight(*args, **kwargs)
+
+    monkeypatch.setattr(api, "relight_image", spied)
+    out = tmp_path / "y.json"
+    assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--input-lift", "0.9",
+                    "--data", str(shared_data), "--json", str(out), "--sheet", ""]) == 0
+    assert seen and set(seen) == {0.9} and portrait.INPUT_LIFT == shipped
+    seen.clear()
+    assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--compare-lift", "0.5",
+                    "--data", str(shared_data), "--json", str(out), "--sheet", ""]) == 0
+    assert set(seen) == {shipped, 0.5} and seen.count(0.5) == seen.count(shipped)
+    assert portrait.INPUT_LIFT == shipped
+    res = json.loads(out.read_text())
+    name = next(iter(res["models"]))
+    assert list(res["models"]) == [name, f"{name} lift 0.5"]
+    assert "top_bottom_gain" in res["balance_correlation"][f"{name} lift 0.5"]
+    for bad in ("0", "1.5"):
+        with pytest.raises(SystemExit):
+            ye.main(["--onnx", str(toy), "--quick", "--compare-lift", bad, "--json", str(out)])
+        assert "must lie in (0, 1]" in capsys.readouterr().err
+
+
 def test_input_level_feeds_the_crops_at_that_level_for_the_run_only(toy, shared_data, yale_root,
                                                                    tmp_path, monkeypatch, capsys):
     """--input-level: the intrinsic networks' crops are normalised to that level while the run

@@ -89,7 +89,7 @@ import time
 
 import numpy as np
 
-from addon import api, hdri, intrinsic, lightvec, normalise
+from addon import api, hdri, intrinsic, lightvec, normalise, portrait
 from addon.errors import InputError
 from addon.intrinsic import SOURCE_FLOOR
 
@@ -406,21 +406,29 @@ class PipelineRelighter:
     image replicated to three channels; the output goes back to gray by Rec.709 luminance."""
 
     def __init__(self, onnx_path, threads: int = 1, background: str | None = None,
-                 exposure: str | None = None, working_size: int | None = None):
+                 exposure: str | None = None, working_size: int | None = None,
+                 lift: float | None = None):
         self.onnx_path = onnx_path
         self.threads = threads
         self.background = background or api.pipeline.DEFAULT_BACKGROUND
         self.exposure = exposure or api.pipeline.DEFAULT_EXPOSURE_MODE
         self.working_size = working_size  # None: the card's
+        self.lift = lift  # None: the product's (portrait.INPUT_LIFT)
         self.card = api.session(onnx_path, threads, working_size).card
-        self.name = self.card.name
+        self.name = self.card.name if lift is None else f"{self.card.name} lift {lift:g}"
 
     def __call__(self, gray: np.ndarray, light: np.ndarray) -> np.ndarray:
         """(H, W) linear gray under some light -> (H, W) linear gray under ``light``."""
         rgb = np.repeat(np.asarray(gray, np.float32)[..., None], 3, axis=2)
-        y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads,
-                              background=self.background, exposure=self.exposure,
-                              working_size=self.working_size)
+        product = portrait.INPUT_LIFT
+        try:
+            if self.lift is not None:
+                portrait.INPUT_LIFT = self.lift
+            y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads,
+                                  background=self.background, exposure=self.exposure,
+                                  working_size=self.working_size)
+        finally:
+            portrait.INPUT_LIFT = product
         return normalise.luminance(y.astype(np.float32))
 
 
@@ -904,8 +912,10 @@ def select_subjects(names: list[str], quick: bool,
 
 def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 2021,
         quick: bool = False, threads: int = 1, sheet_path=None, sheet_rows: int = 6,
-        progress=print, split: str = "test") -> dict:
-    """Evaluate the models; returns the JSON-able result (tables on the test subjects)."""
+        progress=print, split: str = "test", lifts=()) -> dict:
+    """Evaluate the models; returns the JSON-able result (tables on the test subjects).
+    ``lifts``: the first model again for each, its crops lifted by that power (an experiment
+    on portrait.INPUT_LIFT, compared on the same pairs)."""
     data_root = pathlib.Path(data_root) if data_root else default_root().parents[1]
     root = pathlib.Path(root) if root else data_root / "yale" / "CroppedYale"
     tune_names, test_names = select_subjects(subject_names(root), quick, split)
@@ -917,6 +927,9 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         if r.name in relighters or r.name in REFERENCES:
             raise InputError(f"Two models are named {r.name} (or a model is named like a "
                              "baseline); give each --onnx model a card with its own name.")
+        relighters[r.name] = r
+    for lift in lifts:
+        r = PipelineRelighter(onnx_paths[0], threads, lift=lift)
         relighters[r.name] = r
     models = list(relighters)
     bank = HdriBank(data_root)
@@ -1067,9 +1080,19 @@ def main(argv=None) -> int:
                    "level instead of the product's (addon.intrinsic.INPUT_LEVEL; the face crop's "
                    "finer sampling keeps addon.portrait.FINER_LEVEL): an experiment (its results "
                    "are not the product's)")
+    p.add_argument("--input-lift", type=float, help="lift the intrinsic networks' crops by this "
+                   "power instead of the product's (addon.portrait.INPUT_LIFT; 1: not at all): "
+                   "an experiment (its results are not the product's)")
+    p.add_argument("--compare-lift", type=float, action="append", default=[],
+                   help="also relight with the first model's crops lifted by this power, on the "
+                        "same pairs (its balance gain is paired with the first model's); repeat "
+                        "for several")
     a = p.parse_args(argv)
     if a.input_level is not None and not a.input_level > 0:
         p.error("--input-level must be positive")
+    for lift in ([] if a.input_lift is None else [a.input_lift]) + a.compare_lift:
+        if not 0 < lift <= 1:
+            p.error("--input-lift and --compare-lift must lie in (0, 1]")
     if a.split == "tune" and pathlib.Path(a.json).resolve() == DEFAULT_JSON.resolve():
         p.error("--split tune would overwrite the test subjects' results; give --json elsewhere")
     data_root = pathlib.Path(a.data) if a.data else default_root().parents[1]
@@ -1080,17 +1103,20 @@ def main(argv=None) -> int:
     if not a.onnx:
         p.error("give at least one --onnx model (or --check-data)")
     m = report.machine()
-    level = intrinsic.INPUT_LEVEL
+    level, lift = intrinsic.INPUT_LEVEL, portrait.INPUT_LIFT
     try:
         if a.input_level is not None:
             intrinsic.INPUT_LEVEL = a.input_level
+        if a.input_lift is not None:
+            portrait.INPUT_LIFT = a.input_lift
         res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
-                  progress=lambda msg: print(msg, file=sys.stderr), split=a.split)
+                  progress=lambda msg: print(msg, file=sys.stderr), split=a.split,
+                  lifts=a.compare_lift)
     except InputError as e:  # bad data or models: the message says what to do
         print(f"yale: {e}", file=sys.stderr)
         return 2
     finally:
-        intrinsic.INPUT_LEVEL = level
+        intrinsic.INPUT_LEVEL, portrait.INPUT_LIFT = level, lift
     models = list(res["models"])
     table = markdown(res["results"], models, res["paired"])
     res.update({"table_markdown": table, "date": m["date"], "machine": report.machine_line(m),
