@@ -131,8 +131,15 @@ LEVEL_PERCENTILES = (5, 75)
 LEVEL_MIN_SPREAD = 0.1
 
 
+def dot3(v, chw: np.ndarray) -> np.ndarray:
+    """(...) the weighted sum of ``chw``'s three planes (3, ...) by ``v`` (3,), term by term: as
+    a BLAS product of a short vector it took three times as long on one thread."""
+    a, b, c = (np.float32(t) for t in v)
+    return a * chw[0] + b * chw[1] + c * chw[2]
+
+
 def luminance(chw: np.ndarray) -> np.ndarray:
-    return np.tensordot(np.asarray(LUMA, np.float32), chw, axes=(0, 0))
+    return dot3(LUMA, chw)
 
 
 def exposure_scale(image_chw: np.ndarray, level: float | None = None) -> float:
@@ -970,9 +977,9 @@ def specular(normal: np.ndarray, direction: np.ndarray,
     d = np.asarray(direction, np.float32)
     hv = d + v
     hv = hv / max(float(np.linalg.norm(hv)), 1e-8)
-    nl = np.maximum(np.tensordot(d, normal, axes=(0, 0)), 0.0)
+    nl = np.maximum(dot3(d, normal), 0.0)
     nv = np.maximum(normal[2], 1e-3)
-    nh = np.maximum(np.tensordot(hv, normal, axes=(0, 0)), 0.0)
+    nh = np.maximum(dot3(hv, normal), 0.0)
     lh = max(float(d @ hv), 0.0)
     a2 = (roughness * roughness) ** 2
     dist = a2 / (math.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
@@ -1035,7 +1042,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     loss = None  # the irradiance the cast shadows take away (diffused apart: cast_subsurface)
     height = shadow_height(bufs) if effects.shadows and effects.components else None
     for comp in effects.components:
-        cos = np.tensordot(comp.direction, bufs.normal, axes=(0, 0))
+        cos = dot3(comp.direction, bufs.normal)
         lam = lobe(cos, wrap)
         e_c = comp.irradiance[:, None, None] * lam[None]
         vis = None

@@ -390,11 +390,10 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     wf = fine[8]
     # The two passes fit the footage's light separately: match the coarse change's level to the
     # face's where both see the subject, so the seam does not show.
-    lum = np.asarray(intrinsic.LUMA, np.float32)
     both = (wf > 0.5) & (fine[6] > 0.5) & (coarse[6] > 0.5)
     if int(both.sum()) > 16:
-        num = float(np.tensordot(lum, fine[0:3, both], axes=(0, 0)).mean())
-        den = float(np.tensordot(lum, coarse[0:3, both], axes=(0, 0)).mean())
+        num = float(intrinsic.luminance(fine[0:3, both]).mean())
+        den = float(intrinsic.luminance(coarse[0:3, both]).mean())
         g = num / den if den > 0 and num > 0 else 1.0
         coarse[0:6] *= np.float32(g)
     # mix = (1 - wf) coarse + wf fine, in place
@@ -408,9 +407,9 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
     mr, b, matte = mix[0:3], mix[3:6], np.clip(mix[6], 0.0, 1.0)
     # The subject's luminance in the footage and relit (before any gain): the exposure gain
     # solves sum lum(x a + b) m = sum lum(x) m with a = g m ratio + (1 - m), b = g b.
-    xl = np.tensordot(lum, grid, axes=(0, 0))
+    xl = intrinsic.luminance(grid)
     lum_in = float((xl * matte).sum() - (xl * (1.0 - matte) * matte).sum())
-    lum_out = float((np.tensordot(lum, grid * mr + b, axes=(0, 0)) * matte).sum())
+    lum_out = float((intrinsic.luminance(grid * mr + b) * matte).sum())
     unit = units[0] if units else 0.0
     stats = FrameResult(None, None, None, True, plan, lum_in, lum_out, unit)
     g = clip_gain([stats], exposure, scale) if isinstance(exposure, str) else float(exposure)
