@@ -19,7 +19,8 @@ import onnx
 import pytest
 from onnx import helper
 
-from addon import api, colour, contract, engine, frames, hdri, lamps, lightvec, pipeline
+from addon import (api, colour, contract, engine, frames, hdri, lamps, lightvec, outline,
+                   pipeline)
 from addon.errors import LightingError, OutputError
 from tests.clip_fixtures import ramp_frames, write_exr_sequence, write_png
 from tests.onnx_fixtures import card_fields, graph_model, save_model
@@ -283,13 +284,16 @@ def test_extreme_lights_are_finite_and_scale_with_the_light(net, light, backgrou
     if is_intrinsic(model):
         # Nor can the outline's refit of them (addon.outline.apply): it mixes a fade pixel's
         # relit value, already clamped to half float, with the footage, so it comes out below
-        # the maximum yet not scaled. Such pixels lie beside ones that clamp outright (within
-        # the fade's few pixels): leave out those within 4 pixels of one.
-        clamped = np.pad(~ok.all(-1), 4)
+        # the maximum yet not scaled. Such pixels lie within the refit's reach of ones that
+        # clamp outright: its windows (outline.RADIUS and outline.COLOUR_RADIUS grid samples
+        # each way) and the enlargement's one sample more, at this frame's two pixels a grid
+        # sample (a 16 x 12 grid), 8 pixels.
+        reach = 2 * (outline.RADIUS + outline.COLOUR_RADIUS + 1)
+        clamped = np.pad(~ok.all(-1), reach)
         h, w = ok.shape[:2]
         near = np.zeros((h, w), bool)
-        for dy in range(9):
-            for dx in range(9):
+        for dy in range(2 * reach + 1):
+            for dx in range(2 * reach + 1):
                 near |= clamped[dy:dy + h, dx:dx + w]
         ok &= ~near[..., None]
         assert ok.any()
