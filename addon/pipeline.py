@@ -42,8 +42,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import (blas, colour, contract, detail, engine, framing, frames, lightvec, normalise,
-               outline, portrait, runlock, takes, temporal)
+from . import (blas, colour, contract, detail, engine, framing, frames, intrinsic, lightvec,
+               normalise, outline, portrait, runlock, takes, temporal)
 from .errors import Cancelled, InputError, LightingError, OutputError
 from .frames import ClipInfo, probe_clip  # noqa: F401  (part of this module's API)
 
@@ -629,9 +629,8 @@ def frame_luminance(x_low: np.ndarray, ab, scale: float):
     both in the footage's units (x_low is the footage / scale), as a portrait.FrameResult for
     clip_gain. The whole frame, not the network's matte: the end-to-end networks relight the
     whole picture, and a gain that stopped at an uncertain matte would draw its outline."""
-    lum = np.asarray(colour.REC709_LUMA, np.float32)
-    x_lum = np.tensordot(lum, x_low, axes=(0, 0)) * np.float32(scale)
-    out_lum = np.tensordot(lum, ab[0] * x_low + ab[1], axes=(0, 0))
+    x_lum = intrinsic.luminance(x_low) * np.float32(scale)
+    out_lum = intrinsic.luminance(ab[0] * x_low + ab[1])
     return portrait.FrameResult(None, None, None, True, None, float(x_lum.sum()),
                                 float(out_lum.sum()))
 
