@@ -152,6 +152,39 @@ def test_a_band_swap_keeps_one_shape_s_low_band_and_the_other_s_detail(shared_da
     assert np.abs(got["photometric"][:, inner] - flat).max() > 0.05  # ... with detail on it
 
 
+def test_a_shared_low_band_lies_between_the_network_s_and_the_given_one(shared_data):
+    """photometric_buffers' share: 0 keeps the network's normals, 1 swaps the given low band in
+    whole (the default), and a share between blends the two low bands under the network's
+    detail, so a flat field's "up" pulls the normals up part of the way."""
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    from addon import api, portrait
+
+    s = ye.load_subject(root, "yaleB01")
+    h, w = s.images.shape[1:]
+    x = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, axis=0)
+    x = x.astype(np.float32)
+    sess = api.session("models/relight-portrait.onnx", 1)
+    box = portrait.find_box(sess, x)
+    up = np.tile([[0.0], [1.0], [0.0]], (1, h * w))
+    fitted = np.ones(h * w, bool)
+    n = sess.card.working_size
+    crop, valid = portrait.crop_planar(x, box, n)
+    plain = portrait.buffers(sess, crop, valid).normal
+    got = {}
+    for share in (None, 0.0, 0.5, 1.0):
+        kwargs = {} if share is None else {"share": share}
+        with yn.photometric_buffers(up, fitted, low_sigma=3.0, **kwargs):
+            crop, valid = portrait.crop_planar(x, box, n)
+            got[share] = portrait.buffers(sess, crop, valid).normal
+    np.testing.assert_array_equal(got[1.0], got[None])
+    np.testing.assert_allclose(got[0.0], plain, atol=1e-5)
+    inner = (slice(n // 2 - 10, n // 2 + 10),) * 2
+    y = {k: float(v[1][inner].mean()) for k, v in got.items()}
+    assert y[0.0] + 0.1 < y[0.5] < y[1.0] - 0.1
+
+
 def test_relight_with_swapped_bands_reports_every_variant(shared_data):
     """--relight --low-sigma --no-shadows: the network's normals, the real ones, either's low band
     under the other's detail, a template of the other subjects' real normals, and the network's
@@ -161,10 +194,10 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
     if not (root / "yaleB01").is_dir():
         pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
     got = yn.relight("models/relight-portrait.onnx", "tune", root, n_pairs=3, low_sigma=4.0,
-                     shadowless=True)
+                     shadowless=True, template_shares=(0.5,))
     assert set(got) == {"network", "photometric", "photometric low band", "network low band",
-                        "template low band", "network" + yn.NO_SHADOWS,
-                        "photometric" + yn.NO_SHADOWS}
+                        "template low band", yn.template_variant(0.5),
+                        "network" + yn.NO_SHADOWS, "photometric" + yn.NO_SHADOWS}
     for which, r in got.items():
         assert all(np.isfinite(r[k]) for k in ("all", "left_right", "top_bottom"))
         assert all(np.isfinite(r["top_bottom_from"][k]) for k in ("truth", "input"))
@@ -177,7 +210,7 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
             assert r["top_bottom_gain"] == pytest.approx(want, abs=1e-9)
             assert r["top_bottom_gain_90"][0] <= r["top_bottom_gain_90"][1]
     assert got["photometric"]["top_bottom"] >= got["network"]["top_bottom"] - 0.02
-    assert len({round(r["all"], 6) for r in got.values()}) == 7  # seven different relightings
+    assert len({round(r["all"], 6) for r in got.values()}) == 8  # eight different relightings
 
 
 def test_without_cast_shadows_plans_none_and_then_steps_aside():
@@ -339,3 +372,13 @@ def test_relight_with_everything_of_another_model_is_that_model(shared_data):
     for k in ("all", "left_right", "top_bottom"):
         assert mixed[k] == pytest.approx(theirs[k], abs=1e-6)
     assert got["network"]["all"] != pytest.approx(theirs["all"], abs=1e-3)
+
+
+@pytest.mark.parametrize("extra", [[], ["--relight"], ["--low-sigma", "6"]])
+def test_template_share_without_a_band_to_blend_is_refused(extra, capsys):
+    """--template-share blends the template's low band into the relit pairs' normals: without
+    --relight and --low-sigma there is none, so the command says so (exit 2) before any work."""
+    with pytest.raises(SystemExit) as e:
+        yn.main(["--onnx", "models/relight-portrait.onnx", "--template-share", "0.5", *extra])
+    assert e.value.code == 2
+    assert "--template-share needs --relight and --low-sigma" in capsys.readouterr().err

@@ -141,7 +141,7 @@ def crop_normals(normals: np.ndarray, fitted: np.ndarray, hw: tuple[int, int], b
 
 @contextlib.contextmanager
 def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: float | None = None,
-                        low: str = "photometric"):
+                        low: str = "photometric", share: float = 1.0):
     """Within this context the product's face crops (addon.portrait) carry ``normals`` (3, h*w)
     of the image being relit where ``fitted`` (h*w,) instead of the network's: what the
     pipeline would make of the face with its real normals. A diagnostic for one image size at a
@@ -151,7 +151,9 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
     on the network's. With ``low_sigma`` (pixels of a crop at the working size) only one band
     is swapped: ``low`` "photometric", the real normals' Gaussian low band under the network's
     finer detail; "network", the network's low band under the real normals' detail: which
-    scale of the face's shape a relit face needs right."""
+    scale of the face's shape a relit face needs right. ``share`` (with ``low``
+    "photometric"): the given low band's share, the network's own low band the rest (1: the
+    given band alone)."""
     crop_planar, buffers = portrait.crop_planar, portrait.buffers
     state = {}
 
@@ -169,7 +171,11 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
         if low_sigma:
             base, detail = (real, out.normal) if low == "photometric" else (out.normal, real)
             sigma = low_sigma * size / session.card.working_size
-            real = _low(base, sigma) + detail - _low(detail, sigma)
+            own = _low(detail, sigma)
+            given_low = _low(base, sigma)
+            if low == "photometric" and share != 1.0:
+                given_low = share * given_low + (1.0 - share) * own
+            real = given_low + detail - own
         n = intrinsic.unit_normals(np.where(inside, real, out.normal))
         return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
 
@@ -239,17 +245,23 @@ def buffers_from(session, fields=(), framing: bool = False):
 NO_SHADOWS = ", no cast shadows"  # the suffix of relight's variants without them
 
 
+def template_variant(share: float) -> str:
+    """relight's name of the face template's low band blended at ``share`` with the network's."""
+    return f"template low band at {float(share):g}"
+
+
 PAIRS = 36  # pairs per subject for --relight, as the tune subjects' evaluation takes them
 
 
 def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, seed: int = 2021,
             low_sigma: float | None = None, shadowless: bool = False,
-            other: str | None = None) -> dict:
+            other: str | None = None, template_shares=()) -> dict:
     """The split's pairs (training/eval/yale.py's) relit through addon.relight_image with the
     network's normals and with photometric stereo's (and, with ``low_sigma``, with either's low
     band under the other's detail: photometric_buffers; and with the low band of the other
     subjects' mean real normals, a face template as exactly aligned as CroppedYale's crops
-    are; with ``shadowless``, the network's and the real normals also without cast shadows:
+    are, in place of the network's or, for each of ``template_shares``, blended with it at
+    that share: template_variant; with ``shadowless``, the network's and the real normals also without cast shadows:
     without_cast_shadows): per kind and overall, the scale-invariant PSNR, and the balance
     correlations with their intervals, their split into the truth's and the input's balance and
     each variant's gain over the network's normals paired over the same pairs
@@ -270,6 +282,8 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
         swaps.update({"photometric low band": {"low_sigma": low_sigma, "low": "photometric"},
                       "network low band": {"low_sigma": low_sigma, "low": "network"},
                       "template low band": {"low_sigma": low_sigma, "low": "photometric"}})
+        swaps.update({template_variant(w): {"low_sigma": low_sigma, "low": "photometric",
+                                            "share": float(w)} for w in template_shares})
     variants = ("network", *swaps)
     if shadowless:
         variants += ("network" + NO_SHADOWS, "photometric" + NO_SHADOWS)
@@ -294,6 +308,8 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
         if low_sigma:  # the other subjects' mean real normals
             template = intrinsic.unit_normals(total - truth)
             given["template low band"] = (template, np.ones(len(ok), bool))
+            for w in template_shares:
+                given[template_variant(w)] = given["template low band"]
         shading = yale.subject_shading(s, fit)
         for a, b in yale.draw_pairs(s, n_pairs, seed, bank):
             balances = {}
@@ -510,6 +526,9 @@ def main(argv=None):
     ap.add_argument("--pairs", type=int, default=PAIRS, help="with --relight, pairs per subject")
     ap.add_argument("--low-sigma", type=float, help="with --relight, also swap only the low "
                     "band (a Gaussian of this many crop pixels) one way and the other")
+    ap.add_argument("--template-share", type=float, action="append", default=[],
+                    help="with --relight --low-sigma, also the face template's low band blended "
+                         "with the network's at this share (repeatable; 1: the template's alone)")
     ap.add_argument("--no-shadows", action="store_true", help="with --relight, also relight "
                     "with the network's and the real normals without cast shadows")
     ap.add_argument("--swap", metavar="ONNX", help="with --relight, also relight with each of "
@@ -523,6 +542,8 @@ def main(argv=None):
                     help="also how much of each single-light photo's light the network leaves "
                          "in its albedo, against photometric stereo's albedo (albedo_light)")
     a = ap.parse_args(argv)
+    if a.template_share and not (a.relight and a.low_sigma):
+        ap.error("--template-share needs --relight and --low-sigma")
     if a.albedo:
         for p in a.onnx:
             got = albedo_light(p, a.split)
@@ -549,14 +570,16 @@ def main(argv=None):
     if a.relight:
         for p in a.onnx:
             got = relight(p, a.split, n_pairs=a.pairs, low_sigma=a.low_sigma,
-                          shadowless=a.no_shadows, other=a.swap)
+                          shadowless=a.no_shadows, other=a.swap,
+                          template_shares=a.template_share)
             for which, r in got.items():
                 tb, tb90 = r["top_bottom"], r["top_bottom_90"]
                 gain = "" if "top_bottom_gain" not in r else (
                     f"; over the network's {r['top_bottom_gain']:+.3f} ("
                     f"{r['top_bottom_gain_90'][0]:+.3f} to {r['top_bottom_gain_90'][1]:+.3f})")
                 normals = which.removesuffix(NO_SHADOWS)
-                name = which if " of " in which else f"{normals} normals{which[len(normals):]}"
+                name = (which if " of " in which or " at " in which
+                        else f"{normals} normals{which[len(normals):]}")
                 print(f"{p}, {name}: scale-invariant PSNR {r['all']:.2f} dB ("
                       + ", ".join(f"{k} {r[k]:.2f}" for k in yale.KINDS)
                       + f"); balance {r['left_right']:.3f} / {tb:.3f} ({tb90[0]:.2f}-"
