@@ -185,6 +185,60 @@ def test_a_shared_low_band_lies_between_the_network_s_and_the_given_one(shared_d
     assert y[0.0] + 0.1 < y[0.5] < y[1.0] - 0.1
 
 
+def test_a_face_space_is_the_low_bands_mean_and_their_principal_modes():
+    """face_space: the first map is the mean of the fields' low bands, the others orthonormal
+    directions, and a field whose low band lies in the set's span is rebuilt by them exactly."""
+    hw, sigma = (24, 20), 2.0
+    rng = np.random.default_rng(0)
+    fields = [rng.normal(size=(3, hw[0] * hw[1])).astype(np.float32) for _ in range(5)]
+    space = yn.face_space(fields, hw, sigma, 3)
+    assert space.shape == (4, 3, *hw)
+    lows = np.stack([yn._low(f.reshape(3, *hw), sigma) for f in fields])
+    np.testing.assert_allclose(space[0], lows.mean(0), atol=1e-5)
+    modes = space[1:].reshape(3, -1).astype(np.float64)
+    np.testing.assert_allclose(modes @ modes.T, np.eye(3), atol=1e-4)
+    full = yn.face_space(fields, hw, sigma, 4).reshape(5, -1).astype(np.float64)
+    target = (0.3 * lows[0] + 0.7 * lows[3]).reshape(-1)  # in the span of mean + 4 modes
+    coef = np.linalg.lstsq(full.T, target, rcond=None)[0]
+    np.testing.assert_allclose(full.T @ coef, target, atol=1e-4)
+
+
+def test_face_space_buffers_hold_the_face_s_low_band_to_the_space(shared_data):
+    """face_space_buffers with a space of one flat field (every normal toward the camera): over
+    the face skin the network's low band is replaced by its best multiple of that field, so
+    where the network's cheeks turned left and right only their detail is left sideways; beyond
+    the blend's reach the normals stay the network's."""
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    from addon import api, intrinsic, portrait
+
+    s = ye.load_subject(root, "yaleB01")
+    h, w = s.images.shape[1:]
+    x = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, axis=0)
+    x = x.astype(np.float32)
+    sess = api.session("models/relight-portrait.onnx", 1)
+    box = portrait.find_box(sess, x)
+    n = sess.card.working_size
+    crop, valid = portrait.crop_planar(x, box, n)
+    plain = portrait.buffers(sess, crop, valid)
+    space = np.zeros((1, 3, h, w), np.float32)
+    space[0, 2] = 1.0
+    with yn.face_space_buffers(space, 6.0):
+        crop, valid = portrait.crop_planar(x, box, n)
+        held = portrait.buffers(sess, crop, valid)
+    # the skin the fit replaces whole (its blend's weight 1)
+    skin = ((plain.face > 0.5) & (plain.matte > 0.5)).astype(np.float32)
+    core = intrinsic.gaussian_blur(skin, 2.0) > 0.999
+    assert core.sum() > 100
+    detail = plain.normal[0] - yn._low(plain.normal, 6.0)[0]
+    assert np.abs(held.normal[0][core]).mean() < 0.5 * np.abs(plain.normal[0][core]).mean()
+    assert np.abs(held.normal[0][core]).mean() < 1.5 * np.abs(detail[core]).mean()
+    off = (plain.matte < 0.01) & (intrinsic.gaussian_blur(skin, 2.0) == 0.0)  # beyond the blend
+    assert off.sum() > 1000
+    np.testing.assert_allclose(held.normal[:, off], plain.normal[:, off], atol=1e-6)
+
+
 def test_relight_with_swapped_bands_reports_every_variant(shared_data):
     """--relight --low-sigma --no-shadows: the network's normals, the real ones, either's low band
     under the other's detail, a template of the other subjects' real normals, and the network's
@@ -194,9 +248,9 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
     if not (root / "yaleB01").is_dir():
         pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
     got = yn.relight("models/relight-portrait.onnx", "tune", root, n_pairs=3, low_sigma=4.0,
-                     shadowless=True, template_shares=(0.5,))
+                     shadowless=True, template_shares=(0.5,), face_modes=(1,))
     assert set(got) == {"network", "photometric", "photometric low band", "network low band",
-                        "template low band", yn.template_variant(0.5),
+                        "template low band", yn.template_variant(0.5), yn.face_space_variant(1),
                         "network" + yn.NO_SHADOWS, "photometric" + yn.NO_SHADOWS}
     for which, r in got.items():
         assert all(np.isfinite(r[k]) for k in ("all", "left_right", "top_bottom"))
@@ -210,7 +264,7 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
             assert r["top_bottom_gain"] == pytest.approx(want, abs=1e-9)
             assert r["top_bottom_gain_90"][0] <= r["top_bottom_gain_90"][1]
     assert got["photometric"]["top_bottom"] >= got["network"]["top_bottom"] - 0.02
-    assert len({round(r["all"], 6) for r in got.values()}) == 8  # eight different relightings
+    assert len({round(r["all"], 6) for r in got.values()}) == 9  # nine different relightings
 
 
 def test_without_cast_shadows_plans_none_and_then_steps_aside():
@@ -374,11 +428,23 @@ def test_relight_with_everything_of_another_model_is_that_model(shared_data):
     assert got["network"]["all"] != pytest.approx(theirs["all"], abs=1e-3)
 
 
+@pytest.mark.parametrize("flag", [["--template-share", "0.5"], ["--face-modes", "3"]])
 @pytest.mark.parametrize("extra", [[], ["--relight"], ["--low-sigma", "6"]])
-def test_template_share_without_a_band_to_blend_is_refused(extra, capsys):
-    """--template-share blends the template's low band into the relit pairs' normals: without
-    --relight and --low-sigma there is none, so the command says so (exit 2) before any work."""
+def test_blending_low_bands_without_a_band_is_refused(flag, extra, capsys):
+    """--template-share and --face-modes work on the relit pairs' low bands: without --relight
+    and --low-sigma there are none, so the command says so (exit 2) before any work; relight
+    itself refuses them without a low_sigma."""
     with pytest.raises(SystemExit) as e:
-        yn.main(["--onnx", "models/relight-portrait.onnx", "--template-share", "0.5", *extra])
+        yn.main(["--onnx", "models/relight-portrait.onnx", *flag, *extra])
     assert e.value.code == 2
-    assert "--template-share needs --relight and --low-sigma" in capsys.readouterr().err
+    assert f"{flag[0]} needs --relight and --low-sigma" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="low_sigma"):
+        yn.relight("models/relight-portrait.onnx", face_modes=(3,))
+
+
+def test_negative_face_modes_are_refused(capsys):
+    with pytest.raises(SystemExit) as e:
+        yn.main(["--onnx", "models/relight-portrait.onnx", "--relight", "--low-sigma", "6",
+                 "--face-modes", "-1"])
+    assert e.value.code == 2
+    assert "--face-modes must be 0 or more" in capsys.readouterr().err

@@ -186,6 +186,60 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
         portrait.crop_planar, portrait.buffers = crop_planar, buffers
 
 
+def face_space(normals: list[np.ndarray], hw: tuple[int, int], sigma: float,
+               modes: int) -> np.ndarray:
+    """(modes + 1, 3, h, w): the mean of ``normals`` (each (3, h*w), 0 where unfitted) as
+    Gaussian low bands of ``sigma`` image pixels, then that set's ``modes`` principal
+    directions: a space of real faces' shapes at the scale that carries the balance."""
+    low = np.stack([_low(np.asarray(n, np.float32).reshape(3, *hw), sigma).reshape(-1)
+                    for n in normals])
+    mean = low.mean(0)
+    _, _, vt = np.linalg.svd(low - mean, full_matrices=False)
+    return np.concatenate([mean[None], vt[:modes]], 0).reshape(-1, 3, *hw).astype(np.float32)
+
+
+@contextlib.contextmanager
+def face_space_buffers(space: np.ndarray, low_sigma: float):
+    """Within this context the product's face crops (addon.portrait) carry the network's normals
+    with their low band (a Gaussian of ``low_sigma`` pixels at the working size) over the face
+    skin replaced by its least-squares fit in ``space`` (face_space's, of the image being
+    relit, cropped as the crop is): the network's shape held to a space of real faces' shapes,
+    its detail kept (and its light transport). Whether a face prior fitted to the network's
+    own normals corrects them."""
+    crop_planar, buffers = portrait.crop_planar, portrait.buffers
+    state = {}
+    everywhere = np.ones(space.shape[2] * space.shape[3], bool)
+
+    def crop(x, box, size):
+        state["box"], state["hw"], state["size"] = box, x.shape[1:], size
+        return crop_planar(x, box, size)
+
+    def swap(session, x, valid=None, mirror=False, level=None):
+        out = buffers(session, x, valid, mirror, level)
+        size = state.pop("size", None)
+        if size is None or x.shape[1:] != (size, size):
+            return out
+        cropped = [crop_normals(b.reshape(3, -1), everywhere, state["hw"], state["box"], size)
+                   for b in space]
+        inside = np.logical_and.reduce([ins for _, ins in cropped])
+        own = _low(out.normal, low_sigma * size / session.card.working_size)
+        sel = inside & (out.face > 0.5) & (out.matte > 0.5)
+        if sel.sum() < 64:
+            return out
+        design = np.stack([b[:, sel].ravel() for b, _ in cropped], 1).astype(np.float64)
+        coef = np.linalg.lstsq(design, own[:, sel].ravel().astype(np.float64), rcond=None)[0]
+        fitted = sum(np.float32(c) * b for c, (b, _) in zip(coef, cropped))
+        w = intrinsic.gaussian_blur(sel.astype(np.float32), 2.0)[None]
+        n = intrinsic.unit_normals(out.normal + w * (fitted - own))
+        return dataclasses.replace(out, normal=n)
+
+    portrait.crop_planar, portrait.buffers = crop, swap
+    try:
+        yield
+    finally:
+        portrait.crop_planar, portrait.buffers = crop_planar, buffers
+
+
 @contextlib.contextmanager
 def without_cast_shadows():
     """Within this context the product plans no cast shadows for any light (intrinsic.plan with
@@ -245,6 +299,11 @@ def buffers_from(session, fields=(), framing: bool = False):
 NO_SHADOWS = ", no cast shadows"  # the suffix of relight's variants without them
 
 
+def face_space_variant(modes: int) -> str:
+    """relight's name of the network's low band fitted in a space of real faces' shapes."""
+    return f"face space of {int(modes)} modes"
+
+
 def template_variant(share: float) -> str:
     """relight's name of the face template's low band blended at ``share`` with the network's."""
     return f"template low band at {float(share):g}"
@@ -255,16 +314,18 @@ PAIRS = 36  # pairs per subject for --relight, as the tune subjects' evaluation 
 
 def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, seed: int = 2021,
             low_sigma: float | None = None, shadowless: bool = False,
-            other: str | None = None, template_shares=()) -> dict:
+            other: str | None = None, template_shares=(), face_modes=()) -> dict:
     """The split's pairs (training/eval/yale.py's) relit through addon.relight_image with the
     network's normals and with photometric stereo's (and, with ``low_sigma``, with either's low
     band under the other's detail: photometric_buffers; and with the low band of the other
-    subjects' mean real normals, a face template as exactly aligned as CroppedYale's crops
-    are, in place of the network's or, for each of ``template_shares``, blended with it at
-    that share: template_variant; with ``shadowless``, the network's and the real normals also without cast shadows:
-    without_cast_shadows): per kind and overall, the scale-invariant PSNR, and the balance
-    correlations with their intervals, their split into the truth's and the input's balance and
-    each variant's gain over the network's normals paired over the same pairs
+    subjects' mean real normals, a face template as exactly aligned as CroppedYale's crops are, in place of the
+    network's or, for each of ``template_shares``, blended with it at that share:
+    template_variant; for each of ``face_modes`` K, the network's low band fitted in the space
+    of the other CroppedYale subjects' low bands, their mean and K principal modes:
+    face_space_variant; with ``shadowless``, the network's and the real normals also without
+    cast shadows: without_cast_shadows): per kind and overall, the scale-invariant PSNR, and the
+    balance correlations with their intervals, their split into the truth's and the input's
+    balance and each variant's gain over the network's normals paired over the same pairs
     (yale.balance_correlation's). A dozen pairs a subject do not tell such settings apart: on
     the tune subjects photometric stereo's normals read 0.931 top/bottom with ``n_pairs`` 12,
     0.750 with 36 (0.869 by rank): one of the 360 pairs, a light from straight above, is far
@@ -273,6 +334,8 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
     (0.807 with shadows): normals alone would clear 0.85. With ``other`` (another intrinsic
     model), also with each of SWAPS taken from it (buffers_from), named "<what> of <model>":
     which of its buffers, or its framing, make its relit faces differ."""
+    if (template_shares or face_modes) and not low_sigma:
+        raise ValueError("template shares and face spaces blend low bands: give low_sigma")
     root = root or yale.default_root()
     _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
     rel = {"model": yale.PipelineRelighter(onnx_path, 1)}
@@ -284,7 +347,7 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
                       "template low band": {"low_sigma": low_sigma, "low": "photometric"}})
         swaps.update({template_variant(w): {"low_sigma": low_sigma, "low": "photometric",
                                             "share": float(w)} for w in template_shares})
-    variants = ("network", *swaps)
+    variants = ("network", *swaps, *(face_space_variant(k) for k in face_modes))
     if shadowless:
         variants += ("network" + NO_SHADOWS, "photometric" + NO_SHADOWS)
     taken = {}  # variant: buffers_from's arguments
@@ -302,6 +365,16 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
         n, ok = photometric_normals(s.images, s.dirs, fit)
         real[name] = (s, fit, np.where(ok, n, 0.0), ok)
     total = sum(r[2] for r in real.values())  # every subject's real normals, summed
+    every = {}  # with face_modes, every subject's real normals (0 where unfitted)
+    if face_modes:
+        for name in yale.subject_names(root):
+            s = yale.load_subject(root, name)
+            if name in real:
+                every[name] = real[name][2]
+            elif s.images.shape[1:] == real[subjects[0]][0].images.shape[1:]:
+                n, ok = photometric_normals(s.images, s.dirs)
+                every[name] = np.where(ok, n, 0.0)
+        session = api.session(onnx_path, 1)
     for name in subjects:
         s, fit, truth, ok = real[name]
         given = {}
@@ -310,6 +383,15 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
             given["template low band"] = (template, np.ones(len(ok), bool))
             for w in template_shares:
                 given[template_variant(w)] = given["template low band"]
+        spaces = {}
+        if face_modes:  # the other subjects' low bands, at this subject's crop's scale
+            hw = s.images.shape[1:]
+            front = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, 0)
+            box = portrait.find_box(session, front.astype(np.float32))
+            sigma = low_sigma * box.size / session.card.working_size
+            space = face_space([n for o, n in every.items() if o != name], hw, sigma,
+                               max(face_modes))
+            spaces = {face_space_variant(k): space[:k + 1] for k in face_modes}
         shading = yale.subject_shading(s, fit)
         for a, b in yale.draw_pairs(s, n_pairs, seed, bank):
             balances = {}
@@ -323,6 +405,8 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
                         stack.enter_context(without_cast_shadows())
                     if which in taken:
                         stack.enter_context(buffers_from(*taken[which]))
+                    if which in spaces:
+                        stack.enter_context(face_space_buffers(spaces[which], low_sigma))
                     r = yale.relight_pair(s, a, b, rel, shading)
                 y = r.outputs["model"]
                 gain = yale.ls_gain(y, r.gt, r.mask)
@@ -529,6 +613,10 @@ def main(argv=None):
     ap.add_argument("--template-share", type=float, action="append", default=[],
                     help="with --relight --low-sigma, also the face template's low band blended "
                          "with the network's at this share (repeatable; 1: the template's alone)")
+    ap.add_argument("--face-modes", type=int, action="append", default=[],
+                    help="with --relight --low-sigma, also the network's low band fitted in the "
+                         "space of the other subjects' real low bands (their mean and this many "
+                         "principal modes; repeatable)")
     ap.add_argument("--no-shadows", action="store_true", help="with --relight, also relight "
                     "with the network's and the real normals without cast shadows")
     ap.add_argument("--swap", metavar="ONNX", help="with --relight, also relight with each of "
@@ -542,8 +630,11 @@ def main(argv=None):
                     help="also how much of each single-light photo's light the network leaves "
                          "in its albedo, against photometric stereo's albedo (albedo_light)")
     a = ap.parse_args(argv)
-    if a.template_share and not (a.relight and a.low_sigma):
-        ap.error("--template-share needs --relight and --low-sigma")
+    for flag, given in (("--template-share", a.template_share), ("--face-modes", a.face_modes)):
+        if given and not (a.relight and a.low_sigma):
+            ap.error(f"{flag} needs --relight and --low-sigma")
+    if any(k < 0 for k in a.face_modes):
+        ap.error("--face-modes must be 0 or more")
     if a.albedo:
         for p in a.onnx:
             got = albedo_light(p, a.split)
@@ -571,7 +662,7 @@ def main(argv=None):
         for p in a.onnx:
             got = relight(p, a.split, n_pairs=a.pairs, low_sigma=a.low_sigma,
                           shadowless=a.no_shadows, other=a.swap,
-                          template_shares=a.template_share)
+                          template_shares=a.template_share, face_modes=a.face_modes)
             for which, r in got.items():
                 tb, tb90 = r["top_bottom"], r["top_bottom_90"]
                 gain = "" if "top_bottom_gain" not in r else (
