@@ -318,9 +318,9 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
     """The split's pairs (training/eval/yale.py's) relit through addon.relight_image with the
     network's normals and with photometric stereo's (and, with ``low_sigma``, with either's low
     band under the other's detail: photometric_buffers; and with the low band of the other
-    subjects' mean real normals, a face template as exactly aligned as CroppedYale's crops are, in place of the
-    network's or, for each of ``template_shares``, blended with it at that share:
-    template_variant; for each of ``face_modes`` K, the network's low band fitted in the space
+    subjects' mean real normals, a face template as exactly aligned as CroppedYale's crops
+    are, in place of the network's or, for each of ``template_shares``, blended with it at
+    that share: template_variant; for each of ``face_modes`` K, the network's low band fitted in the space
     of the other CroppedYale subjects' low bands, their mean and K principal modes:
     face_space_variant; with ``shadowless``, the network's and the real normals also without
     cast shadows: without_cast_shadows): per kind and overall, the scale-invariant PSNR, and the
