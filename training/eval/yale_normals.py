@@ -320,13 +320,13 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
     band under the other's detail: photometric_buffers; and with the low band of the other
     subjects' mean real normals, a face template as exactly aligned as CroppedYale's crops
     are, in place of the network's or, for each of ``template_shares``, blended with it at
-    that share: template_variant; for each of ``face_modes`` K, the network's low band fitted in the space
-    of the other CroppedYale subjects' low bands, their mean and K principal modes:
-    face_space_variant; with ``shadowless``, the network's and the real normals also without
-    cast shadows: without_cast_shadows): per kind and overall, the scale-invariant PSNR, and the
-    balance correlations with their intervals, their split into the truth's and the input's
-    balance and each variant's gain over the network's normals paired over the same pairs
-    (yale.balance_correlation's). A dozen pairs a subject do not tell such settings apart: on
+    that share: template_variant; for each of ``face_modes`` K, the network's low band
+    fitted in the space of the other CroppedYale subjects' low bands, their mean and K
+    principal modes: face_space_variant; with ``shadowless``, the network's and the real
+    normals also without cast shadows: without_cast_shadows): per kind and overall, the
+    scale-invariant PSNR, and the balance correlations with their intervals, their split into
+    the truth's and the input's balance and each variant's gain over the network's normals
+    paired over the same pairs (yale.balance_correlation's). A dozen pairs a subject do not tell such settings apart: on
     the tune subjects photometric stereo's normals read 0.931 top/bottom with ``n_pairs`` 12,
     0.750 with 36 (0.869 by rank): one of the 360 pairs, a light from straight above, is far
     off, its cast shadows marched over the network's height, which the real normals do not
