@@ -326,14 +326,15 @@ def relight(onnx_path, split: str = "tune", root=None, n_pairs: int = PAIRS, see
     normals also without cast shadows: without_cast_shadows): per kind and overall, the
     scale-invariant PSNR, and the balance correlations with their intervals, their split into
     the truth's and the input's balance and each variant's gain over the network's normals
-    paired over the same pairs (yale.balance_correlation's). A dozen pairs a subject do not tell such settings apart: on
-    the tune subjects photometric stereo's normals read 0.931 top/bottom with ``n_pairs`` 12,
-    0.750 with 36 (0.869 by rank): one of the 360 pairs, a light from straight above, is far
-    off, its cast shadows marched over the network's height, which the real normals do not
-    match. Without cast shadows the real normals read 0.896 (0.87-0.92) and the network's 0.800
-    (0.807 with shadows): normals alone would clear 0.85. With ``other`` (another intrinsic
-    model), also with each of SWAPS taken from it (buffers_from), named "<what> of <model>":
-    which of its buffers, or its framing, make its relit faces differ."""
+    paired over the same pairs (yale.balance_correlation's). A dozen pairs a subject do not
+    tell such settings apart: on the tune subjects photometric stereo's normals read 0.931
+    top/bottom with ``n_pairs`` 12, 0.750 with 36 (0.869 by rank): one of the 360 pairs, a
+    light from straight above, is far off, its cast shadows marched over the network's height,
+    which the real normals do not match. Without cast shadows the real normals read 0.896
+    (0.87-0.92) and the network's 0.800 (0.807 with shadows): normals alone would clear 0.85.
+    With ``other`` (another intrinsic model), also with each of SWAPS taken from it
+    (buffers_from), named "<what> of <model>": which of its buffers, or its framing, make its
+    relit faces differ."""
     if (template_shares or face_modes) and not low_sigma:
         raise ValueError("template shares and face spaces blend low bands: give low_sigma")
     root = root or yale.default_root()
