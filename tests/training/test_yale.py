@@ -586,3 +586,37 @@ def test_portrait_frontier_writes_the_card_s_time_per_frame(yale_root, tmp_path)
     assert point["ms_per_frame"] > before.ms_per_frame  # the whole path, not the network alone
     assert card.held_out_error == before.held_out_error
     assert card.held_out_error[1] == "RMSE at the right level"
+
+
+def test_compare_face_template_relights_the_first_model_again_with_the_template(
+        toy, shared_data, yale_root, tmp_path, monkeypatch, capsys):
+    """--compare-face-template: the first model again with the template over its normals while
+    that relighter runs (facetemplate.applied; the product's own buffers otherwise and after
+    it), on the same pairs, reported beside it with its paired balance gain; a missing template
+    is a clear error (exit 2)."""
+    from addon import api, portrait
+
+    seen, own = [], portrait.buffers
+    relight = api.relight_image
+
+    def spied(*args, **kwargs):
+        seen.append(portrait.buffers is own)
+        return relight(*args, **kwargs)
+
+    monkeypatch.setattr(api, "relight_image", spied)
+    shape = tmp_path / "t.npz"
+    np.savez(shape, normal=np.tile(np.array([0.0, 0.0, 1.0], np.float32)[:, None, None],
+                                   (1, 8, 8)), reach=np.float32(1.3))
+    out = tmp_path / "y.json"
+    assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--compare-face-template",
+                    str(shape), "--data", str(shared_data), "--json", str(out),
+                    "--sheet", ""]) == 0
+    assert seen and seen.count(False) == seen.count(True) and portrait.buffers is own
+    res = json.loads(out.read_text())
+    name = next(iter(res["models"]))
+    assert list(res["models"]) == [name, f"{name} face template"]
+    assert "top_bottom_gain" in res["balance_correlation"][f"{name} face template"]
+    assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--compare-face-template",
+                    str(tmp_path / "none.npz"), "--data", str(shared_data), "--json",
+                    str(out), "--sheet", ""]) == 2
+    assert "python -m training.intrinsic.template" in capsys.readouterr().err

@@ -79,6 +79,7 @@ tables and the verdict use ``test`` only. Pairs (A, B) are drawn per subject fro
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import functools
 import math
@@ -93,7 +94,7 @@ from addon import api, hdri, intrinsic, lightvec, normalise, portrait
 from addon.errors import InputError
 from addon.intrinsic import SOURCE_FLOOR
 
-from . import report
+from . import facetemplate, report
 from .metrics import (baseline_identity, baseline_irradiance_ratio, image_metrics, mean_metrics,
                       srgb_encode, to_unit, white_level)
 
@@ -407,15 +408,18 @@ class PipelineRelighter:
 
     def __init__(self, onnx_path, threads: int = 1, background: str | None = None,
                  exposure: str | None = None, working_size: int | None = None,
-                 lift: float | None = None):
+                 lift: float | None = None, template=None):
         self.onnx_path = onnx_path
         self.threads = threads
         self.background = background or api.pipeline.DEFAULT_BACKGROUND
         self.exposure = exposure or api.pipeline.DEFAULT_EXPOSURE_MODE
         self.working_size = working_size  # None: the card's
         self.lift = lift  # None: the product's (portrait.INPUT_LIFT)
+        self.template = template  # a facetemplate.Template over the face's normals, or None
         self.card = api.session(onnx_path, threads, working_size).card
         self.name = self.card.name if lift is None else f"{self.card.name} lift {lift:g}"
+        if template is not None:
+            self.name += " face template"
 
     def __call__(self, gray: np.ndarray, light: np.ndarray) -> np.ndarray:
         """(H, W) linear gray under some light -> (H, W) linear gray under ``light``."""
@@ -424,9 +428,11 @@ class PipelineRelighter:
         try:
             if self.lift is not None:
                 portrait.INPUT_LIFT = self.lift
-            y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads,
-                                  background=self.background, exposure=self.exposure,
-                                  working_size=self.working_size)
+            with (facetemplate.applied(self.template) if self.template is not None
+                  else contextlib.nullcontext()):
+                y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads,
+                                      background=self.background, exposure=self.exposure,
+                                      working_size=self.working_size)
         finally:
             portrait.INPUT_LIFT = product
         return normalise.luminance(y.astype(np.float32))
@@ -912,10 +918,12 @@ def select_subjects(names: list[str], quick: bool,
 
 def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 2021,
         quick: bool = False, threads: int = 1, sheet_path=None, sheet_rows: int = 6,
-        progress=print, split: str = "test", lifts=()) -> dict:
+        progress=print, split: str = "test", lifts=(), template=None) -> dict:
     """Evaluate the models; returns the JSON-able result (tables on the test subjects).
     ``lifts``: the first model again for each, its crops lifted by that power (an experiment
-    on portrait.INPUT_LIFT, compared on the same pairs)."""
+    on portrait.INPUT_LIFT, compared on the same pairs). ``template``: a face template's path:
+    the first model again with its normals' low band over the face skin taken from it
+    (facetemplate.applied; an experiment, on the same pairs)."""
     data_root = pathlib.Path(data_root) if data_root else default_root().parents[1]
     root = pathlib.Path(root) if root else data_root / "yale" / "CroppedYale"
     tune_names, test_names = select_subjects(subject_names(root), quick, split)
@@ -930,6 +938,13 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         relighters[r.name] = r
     for lift in lifts:
         r = PipelineRelighter(onnx_paths[0], threads, lift=lift)
+        relighters[r.name] = r
+    if template is not None:
+        try:
+            shape = facetemplate.load(template)
+        except (OSError, ValueError) as e:
+            raise InputError(str(e)) from None
+        r = PipelineRelighter(onnx_paths[0], threads, template=shape)
         relighters[r.name] = r
     models = list(relighters)
     bank = HdriBank(data_root)
@@ -1087,6 +1102,10 @@ def main(argv=None) -> int:
                    help="also relight with the first model's crops lifted by this power, on the "
                         "same pairs (its balance gain is paired with the first model's); repeat "
                         "for several")
+    p.add_argument("--compare-face-template", metavar="NPZ",
+                   help="also relight with the first model's normals' low band over the face "
+                        "skin taken from this face template (training.intrinsic.template; "
+                        "training/eval/facetemplate.py), on the same pairs: an experiment")
     a = p.parse_args(argv)
     if a.input_level is not None and not a.input_level > 0:
         p.error("--input-level must be positive")
@@ -1111,7 +1130,7 @@ def main(argv=None) -> int:
             portrait.INPUT_LIFT = a.input_lift
         res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
                   progress=lambda msg: print(msg, file=sys.stderr), split=a.split,
-                  lifts=a.compare_lift)
+                  lifts=a.compare_lift, template=a.compare_face_template)
     except InputError as e:  # bad data or models: the message says what to do
         print(f"yale: {e}", file=sys.stderr)
         return 2
