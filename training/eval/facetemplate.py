@@ -13,7 +13,6 @@ The template is frontal: a turned head would take a frontal face's shape.
 from __future__ import annotations
 
 import contextlib
-import json
 import pathlib
 from dataclasses import dataclass, replace
 
@@ -47,11 +46,6 @@ def load(path) -> Template:
     if normal.ndim != 3 or normal.shape[0] != 3 or normal.shape[1] != normal.shape[2]:
         raise ValueError(f"{path}: the template's normals must be (3, T, T), not {normal.shape}")
     return Template(normal, reach)
-
-
-def card(path) -> dict:
-    """The template's card (the .json beside it): how it was made, and its licence notice."""
-    return json.loads(pathlib.Path(path).with_suffix(".json").read_text())
 
 
 def skin_frame(face: np.ndarray, matte: np.ndarray) -> tuple[float, float, float] | None:
