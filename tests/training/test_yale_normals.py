@@ -118,21 +118,29 @@ def test_photometric_buffers_put_the_given_normals_into_the_face_crop_and_then_s
         assert rows.max() < size / 2
 
 
-def test_a_band_swap_keeps_one_shape_s_low_band_and_the_other_s_detail(shared_data):
-    """photometric_buffers' low_sigma: a flat field (every normal up) has no detail, so swapping
-    the network's low band in gives the network's normals blurred, and swapping the flat
-    field's low band in gives "up" with the network's detail on it."""
+def frontal_b01(shared_data):
+    """(h, w, the frontal photo of yaleB01 as a (3, h, w) frame, the shipped Portrait's session,
+    its box there), or a skip where CroppedYale is absent."""
     root = shared_data / "yale" / "CroppedYale"
     if not (root / "yaleB01").is_dir():
         pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
-    from addon import api, intrinsic, portrait
+    from addon import api, portrait
 
     s = ye.load_subject(root, "yaleB01")
     h, w = s.images.shape[1:]
     x = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, axis=0)
     x = x.astype(np.float32)
     sess = api.session("models/relight-portrait.onnx", 1)
-    box = portrait.find_box(sess, x)
+    return h, w, x, sess, portrait.find_box(sess, x)
+
+
+def test_a_band_swap_keeps_one_shape_s_low_band_and_the_other_s_detail(shared_data):
+    """photometric_buffers' low_sigma: a flat field (every normal up) has no detail, so swapping
+    the network's low band in gives the network's normals blurred, and swapping the flat
+    field's low band in gives "up" with the network's detail on it."""
+    from addon import intrinsic, portrait
+
+    h, w, x, sess, box = frontal_b01(shared_data)
     up = np.tile([[0.0], [1.0], [0.0]], (1, h * w))
     fitted = np.ones(h * w, bool)
     crop, valid = portrait.crop_planar(x, box, sess.card.working_size)
@@ -156,17 +164,9 @@ def test_a_shared_low_band_lies_between_the_network_s_and_the_given_one(shared_d
     """photometric_buffers' share: 0 keeps the network's normals, 1 swaps the given low band in
     whole (the default), and a share between blends the two low bands under the network's
     detail, so a flat field's "up" pulls the normals up part of the way."""
-    root = shared_data / "yale" / "CroppedYale"
-    if not (root / "yaleB01").is_dir():
-        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
-    from addon import api, portrait
+    from addon import portrait
 
-    s = ye.load_subject(root, "yaleB01")
-    h, w = s.images.shape[1:]
-    x = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, axis=0)
-    x = x.astype(np.float32)
-    sess = api.session("models/relight-portrait.onnx", 1)
-    box = portrait.find_box(sess, x)
+    h, w, x, sess, box = frontal_b01(shared_data)
     up = np.tile([[0.0], [1.0], [0.0]], (1, h * w))
     fitted = np.ones(h * w, bool)
     n = sess.card.working_size
@@ -208,17 +208,9 @@ def test_face_space_buffers_hold_the_face_s_low_band_to_the_space(shared_data):
     the face skin the network's low band is replaced by its best multiple of that field, so
     where the network's cheeks turned left and right only their detail is left sideways; beyond
     the blend's reach the normals stay the network's."""
-    root = shared_data / "yale" / "CroppedYale"
-    if not (root / "yaleB01").is_dir():
-        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
-    from addon import api, intrinsic, portrait
+    from addon import intrinsic, portrait
 
-    s = ye.load_subject(root, "yaleB01")
-    h, w = s.images.shape[1:]
-    x = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, axis=0)
-    x = x.astype(np.float32)
-    sess = api.session("models/relight-portrait.onnx", 1)
-    box = portrait.find_box(sess, x)
+    h, w, x, sess, box = frontal_b01(shared_data)
     n = sess.card.working_size
     crop, valid = portrait.crop_planar(x, box, n)
     plain = portrait.buffers(sess, crop, valid)
