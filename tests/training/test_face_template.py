@@ -66,9 +66,10 @@ def test_a_template_lands_on_the_face_wherever_and_however_large_it_is():
 
 
 def test_held_takes_the_template_s_low_band_and_keeps_the_network_s_detail():
-    """On a flat face (every normal toward the camera) with fine ripples, the held normals'
-    low band over the skin turns like the sphere's (x grows to the right, y upward) while the
-    ripples stay; everything but the normals is left as it was."""
+    """On a flat face (every normal toward the camera) with fine sideways ripples, the held
+    normals' vertical low band over the skin turns like the sphere's (up at its top) while the
+    sideways component stays the network's, ripples and all; with every axis the sideways low
+    band turns like the sphere's too. Everything but the normals is left as it was."""
     t = sphere_template()
     _, disc = sphere()
     flat = np.zeros((3, 96, 96), np.float32)
@@ -76,17 +77,21 @@ def test_held_takes_the_template_s_low_band_and_keeps_the_network_s_detail():
     ripple = 0.05 * np.sin(np.arange(96, dtype=np.float32) * 2.5)[None, :]
     flat[0] += ripple[0]
     b = buffers(intrinsic.unit_normals(flat), disc)
+
+    def low(n):
+        return np.stack([intrinsic.gaussian_blur(np.ascontiguousarray(c), 4.0) for c in n])
+
     got = facetemplate.held(b, t, sigma=4.0)
+    every = facetemplate.held(b, t, sigma=4.0, axes=facetemplate.AXES["xyz"])
     for name in ("height", "albedo", "matte", "face"):
         assert getattr(got, name) is getattr(b, name)
-    low = np.stack([intrinsic.gaussian_blur(np.ascontiguousarray(c), 4.0) for c in got.normal])
-    row = low[:, 50, 30:60]
-    assert np.all(np.diff(row[0]) > 0)  # the face turns left to right, as the sphere does
-    col = low[:, 36:64, 44]
-    assert np.all(np.diff(col[1]) < 0)  # and up at its top
-    detail = got.normal[0, 50, 36:52] - low[0, 50, 36:52]
-    assert np.corrcoef(detail, ripple[0, 36:52])[0, 1] > 0.9
-    np.testing.assert_allclose(np.linalg.norm(got.normal, axis=0), 1.0, atol=1e-5)
+    for g in (got, every):
+        assert np.all(np.diff(low(g.normal)[1, 36:64, 44]) < 0)  # up at the top
+        np.testing.assert_allclose(np.linalg.norm(g.normal, axis=0), 1.0, atol=1e-5)
+    assert np.all(np.diff(low(every.normal)[0, 50, 30:60]) > 0)  # turns left to right
+    assert np.abs(low(got.normal)[0, 50, 30:60]).max() < 0.02  # the network's: flat
+    side = got.normal[0, 50, 36:52]
+    assert np.corrcoef(side, ripple[0, 36:52])[0, 1] > 0.9
 
 
 def test_held_leaves_a_crop_without_face_skin_as_it_was():
@@ -183,9 +188,10 @@ def test_applied_holds_every_pass_of_the_product_and_then_steps_aside(monkeypatc
                                       (1, 16, 16)), 1.3)
     calls, held = [], facetemplate.held
 
-    def spied(bufs, tt, sigma=facetemplate.SIGMA):
+    def spied(bufs, tt, sigma=facetemplate.SIGMA, axes=facetemplate.AXES["y"]):
         calls.append(sigma)
-        return held(bufs, tt, sigma)
+        assert axes == facetemplate.AXES["y"]  # the vertical component's, by default
+        return held(bufs, tt, sigma, axes)
 
     monkeypatch.setattr(facetemplate, "held", spied)
     own = portrait.buffers

@@ -592,8 +592,9 @@ def test_compare_face_template_relights_the_first_model_again_with_the_template(
         toy, shared_data, yale_root, tmp_path, monkeypatch, capsys):
     """--compare-face-template: the first model again with the template over its normals while
     that relighter runs (facetemplate.applied; the product's own buffers otherwise and after
-    it), on the same pairs, reported beside it with its paired balance gain; a missing template
-    is a clear error (exit 2)."""
+    it), on the same pairs, reported beside it with its paired balance gain (named for its
+    --face-template-axes where not the vertical's alone); a missing template is a clear error
+    (exit 2)."""
     from addon import api, portrait
 
     seen, own = [], portrait.buffers
@@ -616,6 +617,10 @@ def test_compare_face_template_relights_the_first_model_again_with_the_template(
     name = next(iter(res["models"]))
     assert list(res["models"]) == [name, f"{name} face template"]
     assert "top_bottom_gain" in res["balance_correlation"][f"{name} face template"]
+    assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--compare-face-template",
+                    str(shape), "--face-template-axes", "xyz", "--data", str(shared_data),
+                    "--json", str(out), "--sheet", ""]) == 0
+    assert list(json.loads(out.read_text())["models"]) == [name, f"{name} face template xyz"]
     assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--compare-face-template",
                     str(tmp_path / "none.npz"), "--data", str(shared_data), "--json",
                     str(out), "--sheet", ""]) == 2

@@ -23,6 +23,10 @@ from addon import intrinsic, portrait
 SIGMA = 6.0  # the low band's Gaussian, in pixels of a crop at the working size
 BLEND_SIGMA = 2.0  # pixels over which the template's band fades in from the face skin's edge
 MIN_SKIN = 64  # face-skin pixels below which a crop keeps the network's normals
+# The normals' components whose low band the template gives: the vertical one (y) by default,
+# the up/down shape the relit balance lacks; the network's left/right shape is close to the real
+# one (CroppedYale's left/right balance 0.98). AXES["xyz"]: all three.
+AXES = {"y": (1,), "xyz": (0, 1, 2)}
 
 
 @dataclass(frozen=True)
@@ -82,13 +86,14 @@ def _low(n: np.ndarray, sigma: float) -> np.ndarray:
     return np.stack([intrinsic.gaussian_blur(np.ascontiguousarray(c), sigma) for c in n])
 
 
-def held(bufs: intrinsic.Buffers, template: Template,
-         sigma: float = SIGMA) -> intrinsic.Buffers:
-    """``bufs`` with their normals' low band (a Gaussian of ``sigma`` pixels of this crop) over
-    the face skin replaced by the template's laid on it (laid, skin_frame), times the multiple
-    that fits the network's own low band there best (least squares), fading in over
-    BLEND_SIGMA from the skin's edge; the detail, and everything else, kept. A crop with little
-    face skin keeps its buffers."""
+def held(bufs: intrinsic.Buffers, template: Template, sigma: float = SIGMA,
+         axes: tuple[int, ...] = AXES["y"]) -> intrinsic.Buffers:
+    """``bufs`` with the low band (a Gaussian of ``sigma`` pixels of this crop) of their normals'
+    components ``axes`` over the face skin replaced by the template's laid on it (laid,
+    skin_frame), times the multiple that fits the network's own low band there best (least
+    squares, over all three components), fading in over BLEND_SIGMA from the skin's edge; the
+    detail, the other components and every other buffer kept (the normals renormalised). A
+    crop with little face skin keeps its buffers."""
     frame = skin_frame(bufs.face, bufs.matte)
     if frame is None:
         return bufs
@@ -100,21 +105,23 @@ def held(bufs: intrinsic.Buffers, template: Template,
     prior = _low(shape, sigma)
     p, o = prior[:, skin].astype(np.float64), own[:, skin].astype(np.float64)
     k = float((p * o).sum() / max(float((p * p).sum()), 1e-12))
-    w = intrinsic.gaussian_blur(skin.astype(np.float32), BLEND_SIGMA)[None]
-    normal = intrinsic.unit_normals(bufs.normal + w * (np.float32(k) * prior - own))
-    return replace(bufs, normal=normal.astype(np.float32))
+    w = intrinsic.gaussian_blur(skin.astype(np.float32), BLEND_SIGMA)
+    normal = bufs.normal.copy()
+    for a in axes:
+        normal[a] += w * (np.float32(k) * prior[a] - own[a])
+    return replace(bufs, normal=intrinsic.unit_normals(normal).astype(np.float32))
 
 
 @contextlib.contextmanager
-def applied(template: Template, sigma: float = SIGMA):
+def applied(template: Template, sigma: float = SIGMA, axes: tuple[int, ...] = AXES["y"]):
     """Within this context every pass of the product (addon.portrait.buffers: framing, coarse,
-    face crop, finer sampling) has its buffers held to ``template`` (held), the low band's width
-    ``sigma`` pixels at the working size, scaled with each crop's size."""
+    face crop, finer sampling) has its buffers held to ``template`` (held, its ``axes``), the
+    low band's width ``sigma`` pixels at the working size, scaled with each crop's size."""
     buffers = portrait.buffers
 
     def hold(session, x, valid=None, mirror=False, level=None):
         out = buffers(session, x, valid, mirror, level)
-        return held(out, template, sigma * x.shape[1] / session.card.working_size)
+        return held(out, template, sigma * x.shape[1] / session.card.working_size, axes)
 
     portrait.buffers = hold
     try:

@@ -408,7 +408,7 @@ class PipelineRelighter:
 
     def __init__(self, onnx_path, threads: int = 1, background: str | None = None,
                  exposure: str | None = None, working_size: int | None = None,
-                 lift: float | None = None, template=None):
+                 lift: float | None = None, template=None, template_axes: str = "y"):
         self.onnx_path = onnx_path
         self.threads = threads
         self.background = background or api.pipeline.DEFAULT_BACKGROUND
@@ -416,10 +416,11 @@ class PipelineRelighter:
         self.working_size = working_size  # None: the card's
         self.lift = lift  # None: the product's (portrait.INPUT_LIFT)
         self.template = template  # a facetemplate.Template over the face's normals, or None
+        self.template_axes = facetemplate.AXES[template_axes]
         self.card = api.session(onnx_path, threads, working_size).card
         self.name = self.card.name if lift is None else f"{self.card.name} lift {lift:g}"
         if template is not None:
-            self.name += " face template"
+            self.name += " face template" + ("" if template_axes == "y" else f" {template_axes}")
 
     def __call__(self, gray: np.ndarray, light: np.ndarray) -> np.ndarray:
         """(H, W) linear gray under some light -> (H, W) linear gray under ``light``."""
@@ -428,8 +429,8 @@ class PipelineRelighter:
         try:
             if self.lift is not None:
                 portrait.INPUT_LIFT = self.lift
-            with (facetemplate.applied(self.template) if self.template is not None
-                  else contextlib.nullcontext()):
+            with (facetemplate.applied(self.template, axes=self.template_axes)
+                  if self.template is not None else contextlib.nullcontext()):
                 y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads,
                                       background=self.background, exposure=self.exposure,
                                       working_size=self.working_size)
@@ -918,12 +919,14 @@ def select_subjects(names: list[str], quick: bool,
 
 def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 2021,
         quick: bool = False, threads: int = 1, sheet_path=None, sheet_rows: int = 6,
-        progress=print, split: str = "test", lifts=(), template=None) -> dict:
+        progress=print, split: str = "test", lifts=(), template=None,
+        template_axes: str = "y") -> dict:
     """Evaluate the models; returns the JSON-able result (tables on the test subjects).
     ``lifts``: the first model again for each, its crops lifted by that power (an experiment
     on portrait.INPUT_LIFT, compared on the same pairs). ``template``: a face template's path:
-    the first model again with its normals' low band over the face skin taken from it
-    (facetemplate.applied; an experiment, on the same pairs)."""
+    the first model again with its normals' low band over the face skin taken from it, of the
+    components ``template_axes`` (facetemplate.AXES; facetemplate.applied; an experiment, on
+    the same pairs)."""
     data_root = pathlib.Path(data_root) if data_root else default_root().parents[1]
     root = pathlib.Path(root) if root else data_root / "yale" / "CroppedYale"
     tune_names, test_names = select_subjects(subject_names(root), quick, split)
@@ -944,7 +947,8 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
             shape = facetemplate.load(template)
         except (OSError, ValueError) as e:
             raise InputError(str(e)) from None
-        r = PipelineRelighter(onnx_paths[0], threads, template=shape)
+        r = PipelineRelighter(onnx_paths[0], threads, template=shape,
+                              template_axes=template_axes)
         relighters[r.name] = r
     models = list(relighters)
     bank = HdriBank(data_root)
@@ -1106,6 +1110,9 @@ def main(argv=None) -> int:
                    help="also relight with the first model's normals' low band over the face "
                         "skin taken from this face template (training.intrinsic.template; "
                         "training/eval/facetemplate.py), on the same pairs: an experiment")
+    p.add_argument("--face-template-axes", choices=sorted(facetemplate.AXES), default="y",
+                   help="the normals' components the face template gives (default y, the "
+                        "vertical: the up/down shape)")
     a = p.parse_args(argv)
     if a.input_level is not None and not a.input_level > 0:
         p.error("--input-level must be positive")
@@ -1130,7 +1137,8 @@ def main(argv=None) -> int:
             portrait.INPUT_LIFT = a.input_lift
         res = run(a.onnx, root, data_root, a.pairs, a.seed, a.quick, a.threads, a.sheet,
                   progress=lambda msg: print(msg, file=sys.stderr), split=a.split,
-                  lifts=a.compare_lift, template=a.compare_face_template)
+                  lifts=a.compare_lift, template=a.compare_face_template,
+                  template_axes=a.face_template_axes)
     except InputError as e:  # bad data or models: the message says what to do
         print(f"yale: {e}", file=sys.stderr)
         return 2
