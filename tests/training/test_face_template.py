@@ -201,3 +201,25 @@ def test_applied_holds_every_pass_of_the_product_and_then_steps_aside(monkeypatc
             portrait.buffers(sess, *portrait.crop_planar(x, box, n))
     assert portrait.buffers is own
     assert calls == pytest.approx([facetemplate.SIGMA, 2 * facetemplate.SIGMA])
+
+
+def test_evaluate_runs_under_the_template_and_keeps_it_off_the_card(tmp_path, monkeypatch,
+                                                                      capsys):
+    """training.eval.evaluate --face-template: the evaluation runs with the product's passes
+    held to the template (applied) and without it after; never with --update-card (the card's
+    figures are the product's), and a missing template is refused with what to build."""
+    from training.eval import evaluate
+
+    own, seen = portrait.buffers, []
+    monkeypatch.setattr(evaluate, "_main", lambda p, a: seen.append(portrait.buffers is own))
+    path = tmp_path / "t.npz"
+    np.savez(path, normal=np.zeros((3, 8, 8), np.float32), reach=np.float32(1.3))
+    evaluate.main(["--onnx", "m.onnx", "--face-template", str(path)])
+    evaluate.main(["--onnx", "m.onnx"])
+    assert seen == [False, True] and portrait.buffers is own
+    for argv, said in ((["--update-card"], "not the product's"),
+                       (["--face-template", str(tmp_path / "none.npz")],
+                        "python -m training.intrinsic.template")):
+        with pytest.raises(SystemExit):
+            evaluate.main(["--onnx", "m.onnx", "--face-template", str(path), *argv])
+        assert said in capsys.readouterr().err

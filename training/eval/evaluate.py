@@ -46,6 +46,7 @@ import numpy as np
 
 from addon import lightvec
 
+from . import facetemplate
 from .metrics import (LUMA, baseline_identity, baseline_irradiance_ratio, erode4, image_metrics,
                       level_fit_rmse, level_gain, mean_metrics, paired_difference,
                       shading_correlation, to_unit, white_level)
@@ -295,7 +296,25 @@ def main(argv=None):
     p.add_argument("--update-card", action="store_true",
                    help="with --onnx: write the figures into the model's card (its metrics; "
                         "after the test set changed, e.g. a new light stage render version)")
+    p.add_argument("--face-template", metavar="NPZ",
+                   help="with --onnx: the Portrait network's normals' vertical low band over the "
+                        "face skin taken from this face template (training/eval/facetemplate.py; "
+                        "an experiment, not the card's figures)")
     a = p.parse_args(argv)
+    if a.face_template and (not a.onnx or a.update_card):
+        p.error("--face-template needs --onnx (and not --update-card: its figures are not the "
+                "product's)")
+    if a.face_template:
+        try:
+            shape = facetemplate.load(a.face_template)
+        except (OSError, ValueError) as e:
+            p.error(str(e))
+        with facetemplate.applied(shape):
+            return _main(p, a)
+    return _main(p, a)
+
+
+def _main(p, a):
     if a.raw and not a.run:
         p.error("--raw needs --run (an exported model holds one set of weights)")
     if a.true_source and not a.run:
