@@ -33,7 +33,7 @@ PYTHON_VERSION = "3.11"  # Blender 4.2 to 5.0 embed Python 3.11
 # What the extension is made of; everything else (training/, tests/, bench/, .venv) stays out.
 INCLUDE_DIRS = ("addon", "ops", "ui", "models")
 INCLUDE_FILES = ("__init__.py", "scripts/relight_batch.py")
-INCLUDE_SUFFIXES = {".py", ".json", ".onnx", ".md", ".txt"}
+INCLUDE_SUFFIXES = {".py", ".json", ".onnx", ".npz", ".md", ".txt"}
 NOTICE_GLOBS = ("LICENSE*", "COPYING*", "NOTICE*")
 
 

@@ -1,13 +1,14 @@
 """The face template: built from the light stage's exact buffers (training/intrinsic/template.py),
-laid over the face skin and taken as the normals' low band there (training/eval/facetemplate.py)."""
+laid over the face skin and taken as the normals' low band there (addon/facetemplate.py), and
+swapped for experiments (training/eval/facetemplate.py)."""
 
 import json
 
 import numpy as np
 import pytest
 
-from addon import intrinsic, portrait
-from training.eval import facetemplate
+from addon import facetemplate, intrinsic, portrait
+from training.eval import facetemplate as experiment
 from training.intrinsic import template
 
 
@@ -172,51 +173,70 @@ def test_main_writes_a_template_the_product_loads_with_its_card(tmp_path, monkey
     assert "training.intrinsic.data --split val" in capsys.readouterr().err
 
 
-def test_applied_holds_every_pass_of_the_product_and_then_steps_aside(monkeypatch, tmp_path):
-    """facetemplate.applied: inside it each pass's buffers (portrait.buffers) are held's, the
-    low band's width scaled with the crop's size (SIGMA at the working size); after it the
-    product's buffers are its own again."""
+def test_the_product_holds_every_pass_to_its_shipped_template(monkeypatch, tmp_path):
+    """portrait.FACE_TEMPLATE: the shipped template (models/face-template/, which loads) by
+    default; each pass's buffers are facetemplate.held's, the vertical component's, the low
+    band's width scaled with the crop's size (SIGMA at the working size). experiment.applied
+    swaps in another template, or none (the network's normals as they are), and then steps
+    aside; a missing file is refused before anything runs."""
     from addon import engine, framing
     from tests.core.test_portrait import chw, frame, write_standin
 
+    assert portrait.FACE_TEMPLATE == facetemplate.SHIPPED and portrait.FACE_TEMPLATE_AXES == "y"
+    shipped = facetemplate.load(facetemplate.SHIPPED)
+    assert shipped.normal.shape == (3, template.SIZE, template.SIZE)
     sess = engine.new_session(write_standin(tmp_path, "template"),
                               providers=["CPUExecutionProvider"], threads=1, spin=False)
     x = chw(frame(96, 160, (110.0, 48.0), 20.0))
     box = framing.Box(110.0, 48.0, 64.0)
     size = sess.card.working_size
-    t = facetemplate.Template(np.tile(np.array([0.0, 0.6, 0.8], np.float32)[:, None, None],
-                                      (1, 16, 16)), 1.3)
     calls, held = [], facetemplate.held
 
-    def spied(bufs, tt, sigma=facetemplate.SIGMA, axes=facetemplate.AXES["y"]):
-        calls.append(sigma)
-        assert axes == facetemplate.AXES["y"]  # the vertical component's, by default
-        return held(bufs, tt, sigma, axes)
+    def spied(bufs, t, sigma=facetemplate.SIGMA, axes=facetemplate.AXES["y"]):
+        calls.append((t.normal.shape, sigma, axes))
+        return held(bufs, t, sigma, axes)
 
     monkeypatch.setattr(facetemplate, "held", spied)
-    own = portrait.buffers
-    with facetemplate.applied(t):
-        assert portrait.buffers is not own
-        for n in (size, 2 * size):
-            portrait.buffers(sess, *portrait.crop_planar(x, box, n))
-    assert portrait.buffers is own
-    assert calls == pytest.approx([facetemplate.SIGMA, 2 * facetemplate.SIGMA])
+    for n in (size, 2 * size):
+        portrait.buffers(sess, *portrait.crop_planar(x, box, n))
+    assert calls == [(shipped.normal.shape, pytest.approx(facetemplate.SIGMA), (1,)),
+                     (shipped.normal.shape, pytest.approx(2 * facetemplate.SIGMA), (1,))]
+    other = tmp_path / "t.npz"
+    np.savez(other, normal=np.tile(np.array([0.0, 0.6, 0.8], np.float32)[:, None, None],
+                                   (1, 16, 16)), reach=np.float32(1.3))
+    calls.clear()
+    with experiment.applied(other, "xyz"):
+        portrait.buffers(sess, *portrait.crop_planar(x, box, size))
+    with experiment.applied(None):
+        plain = portrait.buffers(sess, *portrait.crop_planar(x, box, size))
+    assert calls == [((3, 16, 16), pytest.approx(facetemplate.SIGMA), (0, 1, 2))]
+    assert portrait.FACE_TEMPLATE == facetemplate.SHIPPED and portrait.FACE_TEMPLATE_AXES == "y"
+    crop, level = portrait.crop_planar(x, box, size)[0], intrinsic.INPUT_LEVEL
+    fed = portrait.lifted(crop * np.float32(intrinsic.exposure_scale(crop, level)), level)
+    np.testing.assert_array_equal(plain.normal, sess.run_planar(fed).normal)  # the network's
+    with pytest.raises(FileNotFoundError, match="python -m training.intrinsic.template"):
+        with experiment.applied(tmp_path / "none.npz"):
+            pass
+    assert portrait.FACE_TEMPLATE == facetemplate.SHIPPED
 
 
-def test_evaluate_runs_under_the_template_and_keeps_it_off_the_card(tmp_path, monkeypatch,
-                                                                      capsys):
+def test_evaluate_runs_under_another_template_and_keeps_it_off_the_card(tmp_path, monkeypatch,
+                                                                         capsys):
     """training.eval.evaluate --face-template: the evaluation runs with the product's passes
-    held to the template (applied) and without it after; never with --update-card (the card's
-    figures are the product's), and a missing template is refused with what to build."""
+    taking that template (or none, with 'none') and with the product's after it; never with
+    --update-card (the card's figures are the product's), and a missing template is refused
+    with what to build."""
     from training.eval import evaluate
 
-    own, seen = portrait.buffers, []
-    monkeypatch.setattr(evaluate, "_main", lambda p, a: seen.append(portrait.buffers is own))
+    seen = []
+    monkeypatch.setattr(evaluate, "_main", lambda p, a: seen.append(portrait.FACE_TEMPLATE))
     path = tmp_path / "t.npz"
     np.savez(path, normal=np.zeros((3, 8, 8), np.float32), reach=np.float32(1.3))
     evaluate.main(["--onnx", "m.onnx", "--face-template", str(path)])
+    evaluate.main(["--onnx", "m.onnx", "--face-template", "none"])
     evaluate.main(["--onnx", "m.onnx"])
-    assert seen == [False, True] and portrait.buffers is own
+    assert seen == [str(path), None, facetemplate.SHIPPED]
+    assert portrait.FACE_TEMPLATE == facetemplate.SHIPPED
     for argv, said in ((["--update-card"], "not the product's"),
                        (["--face-template", str(tmp_path / "none.npz")],
                         "python -m training.intrinsic.template")):

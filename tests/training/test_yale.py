@@ -590,18 +590,18 @@ def test_portrait_frontier_writes_the_card_s_time_per_frame(yale_root, tmp_path)
 
 def test_compare_face_template_relights_the_first_model_again_with_the_template(
         toy, shared_data, yale_root, tmp_path, monkeypatch, capsys):
-    """--compare-face-template: the first model again with the template over its normals while
-    that relighter runs (facetemplate.applied; the product's own buffers otherwise and after
-    it), on the same pairs, reported beside it with its paired balance gain (named for its
-    --face-template-axes where not the vertical's alone); a missing template is a clear error
-    (exit 2)."""
-    from addon import api, portrait
+    """--compare-face-template: the first model again with that template in place of the
+    product's while that relighter runs (or none, with 'none'; the product's otherwise and
+    after it), on the same pairs, reported beside it with its paired balance gain (named for
+    its --face-template-axes where not the vertical's alone); a missing template is a clear
+    error (exit 2)."""
+    from addon import api, facetemplate, portrait
 
-    seen, own = [], portrait.buffers
+    seen = []
     relight = api.relight_image
 
     def spied(*args, **kwargs):
-        seen.append(portrait.buffers is own)
+        seen.append((portrait.FACE_TEMPLATE, portrait.FACE_TEMPLATE_AXES))
         return relight(*args, **kwargs)
 
     monkeypatch.setattr(api, "relight_image", spied)
@@ -609,18 +609,21 @@ def test_compare_face_template_relights_the_first_model_again_with_the_template(
     np.savez(shape, normal=np.tile(np.array([0.0, 0.0, 1.0], np.float32)[:, None, None],
                                    (1, 8, 8)), reach=np.float32(1.3))
     out = tmp_path / "y.json"
-    assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--compare-face-template",
-                    str(shape), "--data", str(shared_data), "--json", str(out),
-                    "--sheet", ""]) == 0
-    assert seen and seen.count(False) == seen.count(True) and portrait.buffers is own
-    res = json.loads(out.read_text())
-    name = next(iter(res["models"]))
-    assert list(res["models"]) == [name, f"{name} face template"]
-    assert "top_bottom_gain" in res["balance_correlation"][f"{name} face template"]
-    assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--compare-face-template",
-                    str(shape), "--face-template-axes", "xyz", "--data", str(shared_data),
-                    "--json", str(out), "--sheet", ""]) == 0
-    assert list(json.loads(out.read_text())["models"]) == [name, f"{name} face template xyz"]
+    product = (facetemplate.SHIPPED, "y")
+    for given, axes, suffix, during in ((str(shape), "y", " face template", (str(shape), "y")),
+                                        (str(shape), "xyz", " face template xyz",
+                                         (str(shape), "xyz")),
+                                        ("none", "y", " no face template", (None, "y"))):
+        seen.clear()
+        assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune",
+                        "--compare-face-template", given, "--face-template-axes", axes,
+                        "--data", str(shared_data), "--json", str(out), "--sheet", ""]) == 0
+        assert seen and seen.count(during) == seen.count(product) == len(seen) // 2
+        assert (portrait.FACE_TEMPLATE, portrait.FACE_TEMPLATE_AXES) == product
+        res = json.loads(out.read_text())
+        name = next(iter(res["models"]))
+        assert list(res["models"]) == [name, name + suffix]
+        assert "top_bottom_gain" in res["balance_correlation"][name + suffix]
     assert ye.main(["--onnx", str(toy), "--quick", "--split", "tune", "--compare-face-template",
                     str(tmp_path / "none.npz"), "--data", str(shared_data), "--json",
                     str(out), "--sheet", ""]) == 2

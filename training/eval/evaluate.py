@@ -298,18 +298,21 @@ def main(argv=None):
                         "after the test set changed, e.g. a new light stage render version)")
     p.add_argument("--face-template", metavar="NPZ",
                    help="with --onnx: the Portrait network's normals' vertical low band over the "
-                        "face skin taken from this face template (training/eval/facetemplate.py; "
-                        "an experiment, not the card's figures)")
+                        "face skin taken from this face template instead of the product's, or "
+                        "from none with 'none' (addon/facetemplate.py; an experiment, not the "
+                        "card's figures)")
     a = p.parse_args(argv)
     if a.face_template and (not a.onnx or a.update_card):
         p.error("--face-template needs --onnx (and not --update-card: its figures are not the "
                 "product's)")
     if a.face_template:
+        path = None if a.face_template == "none" else a.face_template
         try:
-            shape = facetemplate.load(a.face_template)
+            if path is not None:
+                facetemplate.load(path)
         except (OSError, ValueError) as e:
             p.error(str(e))
-        with facetemplate.applied(shape):
+        with facetemplate.applied(path):
             return _main(p, a)
     return _main(p, a)
 

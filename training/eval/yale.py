@@ -415,12 +415,15 @@ class PipelineRelighter:
         self.exposure = exposure or api.pipeline.DEFAULT_EXPOSURE_MODE
         self.working_size = working_size  # None: the card's
         self.lift = lift  # None: the product's (portrait.INPUT_LIFT)
-        self.template = template  # a facetemplate.Template over the face's normals, or None
-        self.template_axes = facetemplate.AXES[template_axes]
+        # a face template's path in place of the product's (portrait.FACE_TEMPLATE), "none" for
+        # none; None: the product's
+        self.template = template
+        self.template_axes = template_axes
         self.card = api.session(onnx_path, threads, working_size).card
         self.name = self.card.name if lift is None else f"{self.card.name} lift {lift:g}"
         if template is not None:
-            self.name += " face template" + ("" if template_axes == "y" else f" {template_axes}")
+            self.name += (" no face template" if template == "none" else " face template"
+                          + ("" if template_axes == "y" else f" {template_axes}"))
 
     def __call__(self, gray: np.ndarray, light: np.ndarray) -> np.ndarray:
         """(H, W) linear gray under some light -> (H, W) linear gray under ``light``."""
@@ -429,7 +432,8 @@ class PipelineRelighter:
         try:
             if self.lift is not None:
                 portrait.INPUT_LIFT = self.lift
-            with (facetemplate.applied(self.template, axes=self.template_axes)
+            with (facetemplate.applied(None if self.template == "none" else self.template,
+                                       self.template_axes)
                   if self.template is not None else contextlib.nullcontext()):
                 y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads,
                                       background=self.background, exposure=self.exposure,
@@ -923,10 +927,10 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         template_axes: str = "y") -> dict:
     """Evaluate the models; returns the JSON-able result (tables on the test subjects).
     ``lifts``: the first model again for each, its crops lifted by that power (an experiment
-    on portrait.INPUT_LIFT, compared on the same pairs). ``template``: a face template's path:
-    the first model again with its normals' low band over the face skin taken from it, of the
-    components ``template_axes`` (facetemplate.AXES; facetemplate.applied; an experiment, on
-    the same pairs)."""
+    on portrait.INPUT_LIFT, compared on the same pairs). ``template``: a face template's path,
+    or "none": the first model again with that template over its normals' components
+    ``template_axes`` in place of the product's, or with none (facetemplate.applied; an
+    experiment, on the same pairs)."""
     data_root = pathlib.Path(data_root) if data_root else default_root().parents[1]
     root = pathlib.Path(root) if root else data_root / "yale" / "CroppedYale"
     tune_names, test_names = select_subjects(subject_names(root), quick, split)
@@ -944,10 +948,11 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         relighters[r.name] = r
     if template is not None:
         try:
-            shape = facetemplate.load(template)
+            if template != "none":
+                facetemplate.load(template)
         except (OSError, ValueError) as e:
             raise InputError(str(e)) from None
-        r = PipelineRelighter(onnx_paths[0], threads, template=shape,
+        r = PipelineRelighter(onnx_paths[0], threads, template=template,
                               template_axes=template_axes)
         relighters[r.name] = r
     models = list(relighters)
@@ -1108,8 +1113,9 @@ def main(argv=None) -> int:
                         "for several")
     p.add_argument("--compare-face-template", metavar="NPZ",
                    help="also relight with the first model's normals' low band over the face "
-                        "skin taken from this face template (training.intrinsic.template; "
-                        "training/eval/facetemplate.py), on the same pairs: an experiment")
+                        "skin taken from this face template (training.intrinsic.template) "
+                        "instead of the product's (addon/facetemplate.py), or from none with "
+                        "'none', on the same pairs: an experiment")
     p.add_argument("--face-template-axes", choices=sorted(facetemplate.AXES), default="y",
                    help="the normals' components the face template gives (default y, the "
                         "vertical: the up/down shape)")

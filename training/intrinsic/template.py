@@ -1,10 +1,10 @@
-"""Build the face template that training/eval/facetemplate.py lays over the network's normals:
-the light stage's near-frontal heads' exact normals, each frame and its mirror image resampled to a grid
-set by its face skin's own extent (centre, square root of its area) and averaged, weighted by
-the sub-pixel matte.
+"""Build the face template that addon/facetemplate.py lays over the network's normals: the
+light stage's near-frontal heads' exact normals, each frame and its mirror image resampled to a
+grid set by its face skin's own extent (centre, square root of its area) and averaged, weighted
+by the sub-pixel matte.
 
     .venv/bin/python -m training.intrinsic.template [--cache cache/intrinsic/val_128 ...] \
-        [--out models/research/face-template/template.npz]
+        [--out models/face-template/template.npz]
 
 The frames are the validation builds' (training.intrinsic.data --split val; held-out
 identities, so no training identity shapes it). Writes the .npz (``normal`` (3, T, T),
@@ -21,14 +21,14 @@ import sys
 
 import numpy as np
 
-from training.eval import facetemplate
+from addon import facetemplate
 
 from . import data
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 DEFAULT_CACHES = (ROOT / "cache" / "intrinsic" / "val_128",
                   ROOT / "cache" / "intrinsic-longval" / "val_128")
-DEFAULT_OUT = ROOT / "models" / "research" / "face-template" / "template.npz"
+DEFAULT_OUT = ROOT / "models" / "face-template" / "template.npz"
 SIZE = 64          # the template's grid, T x T
 REACH = 1.3        # face sizes each way from the face skin's centre
 MAX_TURN = 0.15    # the face skin's mean sideways normal above which a head counts as turned
@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, normal=normal.astype(np.float16), reach=np.float32(REACH))
     card = {"what": "face template: the light stage's near-frontal val heads' mean normals, "
-                    "on a grid set by the face skin's centre and size (training/eval/facetemplate.py)",
+                    "on a grid set by the face skin's centre and size (addon/facetemplate.py)",
             "command": " ".join(["python -m training.intrinsic.template",
                                  *(argv if argv is not None else sys.argv[1:])]),
             "frames": used, "caches": [str(f.relative_to(ROOT)) if f.is_relative_to(ROOT)
