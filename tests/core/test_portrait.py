@@ -208,11 +208,13 @@ def test_intrinsic_card_gives_an_intrinsic_session_with_the_buffers(session):
     assert res.parsing[0, 10, 17] > 0.99 and res.parsing[0, 1, 1] < 1e-6
 
 
-def test_a_model_with_the_transfer_gives_it_and_relights_with_it(tmp_path):
+def test_a_model_with_the_transfer_gives_it_and_relights_with_it(tmp_path, monkeypatch):
     """The optional transfer output: the card lists it after the four buffers, the session
     returns it with the others, and the frame path renders with it (here every pixel lets only a
     camera-facing normal's light through, so a lamp from the side lights the disc less than
-    the stand-in's bulging normals alone would). Sixteen channels or it is refused."""
+    the stand-in's bulging normals alone would: those normals as they are, without the face
+    template's shape). Sixteen channels or it is refused."""
+    monkeypatch.setattr(portrait, "FACE_TEMPLATE", None)
     path = write_standin(tmp_path, "with_transfer", transfer=contract.TRANSFER_CHANNELS)
     sess = engine.new_session(path, providers=["CPUExecutionProvider"], threads=1, spin=False)
     res = sess.run_planar(chw(frame(21, 35, (17.0, 10.0), 8.0)))
