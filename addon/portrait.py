@@ -145,12 +145,13 @@ def lifted(x: np.ndarray, level: float, power: float | None = None) -> np.ndarra
 
 
 def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None = None,
-            mirror: bool = False, level: float | None = None):
+            mirror: bool = False, level: float | None = None, shape: bool = True):
     """The network's buffers for a (3, h, w) linear image (normalised here, to ``level``:
     intrinsic.exposure_scale's, default INPUT_LEVEL); ``valid``: the share of each pixel
     inside the frame (crop_planar); ``mirror``: the mean with the mirror image's (MIRROR). The
     network sees the crop with its shadows lifted (INPUT_LIFT); its normals' vertical low band
-    over the face skin is the face template's (FACE_TEMPLATE)."""
+    over the face skin is the face template's (FACE_TEMPLATE) unless ``shape`` is off (the
+    framing passes read only the face and the matte)."""
     level = intrinsic.INPUT_LEVEL if level is None else level
     x = lifted(x * np.float32(intrinsic.exposure_scale(x, level)), level)
     res = session.run_planar(x, mirror=mirror)
@@ -162,7 +163,7 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
         matte, face = matte * valid, face * valid
         hair = None if hair is None else hair * valid
     bufs = intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face, res.transfer, hair)
-    if FACE_TEMPLATE is not None:
+    if shape and FACE_TEMPLATE is not None:
         sigma = facetemplate.SIGMA * x.shape[1] / session.card.working_size
         bufs = facetemplate.held(bufs, facetemplate.cached(FACE_TEMPLATE), sigma,
                                  facetemplate.AXES[FACE_TEMPLATE_AXES])
@@ -244,7 +245,7 @@ def _refine(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box) -> 
     """The portrait's box found on the crop around ``box``, where the face has most of the
     working size; None when the crop shows none."""
     size = session.card.working_size
-    fine = buffers(session, *crop_planar(x_full, box, size))
+    fine = buffers(session, *crop_planar(x_full, box, size), shape=False)
     inner = framing.find_portrait(fine.face, fine.matte, (size, size), MARGIN)
     if inner is None:
         return None
@@ -277,7 +278,7 @@ def find_box(session: IntrinsicSession, x_full: np.ndarray,
             return box
     size = session.card.working_size
     small = shared_fullres(fullres).shrink_planar(x_full, *detail.working_shape(h, w, size))
-    coarse = buffers(session, small)
+    coarse = buffers(session, small, shape=False)
     box = framing.find_portrait(coarse.face, coarse.matte, (h, w), MARGIN)
     if box is None:
         return None

@@ -175,8 +175,9 @@ def test_main_writes_a_template_the_product_loads_with_its_card(tmp_path, monkey
 
 def test_the_product_holds_every_pass_to_its_shipped_template(monkeypatch, tmp_path):
     """portrait.FACE_TEMPLATE: the shipped template (models/face-template/, which loads) by
-    default; each pass's buffers are facetemplate.held's, the vertical component's, the low
-    band's width scaled with the crop's size (SIGMA at the working size). experiment.applied
+    default; each relighting pass's buffers are facetemplate.held's, the vertical component's,
+    the low band's width scaled with the crop's size (SIGMA at the working size), the framing
+    passes' not. experiment.applied
     swaps in another template, or none (the network's normals as they are), and then steps
     aside; a missing file is refused before anything runs."""
     from addon import engine, framing
@@ -201,6 +202,10 @@ def test_the_product_holds_every_pass_to_its_shipped_template(monkeypatch, tmp_p
         portrait.buffers(sess, *portrait.crop_planar(x, box, n))
     assert calls == [(shipped.normal.shape, pytest.approx(facetemplate.SIGMA), (1,)),
                      (shipped.normal.shape, pytest.approx(2 * facetemplate.SIGMA), (1,))]
+    calls.clear()
+    portrait.find_box(sess, x)  # framing reads the face and the matte only: no shape to hold
+    portrait.find_box(sess, x, prior=box)
+    assert calls == []
     other = tmp_path / "t.npz"
     np.savez(other, normal=np.tile(np.array([0.0, 0.6, 0.8], np.float32)[:, None, None],
                                    (1, 16, 16)), reach=np.float32(1.3))

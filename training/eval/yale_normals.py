@@ -161,8 +161,8 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
         state["box"], state["hw"], state["size"] = box, x.shape[1:], size
         return crop_planar(x, box, size)
 
-    def swap(session, x, valid=None, mirror=False, level=None):
-        out = buffers(session, x, valid, mirror, level)
+    def swap(session, x, valid=None, mirror=False, level=None, shape=True):
+        out = buffers(session, x, valid, mirror, level, shape)
         size = state.pop("size", None)  # the buffers of the crop just taken, no other image's
         if size is None or x.shape[1:] != (size, size):
             return out
@@ -214,8 +214,8 @@ def face_space_buffers(space: np.ndarray, low_sigma: float):
         state["box"], state["hw"], state["size"] = box, x.shape[1:], size
         return crop_planar(x, box, size)
 
-    def swap(session, x, valid=None, mirror=False, level=None):
-        out = buffers(session, x, valid, mirror, level)
+    def swap(session, x, valid=None, mirror=False, level=None, shape=True):
+        out = buffers(session, x, valid, mirror, level, shape)
         size = state.pop("size", None)
         if size is None or x.shape[1:] != (size, size):
             return out
@@ -275,11 +275,11 @@ def buffers_from(session, fields=(), framing: bool = False):
     buffers, find_box = portrait.buffers, portrait.find_box
     boxing = []
 
-    def swap(own, x, valid=None, mirror=False, level=None):
-        out = buffers(own, x, valid, mirror, level)
+    def swap(own, x, valid=None, mirror=False, level=None, shape=True):
+        out = buffers(own, x, valid, mirror, level, shape)
         if boxing or not fields:
             return out
-        other = buffers(session, x, valid, mirror, level)
+        other = buffers(session, x, valid, mirror, level, shape)
         return dataclasses.replace(out, **{f: getattr(other, f) for f in fields})
 
     def box(own, *args, **kwargs):
