@@ -64,29 +64,32 @@ def skin_frame(face: np.ndarray, matte: np.ndarray) -> tuple[float, float, float
     return float(ys.mean()) + 0.5, float(xs.mean()) + 0.5, float(np.sqrt(len(ys)))
 
 
+def _weights(n: int, start: float, step: float, t: int) -> tuple[np.ndarray, np.ndarray]:
+    """((n, t) the bilinear weights of n pixels on a grid of t samples, the pixel i at sample
+    start + i * step; (n,) whether the grid reaches it (its row of weights is 0 where not))."""
+    u = start + np.arange(n, dtype=np.float64) * step
+    reach = (u >= 0) & (u <= t - 1)
+    u0 = np.clip(np.floor(u).astype(np.intp), 0, t - 2)
+    tu = np.clip(u - u0, 0.0, 1.0)
+    m = np.zeros((n, t), np.float64)
+    rows = np.arange(n)
+    m[rows, u0] = 1.0 - tu
+    m[rows, u0 + 1] += tu
+    m[~reach] = 0.0
+    return m.astype(np.float32), reach
+
+
 def laid(template: Template, frame: tuple[float, float, float],
          hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """((3, h, w) the template's normals at each pixel of an (h, w) crop whose face skin has
-    ``frame`` (skin_frame's), bilinear; (h, w) where the grid reaches)."""
+    ``frame`` (skin_frame's), bilinear, as two small matrix products; (h, w) where the grid
+    reaches, 0 elsewhere)."""
     cy, cx, size = frame
     t = template.normal.shape[1]
     scale = t / (2.0 * template.reach * size)
-    u = (np.arange(hw[0], dtype=np.float64) + 0.5 - cy) * scale + t / 2.0 - 0.5
-    v = (np.arange(hw[1], dtype=np.float64) + 0.5 - cx) * scale + t / 2.0 - 0.5
-    inside = (((u >= 0) & (u <= t - 1))[:, None] & ((v >= 0) & (v <= t - 1))[None, :])
-    u0 = np.clip(np.floor(u).astype(np.intp), 0, t - 2)
-    v0 = np.clip(np.floor(v).astype(np.intp), 0, t - 2)
-    tu = np.clip(u - u0, 0.0, 1.0).astype(np.float32)[:, None]
-    tv = np.clip(v - v0, 0.0, 1.0).astype(np.float32)[None, :]
-    n = template.normal
-    a, b = n[:, u0][:, :, v0], n[:, u0][:, :, v0 + 1]
-    c, d = n[:, u0 + 1][:, :, v0], n[:, u0 + 1][:, :, v0 + 1]
-    out = (a * (1 - tu) + c * tu) * (1 - tv) + (b * (1 - tu) + d * tu) * tv
-    return np.where(inside[None], out, 0.0).astype(np.float32), inside
-
-
-def _low(n: np.ndarray, sigma: float) -> np.ndarray:
-    return np.stack([intrinsic.gaussian_blur(np.ascontiguousarray(c), sigma) for c in n])
+    wu, ru = _weights(hw[0], (0.5 - cy) * scale + t / 2.0 - 0.5, scale, t)
+    wv, rv = _weights(hw[1], (0.5 - cx) * scale + t / 2.0 - 0.5, scale, t)
+    return np.matmul(np.matmul(wu, template.normal), wv.T), ru[:, None] & rv[None, :]
 
 
 def held(bufs: intrinsic.Buffers, template: Template, sigma: float = SIGMA,
@@ -104,8 +107,9 @@ def held(bufs: intrinsic.Buffers, template: Template, sigma: float = SIGMA,
     skin = (bufs.face > 0.5) & (bufs.matte > 0.5) & inside
     if int(skin.sum()) < MIN_SKIN:
         return bufs
-    own = _low(bufs.normal, sigma)
-    prior = _low(shape, sigma)
+    # both fields' low bands in one blur of their six planes
+    low = intrinsic.gaussian_blur(np.concatenate([bufs.normal, shape], 0), sigma)
+    own, prior = low[:3], low[3:]
     p, o = prior[:, skin].astype(np.float64), own[:, skin].astype(np.float64)
     k = float((p * o).sum() / max(float((p * p).sum()), 1e-12))
     w = intrinsic.gaussian_blur(skin.astype(np.float32), BLEND_SIGMA)
