@@ -123,8 +123,10 @@ MIRROR = True
 # rmse_level_fit 0.0570 -> 0.0580 (training.eval.evaluate).
 INPUT_LIFT = 0.8
 
-# Every pass's normals take the vertical component's low band over the face skin from a face
-# template (facetemplate.held): the file at this path, or none where None. On the CroppedYale
+# Every relighting pass's normals (not the framing passes') take the vertical component's low
+# band over the face skin from a face template (facetemplate.held): the file at this path, or
+# none where None. The template is frontal: a turned head takes a frontal face's up/down shape
+# (a head turned about 20 degrees in the dev clip s18 looked right). On the CroppedYale
 # test subjects top/bottom balance correlation 0.817 -> 0.833 (paired +0.016, 5-95% +0.005 to
 # +0.028) at 20.31 -> 20.11 dB, left/right 0.982 either way; tune 0.850 -> 0.874 at 20.36 ->
 # 20.15 dB, where the vertical component alone was chosen over all three (0.870 at 20.09 dB).
