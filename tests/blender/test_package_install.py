@@ -95,6 +95,8 @@ def test_zip_holds_only_the_extension(linux_zip):
     assert wheels == ["av", "onnxruntime", "opencolorio", "openexr", "threadpoolctl"]
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc")]
     assert not [n for n in names if n.startswith("models/research/")]  # measured, not offered
+    # the Portrait preset's face template, with its card and the heads' licence notice
+    assert {"models/face-template/template.npz", "models/face-template/template.json"} <= set(names)
     manifest = zipfile.ZipFile(linux_zip).read("blender_manifest.toml").decode()
     assert 'platforms = ["linux-x64"]' in manifest
 
