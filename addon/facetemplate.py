@@ -64,7 +64,8 @@ def skin_frame(face: np.ndarray, matte: np.ndarray) -> tuple[float, float, float
     return float(ys.mean()) + 0.5, float(xs.mean()) + 0.5, float(np.sqrt(len(ys)))
 
 
-def _weights(n: int, start: float, step: float, t: int) -> tuple[np.ndarray, np.ndarray]:
+def bilinear_weights(n: int, start: float, step: float,
+                     t: int) -> tuple[np.ndarray, np.ndarray]:
     """((n, t) the bilinear weights of n pixels on a grid of t samples, the pixel i at sample
     start + i * step; (n,) whether the grid reaches it (its row of weights is 0 where not))."""
     u = start + np.arange(n, dtype=np.float64) * step
@@ -87,8 +88,8 @@ def laid(template: Template, frame: tuple[float, float, float],
     cy, cx, size = frame
     t = template.normal.shape[1]
     scale = t / (2.0 * template.reach * size)
-    wu, ru = _weights(hw[0], (0.5 - cy) * scale + t / 2.0 - 0.5, scale, t)
-    wv, rv = _weights(hw[1], (0.5 - cx) * scale + t / 2.0 - 0.5, scale, t)
+    wu, ru = bilinear_weights(hw[0], (0.5 - cy) * scale + t / 2.0 - 0.5, scale, t)
+    wv, rv = bilinear_weights(hw[1], (0.5 - cx) * scale + t / 2.0 - 0.5, scale, t)
     return np.matmul(np.matmul(wu, template.normal), wv.T), ru[:, None] & rv[None, :]
 
 
@@ -120,8 +121,8 @@ def held(bufs: intrinsic.Buffers, template: Template, sigma: float = SIGMA,
 
 
 def cached(path) -> Template:
-    """load(``path``), once per path."""
-    key = str(pathlib.Path(path).resolve())
+    """load(``path``), once per path (as given: every relighting pass asks)."""
+    key = str(path)
     if key not in _LOADED:
         _LOADED[key] = load(path)
     return _LOADED[key]

@@ -38,19 +38,14 @@ NOTICE = ROOT.parent / "shared" / "data" / "heads" / "LICENSE-ict-facekit.txt"
 def resample(field: np.ndarray, frame: tuple[float, float, float], size: int = SIZE,
              reach: float = REACH) -> np.ndarray:
     """(C, size, size) of an (C, H, W) ``field`` at the template's grid about the face skin's
-    ``frame`` (facetemplate.skin_frame's), bilinear; 0 beyond the field."""
+    ``frame`` (facetemplate.skin_frame's), bilinear (facetemplate.bilinear_weights, the weights
+    the product lays the template back with); 0 beyond the field."""
     cy, cx, s = frame
-    c, h, w = field.shape
-    g = ((np.arange(size) + 0.5) / size * 2.0 - 1.0) * reach * s
-    y, x = cy + g - 0.5, cx + g - 0.5  # in pixel-index units
-    y0, x0 = np.floor(y).astype(np.intp), np.floor(x).astype(np.intp)
-    ok = (((y0 >= 0) & (y0 + 1 < h))[:, None] & ((x0 >= 0) & (x0 + 1 < w))[None, :])
-    y0, x0 = np.clip(y0, 0, h - 2), np.clip(x0, 0, w - 2)
-    ty, tx = (y - y0)[:, None], (x - x0)[None, :]
-    f = field
-    out = ((f[:, y0][:, :, x0] * (1 - tx) + f[:, y0][:, :, x0 + 1] * tx) * (1 - ty)
-           + (f[:, y0 + 1][:, :, x0] * (1 - tx) + f[:, y0 + 1][:, :, x0 + 1] * tx) * ty)
-    return np.where(ok[None], out, 0.0).astype(np.float32)
+    step = 2.0 * reach * s / size  # field pixels from one grid sample to the next
+    first = (0.5 / size * 2.0 - 1.0) * reach * s - 0.5  # the first sample, less the centre
+    wy, _ = facetemplate.bilinear_weights(size, cy + first, step, field.shape[1])
+    wx, _ = facetemplate.bilinear_weights(size, cx + first, step, field.shape[2])
+    return np.matmul(np.matmul(wy, np.asarray(field, np.float32)), wx.T)
 
 
 def mirrored(normal: np.ndarray, face: np.ndarray, matte: np.ndarray):
