@@ -44,9 +44,9 @@ import pathlib
 
 import numpy as np
 
-from addon import lightvec
+from addon import facetemplate, lightvec
 
-from . import facetemplate
+from .facetemplate import applied as template_applied
 from .metrics import (LUMA, baseline_identity, baseline_irradiance_ratio, erode4, image_metrics,
                       level_fit_rmse, level_gain, mean_metrics, paired_difference,
                       shading_correlation, to_unit, white_level)
@@ -309,10 +309,10 @@ def main(argv=None):
         path = None if a.face_template == "none" else a.face_template
         try:
             if path is not None:
-                facetemplate.load(path)
+                facetemplate.cached(path)
         except (OSError, ValueError) as e:
             p.error(str(e))
-        with facetemplate.applied(path):
+        with template_applied(path):
             return _main(p, a)
     return _main(p, a)
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import contextlib
 
 from addon import facetemplate, portrait
-from addon.facetemplate import AXES, SIGMA, Template, held, laid, load, skin_frame  # noqa: F401
 
 
 @contextlib.contextmanager
@@ -18,8 +17,9 @@ def applied(path, axes: str = "y"):
     before anything runs (load)."""
     if path is not None:
         facetemplate.cached(path)
-    if axes not in AXES:
-        raise ValueError(f"face template axes must be one of {sorted(AXES)}, not {axes!r}")
+    if axes not in facetemplate.AXES:
+        raise ValueError(f"face template axes must be one of {sorted(facetemplate.AXES)}, "
+                         f"not {axes!r}")
     kept = portrait.FACE_TEMPLATE, portrait.FACE_TEMPLATE_AXES
     portrait.FACE_TEMPLATE, portrait.FACE_TEMPLATE_AXES = path, axes
     try:

@@ -90,11 +90,12 @@ import time
 
 import numpy as np
 
-from addon import api, hdri, intrinsic, lightvec, normalise, portrait
+from addon import api, facetemplate, hdri, intrinsic, lightvec, normalise, portrait
 from addon.errors import InputError
 from addon.intrinsic import SOURCE_FLOOR
 
-from . import facetemplate, report
+from . import report
+from .facetemplate import applied as template_applied
 from .metrics import (baseline_identity, baseline_irradiance_ratio, image_metrics, mean_metrics,
                       srgb_encode, to_unit, white_level)
 
@@ -432,8 +433,8 @@ class PipelineRelighter:
         try:
             if self.lift is not None:
                 portrait.INPUT_LIFT = self.lift
-            with (facetemplate.applied(None if self.template == "none" else self.template,
-                                       self.template_axes)
+            with (template_applied(None if self.template == "none" else self.template,
+                                   self.template_axes)
                   if self.template is not None else contextlib.nullcontext()):
                 y = api.relight_image(rgb, light, model=self.onnx_path, threads=self.threads,
                                       background=self.background, exposure=self.exposure,
@@ -929,7 +930,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
     ``lifts``: the first model again for each, its crops lifted by that power (an experiment
     on portrait.INPUT_LIFT, compared on the same pairs). ``template``: a face template's path,
     or "none": the first model again with that template over its normals' components
-    ``template_axes`` in place of the product's, or with none (facetemplate.applied; an
+    ``template_axes`` in place of the product's, or with none (template_applied; an
     experiment, on the same pairs)."""
     data_root = pathlib.Path(data_root) if data_root else default_root().parents[1]
     root = pathlib.Path(root) if root else data_root / "yale" / "CroppedYale"
@@ -949,7 +950,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
     if template is not None:
         try:
             if template != "none":
-                facetemplate.load(template)
+                facetemplate.cached(template)  # refused here, before any relighting
         except (OSError, ValueError) as e:
             raise InputError(str(e)) from None
         r = PipelineRelighter(onnx_paths[0], threads, template=template,
