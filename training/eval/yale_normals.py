@@ -43,7 +43,7 @@ import pathlib
 
 import numpy as np
 
-from addon import api, framing, intrinsic, portrait
+from addon import api, facetemplate, framing, intrinsic, portrait
 
 from . import yale
 
@@ -140,6 +140,32 @@ def crop_normals(normals: np.ndarray, fitted: np.ndarray, hw: tuple[int, int], b
 
 
 @contextlib.contextmanager
+def crop_swap(change):
+    """Within this context the buffers of each square crop the product takes (addon.portrait's
+    crop_planar, then buffers of that crop: the face crop and its finer sampling; no other
+    image's) are ``change(session, buffers, box, image_hw, size)``'s."""
+    crop_planar, buffers = portrait.crop_planar, portrait.buffers
+    state = {}
+
+    def crop(x, box, size):
+        state["box"], state["hw"], state["size"] = box, x.shape[1:], size
+        return crop_planar(x, box, size)
+
+    def swap(session, x, valid=None, mirror=False, level=None, shape=True):
+        out = buffers(session, x, valid, mirror, level, shape)
+        size = state.pop("size", None)  # the buffers of the crop just taken, no other image's
+        if size is None or x.shape[1:] != (size, size):
+            return out
+        return change(session, out, state["box"], state["hw"], size)
+
+    portrait.crop_planar, portrait.buffers = crop, swap
+    try:
+        yield
+    finally:
+        portrait.crop_planar, portrait.buffers = crop_planar, buffers
+
+
+@contextlib.contextmanager
 def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: float | None = None,
                         low: str = "photometric", share: float = 1.0):
     """Within this context the product's face crops (addon.portrait) carry ``normals`` (3, h*w)
@@ -154,19 +180,9 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
     scale of the face's shape a relit face needs right. ``share`` (with ``low``
     "photometric"): the given low band's share, the network's own low band the rest (1: the
     given band alone)."""
-    crop_planar, buffers = portrait.crop_planar, portrait.buffers
-    state = {}
 
-    def crop(x, box, size):
-        state["box"], state["hw"], state["size"] = box, x.shape[1:], size
-        return crop_planar(x, box, size)
-
-    def swap(session, x, valid=None, mirror=False, level=None, shape=True):
-        out = buffers(session, x, valid, mirror, level, shape)
-        size = state.pop("size", None)  # the buffers of the crop just taken, no other image's
-        if size is None or x.shape[1:] != (size, size):
-            return out
-        given, inside = crop_normals(normals, fitted, state["hw"], state["box"], size)
+    def change(session, out, box, hw, size):
+        given, inside = crop_normals(normals, fitted, hw, box, size)
         real = np.where(inside, given, out.normal)
         if low_sigma:
             base, detail = (real, out.normal) if low == "photometric" else (out.normal, real)
@@ -179,11 +195,8 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
         n = intrinsic.unit_normals(np.where(inside, real, out.normal))
         return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
 
-    portrait.crop_planar, portrait.buffers = crop, swap
-    try:
+    with crop_swap(change):
         yield
-    finally:
-        portrait.crop_planar, portrait.buffers = crop_planar, buffers
 
 
 def face_space(normals: list[np.ndarray], hw: tuple[int, int], sigma: float,
@@ -205,39 +218,26 @@ def face_space_buffers(space: np.ndarray, low_sigma: float):
     skin replaced by its least-squares fit in ``space`` (face_space's, of the image being
     relit, cropped as the crop is): the network's shape held to a space of real faces' shapes,
     its detail kept (and its light transport). Whether a face prior fitted to the network's
-    own normals corrects them."""
-    crop_planar, buffers = portrait.crop_planar, portrait.buffers
-    state = {}
+    own normals corrects them (the product's face template, facetemplate.held, with its
+    constants, is the mean's case laid on the face skin's own extent)."""
     everywhere = np.ones(space.shape[2] * space.shape[3], bool)
 
-    def crop(x, box, size):
-        state["box"], state["hw"], state["size"] = box, x.shape[1:], size
-        return crop_planar(x, box, size)
-
-    def swap(session, x, valid=None, mirror=False, level=None, shape=True):
-        out = buffers(session, x, valid, mirror, level, shape)
-        size = state.pop("size", None)
-        if size is None or x.shape[1:] != (size, size):
-            return out
-        cropped = [crop_normals(b.reshape(3, -1), everywhere, state["hw"], state["box"], size)
-                   for b in space]
+    def change(session, out, box, hw, size):
+        cropped = [crop_normals(b.reshape(3, -1), everywhere, hw, box, size) for b in space]
         inside = np.logical_and.reduce([ins for _, ins in cropped])
         own = _low(out.normal, low_sigma * size / session.card.working_size)
         sel = inside & (out.face > 0.5) & (out.matte > 0.5)
-        if sel.sum() < 64:
+        if sel.sum() < facetemplate.MIN_SKIN:
             return out
         design = np.stack([b[:, sel].ravel() for b, _ in cropped], 1).astype(np.float64)
         coef = np.linalg.lstsq(design, own[:, sel].ravel().astype(np.float64), rcond=None)[0]
         fitted = sum(np.float32(c) * b for c, (b, _) in zip(coef, cropped))
-        w = intrinsic.gaussian_blur(sel.astype(np.float32), 2.0)[None]
+        w = intrinsic.gaussian_blur(sel.astype(np.float32), facetemplate.BLEND_SIGMA)[None]
         n = intrinsic.unit_normals(out.normal + w * (fitted - own))
         return dataclasses.replace(out, normal=n)
 
-    portrait.crop_planar, portrait.buffers = crop, swap
-    try:
+    with crop_swap(change):
         yield
-    finally:
-        portrait.crop_planar, portrait.buffers = crop_planar, buffers
 
 
 @contextlib.contextmanager
