@@ -95,6 +95,34 @@ def test_held_takes_the_template_s_low_band_and_keeps_the_network_s_detail():
     assert np.corrcoef(side, ripple[0, 36:52])[0, 1] > 0.9
 
 
+def test_a_turned_head_takes_less_of_the_frontal_template_and_a_far_turned_one_none():
+    """The share of the template falls from 1 at TURN[0] (either way) to 0 at TURN[1]; on a flat
+    face turned sideways the held normals' vertical low band moves toward the template's by
+    that share: fully when frontal, half way between, not at all when turned far."""
+    lo, hi = facetemplate.TURN
+    assert facetemplate.turned_share(0.0) == 1.0
+    assert facetemplate.turned_share(-lo) == pytest.approx(1.0)
+    assert facetemplate.turned_share(0.5 * (lo + hi)) == pytest.approx(0.5)
+    assert facetemplate.turned_share(-0.5 * (lo + hi)) == pytest.approx(0.5)
+    assert facetemplate.turned_share(hi) == 0.0 and facetemplate.turned_share(-1.0) == 0.0
+    t = sphere_template()
+    _, disc = sphere()
+
+    def lift(sideways):
+        """How far the held face's vertical low band turns up at its top, relative to frontal."""
+        flat = np.zeros((3, 96, 96), np.float32)
+        flat[0], flat[2] = sideways, np.sqrt(1.0 - sideways ** 2)
+        got = facetemplate.held(buffers(flat, disc), t, sigma=4.0)
+        return float(got.normal[1, 36, 44] - got.normal[1, 64, 44])
+
+    frontal = lift(0.0)
+    assert frontal > 0.2
+    assert lift(0.5 * (lo + hi)) == pytest.approx(0.5 * frontal, rel=0.15)
+    far = buffers(np.zeros((3, 96, 96), np.float32), disc)
+    far.normal[0], far.normal[2] = hi + 0.05, np.sqrt(1.0 - (hi + 0.05) ** 2)
+    assert facetemplate.held(far, t, sigma=4.0) is far
+
+
 def test_held_leaves_a_crop_without_face_skin_as_it_was():
     t = sphere_template()
     n, _ = sphere()

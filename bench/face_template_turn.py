@@ -1,0 +1,103 @@
+"""What the face template does to the normals of heads turned away from the camera.
+
+    .venv/bin/python -m bench.face_template_turn [--frames 96] [--model models/relight-portrait.onnx]
+
+Held-out val frames (training/intrinsic/data.py, identities never trained on) are rendered by
+the light stage under one lamp (a little fill beside it) from above, level in front and the side
+(bench.normals_by_light's lamps) and read as the product's relighting passes read a crop
+(addon.portrait.buffers, without the mirror image): without the face template, with it held over
+every head (addon.facetemplate.TURN set beyond any turn) and as the product holds it (faded out
+as the head turns). Per band of the head's turn (the light stage's mean sideways normal over the
+face skin): the correlation of the vertical normal component with the truth's, and the mean
+angle, over the face skin. The template is a frontal face's; a turned head it does not describe
+should not pay for it. Writes ``bench/results/face_template_turn.{md,json}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+
+import numpy as np
+
+from training.intrinsic import data
+
+from .intrinsic_effects import lamp, render, write_report
+from .normals_by_light import LAMPS, MIN_FACE, face_scores
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+BANDS = ((0.0, 0.1), (0.1, 0.15), (0.15, 0.2), (0.2, 1.0))  # |mean sideways normal| of the truth
+LAMP_NAMES = ("above", "level", "side")
+VARIANTS = ("no template", "template on every head", "the product")
+
+
+def read(session, img: np.ndarray, variant: str):
+    """The buffers of one linear image as the relighting passes read it, under ``variant``."""
+    from addon import facetemplate, portrait
+
+    if variant == "no template":
+        return portrait.buffers(session, img, shape=False)
+    kept = facetemplate.TURN
+    if variant == "template on every head":
+        facetemplate.TURN = (1e9, 2e9)  # beyond any turn
+    try:
+        return portrait.buffers(session, img, shape=True)
+    finally:
+        facetemplate.TURN = kept
+
+
+def run(model: str, n_frames: int = 96) -> dict:
+    import torch
+
+    from addon import api
+
+    torch.set_num_threads(1)
+    ds = data.IntrinsicFrames("val", 128, 0, varied_backdrops=False)
+    session = api.session(model, 1)
+    rows = []
+    for f in range(min(n_frames, ds.n)):
+        a = ds.frame(f)
+        face = a["label"] == data.SKIN
+        if int(face.sum()) < MIN_FACE:
+            continue
+        truth = data.dense(a, a["normal"])
+        turn = abs(float(truth[0][face].mean()))
+        for lname in LAMP_NAMES:
+            img = render(a, lamp(LAMPS[lname], 3.0, 0.05)).astype(np.float32)
+            for v in VARIANTS:
+                s = face_scores(read(session, img, v).normal, truth, face)
+                rows.append((turn, v, s["corr_y"], s["angle_deg"]))
+    out = {}
+    for lo, hi in BANDS:
+        for v in VARIANTS:
+            sel = [r for r in rows if lo <= r[0] < hi and r[1] == v]
+            if sel:
+                out[f"{lo:.2f}-{hi:.2f} | {v}"] = {
+                    "corr_y": float(np.mean([r[2] for r in sel])),
+                    "angle_deg": float(np.mean([r[3] for r in sel])), "readings": len(sel)}
+    return out
+
+
+def markdown(res: dict, command: str, machine: str) -> str:
+    lines = [f"Produced by `{command}` on {machine}.", "",
+             "| head turn (mean sideways normal) | normals | up/down correlation | angle (deg) "
+             "| readings |",
+             "| --- | --- | --- | --- | --- |"]
+    for k, v in res.items():
+        band, variant = k.split(" | ")
+        lines.append(f"| {band} | {variant} | {v['corr_y']:.3f} | {v['angle_deg']:.2f} | "
+                     f"{v['readings']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=96)
+    ap.add_argument("--model", default=str(ROOT / "models" / "relight-portrait.onnx"))
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "face_template_turn"))
+    a = ap.parse_args(argv)
+    write_report(a.out, "face_template_turn", argv, run(a.model, a.frames), markdown)
+
+
+if __name__ == "__main__":
+    main()
