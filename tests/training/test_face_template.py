@@ -276,3 +276,23 @@ def test_evaluate_runs_under_another_template_and_keeps_it_off_the_card(tmp_path
         with pytest.raises(SystemExit):
             evaluate.main(["--onnx", "m.onnx", "--face-template", str(path), *argv])
         assert said in capsys.readouterr().err
+
+
+def test_yale_normals_runs_under_another_template_or_none(tmp_path, monkeypatch, capsys):
+    """training.eval.yale_normals --face-template: the comparison of the network's normals with
+    photometric stereo's runs with the product's passes taking that template (or none) and
+    with the product's after it; a missing template is refused with what to build."""
+    from training.eval import yale_normals
+
+    seen = []
+    monkeypatch.setattr(yale_normals, "_main", lambda p, a: seen.append(portrait.FACE_TEMPLATE))
+    path = tmp_path / "t.npz"
+    np.savez(path, normal=np.zeros((3, 8, 8), np.float32), reach=np.float32(1.3))
+    yale_normals.main(["--onnx", "m.onnx", "--face-template", str(path)])
+    yale_normals.main(["--onnx", "m.onnx", "--face-template", "none"])
+    yale_normals.main(["--onnx", "m.onnx"])
+    assert seen == [str(path), None, facetemplate.SHIPPED]
+    assert portrait.FACE_TEMPLATE == facetemplate.SHIPPED
+    with pytest.raises(SystemExit):
+        yale_normals.main(["--onnx", "m.onnx", "--face-template", str(tmp_path / "none.npz")])
+    assert "python -m training.intrinsic.template" in capsys.readouterr().err

@@ -46,6 +46,7 @@ import numpy as np
 from addon import api, facetemplate, framing, intrinsic, portrait
 
 from . import yale
+from .facetemplate import applied as template_applied
 
 def photometric_normals(images: np.ndarray, dirs: np.ndarray, fit=None):
     """((3, h*w) unit normals, (h*w,) bool where they were fitted) from (N, h, w) linear images
@@ -630,7 +631,23 @@ def main(argv=None):
     ap.add_argument("--albedo", action="store_true",
                     help="also how much of each single-light photo's light the network leaves "
                          "in its albedo, against photometric stereo's albedo (albedo_light)")
+    ap.add_argument("--face-template", metavar="NPZ",
+                    help="every pass's normals held to this face template instead of the "
+                         "product's, or to none with 'none' (addon/facetemplate.py)")
     a = ap.parse_args(argv)
+    if a.face_template:
+        path = None if a.face_template == "none" else a.face_template
+        try:
+            if path is not None:
+                facetemplate.cached(path)
+        except (OSError, ValueError) as e:
+            ap.error(str(e))
+        with template_applied(path):
+            return _main(ap, a)
+    return _main(ap, a)
+
+
+def _main(ap, a):
     for flag, given in (("--template-share", a.template_share), ("--face-modes", a.face_modes)):
         if given and not (a.relight and a.low_sigma):
             ap.error(f"{flag} needs --relight and --low-sigma")
