@@ -34,7 +34,7 @@ MIN_SKIN = 64  # face-skin pixels below which a crop keeps the network's normals
 # the light stage's truth with a slope of 0.87 and a correlation of 0.94 on held-out heads), and
 # fades out linearly to nothing at TURN[1]. On the light stage's held-out heads turned by 0.2 or
 # more the template held fully cost the vertical normals' correlation with the truth 0.770 ->
-# 0.687, faded 0.738 (bench/face_template_turn.py); CroppedYale's frontal faces read under 0.03.
+# 0.687, faded 0.738 (bench/face_template_pose.py); CroppedYale's frontal faces read under 0.03.
 TURN = (0.1, 0.3)
 SHIPPED = pathlib.Path(__file__).resolve().parents[1] / "models" / "face-template" / "template.npz"
 _LOADED: dict = {}

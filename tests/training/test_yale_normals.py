@@ -61,6 +61,16 @@ def test_the_tilt_reads_a_forehead_that_faces_up():
     assert yn.tilt(n, inside & False, S) == 0.0
 
 
+def test_the_pitch_reads_a_face_turned_up_as_facing_up():
+    """The mean up/down component: about 0 for a sphere seen head on, positive for its normals
+    turned up about the horizontal axis, the prediction's and the truth's apart."""
+    n, inside = sphere_normals()
+    a = 0.3
+    up = np.stack([n[0], np.cos(a) * n[1] + np.sin(a) * n[2], -np.sin(a) * n[1] + np.cos(a) * n[2]])
+    r = yn.compare(up, n, inside)
+    assert abs(r["pitch_truth"]) < 0.02 and r["pitch"] > 0.15
+
+
 def test_the_shipped_portrait_s_normals_follow_a_real_face(shared_data):
     root = shared_data / "yale" / "CroppedYale"
     if not (root / "yaleB01").is_dir():

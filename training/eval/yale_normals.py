@@ -86,11 +86,14 @@ def tilt(normals: np.ndarray, mask: np.ndarray, height: int) -> float:
 
 
 def compare(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, height: int | None = None) -> dict:
-    """Mean angle (degrees) and per-axis correlation and spread ratio over ``mask``; with the
-    image's ``height``, the face's tilt (``tilt``) in the prediction and the truth."""
+    """Mean angle (degrees) and per-axis correlation and spread ratio over ``mask``, and the mean
+    up/down component of each (how far the face as a whole faces up: ``pitch``,
+    ``pitch_truth``); with the image's ``height``, the face's tilt (``tilt``) in the prediction
+    and the truth."""
     p, t = pred[:, mask], truth[:, mask]
     angle = np.degrees(np.arccos(np.clip((p * t).sum(0), -1.0, 1.0)))
-    out = {"angle_deg": float(angle.mean())}
+    out = {"angle_deg": float(angle.mean()), "pitch": float(p[1].mean()),
+           "pitch_truth": float(t[1].mean())}
     for i, axis in ((0, "x"), (1, "y")):
         out[f"corr_{axis}"] = float(np.corrcoef(p[i], t[i])[0, 1])
         out[f"spread_{axis}"] = float(p[i].std() / max(t[i].std(), 1e-9))
@@ -701,7 +704,7 @@ def _main(ap, a):
               f"left/right x corr {r['corr_x']:.3f} spread {r['spread_x']:.2f}; "
               f"up/down y corr {r['corr_y']:.3f} spread {r['spread_y']:.2f}; forehead-over-chin "
               f"tilt {r['tilt']:+.3f} (truth {r['tilt_truth']:+.3f}, correlation over subjects "
-              f"{r['tilt_corr']:.2f})")
+              f"{r['tilt_corr']:.2f}); mean up/down {r['pitch']:+.3f} (truth {r['pitch_truth']:+.3f})")
 
 
 if __name__ == "__main__":
