@@ -66,7 +66,8 @@ def test_the_pitch_reads_a_face_turned_up_as_facing_up():
     turned up about the horizontal axis, the prediction's and the truth's apart."""
     n, inside = sphere_normals()
     a = 0.3
-    up = np.stack([n[0], np.cos(a) * n[1] + np.sin(a) * n[2], -np.sin(a) * n[1] + np.cos(a) * n[2]])
+    up = np.stack([n[0], np.cos(a) * n[1] + np.sin(a) * n[2],
+                   -np.sin(a) * n[1] + np.cos(a) * n[2]])
     r = yn.compare(up, n, inside)
     assert abs(r["pitch_truth"]) < 0.02 and r["pitch"] > 0.15
 

@@ -44,9 +44,10 @@ import pathlib
 
 import numpy as np
 
-from addon import facetemplate, lightvec
+from addon import lightvec
 
 from .facetemplate import applied as template_applied
+from .facetemplate import flag_path as template_flag_path
 from .metrics import (LUMA, baseline_identity, baseline_irradiance_ratio, erode4, image_metrics,
                       level_fit_rmse, level_gain, mean_metrics, paired_difference,
                       shading_correlation, to_unit, white_level)
@@ -306,13 +307,7 @@ def main(argv=None):
         p.error("--face-template needs --onnx (and not --update-card: its figures are not the "
                 "product's)")
     if a.face_template:
-        path = None if a.face_template == "none" else a.face_template
-        try:
-            if path is not None:
-                facetemplate.cached(path)
-        except (OSError, ValueError) as e:
-            p.error(str(e))
-        with template_applied(path):
+        with template_applied(template_flag_path(a.face_template, p.error)):
             return _main(p, a)
     return _main(p, a)
 

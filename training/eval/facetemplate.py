@@ -1,6 +1,7 @@
 """Experiments with the face template (addon/facetemplate.py): ``applied`` runs the product's
 passes with another template, or none, in place of the shipped one
-(``training.eval.yale --compare-face-template``, ``training.eval.evaluate --face-template``)."""
+(``training.eval.yale --compare-face-template``, ``training.eval.evaluate`` and
+``training.eval.yale_normals --face-template``); ``flag_path`` reads such a flag."""
 
 from __future__ import annotations
 
@@ -26,3 +27,16 @@ def applied(path, axes: str = "y"):
         yield
     finally:
         portrait.FACE_TEMPLATE, portrait.FACE_TEMPLATE_AXES = kept
+
+
+def flag_path(value: str, error):
+    """The template path a ``--face-template`` flag's ``value`` names (None for 'none'), the file
+    checked first: ``error(message)`` (an argparse parser's ``error``) when it is missing or not
+    a face template, with what to build."""
+    path = None if value == "none" else value
+    try:
+        if path is not None:
+            facetemplate.cached(path)
+    except (OSError, ValueError) as e:
+        error(str(e))
+    return path

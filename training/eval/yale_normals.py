@@ -47,6 +47,8 @@ from addon import api, facetemplate, framing, intrinsic, portrait
 
 from . import yale
 from .facetemplate import applied as template_applied
+from .facetemplate import flag_path as template_flag_path
+
 
 def photometric_normals(images: np.ndarray, dirs: np.ndarray, fit=None):
     """((3, h*w) unit normals, (h*w,) bool where they were fitted) from (N, h, w) linear images
@@ -639,13 +641,7 @@ def main(argv=None):
                          "product's, or to none with 'none' (addon/facetemplate.py)")
     a = ap.parse_args(argv)
     if a.face_template:
-        path = None if a.face_template == "none" else a.face_template
-        try:
-            if path is not None:
-                facetemplate.cached(path)
-        except (OSError, ValueError) as e:
-            ap.error(str(e))
-        with template_applied(path):
+        with template_applied(template_flag_path(a.face_template, ap.error)):
             return _main(ap, a)
     return _main(ap, a)
 
@@ -704,7 +700,8 @@ def _main(ap, a):
               f"left/right x corr {r['corr_x']:.3f} spread {r['spread_x']:.2f}; "
               f"up/down y corr {r['corr_y']:.3f} spread {r['spread_y']:.2f}; forehead-over-chin "
               f"tilt {r['tilt']:+.3f} (truth {r['tilt_truth']:+.3f}, correlation over subjects "
-              f"{r['tilt_corr']:.2f}); mean up/down {r['pitch']:+.3f} (truth {r['pitch_truth']:+.3f})")
+              f"{r['tilt_corr']:.2f}); mean up/down {r['pitch']:+.3f} (truth "
+              f"{r['pitch_truth']:+.3f})")
 
 
 if __name__ == "__main__":
