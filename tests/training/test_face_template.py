@@ -253,46 +253,34 @@ def test_the_product_holds_every_pass_to_its_shipped_template(monkeypatch, tmp_p
     assert portrait.FACE_TEMPLATE == facetemplate.SHIPPED
 
 
-def test_evaluate_runs_under_another_template_and_keeps_it_off_the_card(tmp_path, monkeypatch,
-                                                                         capsys):
-    """training.eval.evaluate --face-template: the evaluation runs with the product's passes
-    taking that template (or none, with 'none') and with the product's after it; never with
-    --update-card (the card's figures are the product's), and a missing template is refused
-    with what to build."""
-    from training.eval import evaluate
+@pytest.mark.parametrize("module", ["evaluate", "yale_normals"])
+def test_an_experiment_runs_under_another_template_or_none(module, tmp_path, monkeypatch, capsys):
+    """training.eval.evaluate and yale_normals --face-template: the run goes with the product's
+    passes taking that template (or none, with 'none') and with the product's after it; a
+    missing template is refused with what to build."""
+    import importlib
 
+    mod = importlib.import_module(f"training.eval.{module}")
     seen = []
-    monkeypatch.setattr(evaluate, "_main", lambda p, a: seen.append(portrait.FACE_TEMPLATE))
+    monkeypatch.setattr(mod, "_main", lambda p, a: seen.append(portrait.FACE_TEMPLATE))
     path = tmp_path / "t.npz"
     np.savez(path, normal=np.zeros((3, 8, 8), np.float32), reach=np.float32(1.3))
-    evaluate.main(["--onnx", "m.onnx", "--face-template", str(path)])
-    evaluate.main(["--onnx", "m.onnx", "--face-template", "none"])
-    evaluate.main(["--onnx", "m.onnx"])
-    assert seen == [str(path), None, facetemplate.SHIPPED]
-    assert portrait.FACE_TEMPLATE == facetemplate.SHIPPED
-    for argv, said in ((["--update-card"], "not the product's"),
-                       (["--face-template", str(tmp_path / "none.npz")],
-                        "python -m training.intrinsic.template")):
-        with pytest.raises(SystemExit):
-            evaluate.main(["--onnx", "m.onnx", "--face-template", str(path), *argv])
-        assert said in capsys.readouterr().err
-
-
-def test_yale_normals_runs_under_another_template_or_none(tmp_path, monkeypatch, capsys):
-    """training.eval.yale_normals --face-template: the comparison of the network's normals with
-    photometric stereo's runs with the product's passes taking that template (or none) and
-    with the product's after it; a missing template is refused with what to build."""
-    from training.eval import yale_normals
-
-    seen = []
-    monkeypatch.setattr(yale_normals, "_main", lambda p, a: seen.append(portrait.FACE_TEMPLATE))
-    path = tmp_path / "t.npz"
-    np.savez(path, normal=np.zeros((3, 8, 8), np.float32), reach=np.float32(1.3))
-    yale_normals.main(["--onnx", "m.onnx", "--face-template", str(path)])
-    yale_normals.main(["--onnx", "m.onnx", "--face-template", "none"])
-    yale_normals.main(["--onnx", "m.onnx"])
+    mod.main(["--onnx", "m.onnx", "--face-template", str(path)])
+    mod.main(["--onnx", "m.onnx", "--face-template", "none"])
+    mod.main(["--onnx", "m.onnx"])
     assert seen == [str(path), None, facetemplate.SHIPPED]
     assert portrait.FACE_TEMPLATE == facetemplate.SHIPPED
     with pytest.raises(SystemExit):
-        yale_normals.main(["--onnx", "m.onnx", "--face-template", str(tmp_path / "none.npz")])
+        mod.main(["--onnx", "m.onnx", "--face-template", str(tmp_path / "none.npz")])
     assert "python -m training.intrinsic.template" in capsys.readouterr().err
+
+
+def test_evaluate_keeps_another_template_off_the_card(tmp_path, capsys):
+    """evaluate --face-template never with --update-card: the card's figures are the product's."""
+    from training.eval import evaluate
+
+    path = tmp_path / "t.npz"
+    np.savez(path, normal=np.zeros((3, 8, 8), np.float32), reach=np.float32(1.3))
+    with pytest.raises(SystemExit):
+        evaluate.main(["--onnx", "m.onnx", "--face-template", str(path), "--update-card"])
+    assert "not the product's" in capsys.readouterr().err
