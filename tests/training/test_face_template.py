@@ -284,3 +284,28 @@ def test_evaluate_keeps_another_template_off_the_card(tmp_path, capsys):
     with pytest.raises(SystemExit):
         evaluate.main(["--onnx", "m.onnx", "--face-template", str(path), "--update-card"])
     assert "not the product's" in capsys.readouterr().err
+
+
+def test_the_pose_bench_reads_each_variant_as_named_and_restores_the_product_s(monkeypatch):
+    """bench.face_template_pose.read: 'no template' reads without the template, 'template on
+    every head' with it at any turn, 'the product' with the product's fade; the product's
+    TURN is back after each, even when a read fails."""
+    from bench import face_template_pose as bench
+
+    seen = []
+
+    def buffers(session, img, shape=True):
+        seen.append((shape, facetemplate.turned_share(0.5)))
+        if session == "fail":
+            raise RuntimeError("failed")
+        return "bufs"
+
+    monkeypatch.setattr(portrait, "buffers", buffers)
+    product = facetemplate.TURN
+    for v in bench.VARIANTS:
+        assert bench.read(None, None, v) == "bufs"
+        assert facetemplate.TURN == product
+    assert seen == [(False, 0.0), (True, 1.0), (True, 0.0)]
+    with pytest.raises(RuntimeError):
+        bench.read("fail", None, "template on every head")
+    assert facetemplate.TURN == product
