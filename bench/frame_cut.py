@@ -16,7 +16,11 @@ facing down), for the uncut frame and for each way of filling the crop beyond th
 
 * ``black``: the product's (crop_planar);
 * ``edge copies``: the frame's edge pixels repeated outward (framing.crop without the black);
-* ``edge copies, blurred``: those, blurred by a Gaussian of BLUR pixels beyond the edge.
+* ``edge copies, blurred``: those, blurred by a Gaussian of BLUR pixels beyond the edge;
+
+and ``black, the face template``: the product's black crop with the product's face template
+held over the face skin left in the frame (addon.facetemplate.held), which replaces the
+normals' up/down low band there.
 
 ``--yale`` also relights CroppedYale's tune subjects (training/eval/yale.py, PAIRS pairs each)
 through addon.relight_image with each fill in the product's crop: the scale-invariant PSNR over
@@ -41,6 +45,7 @@ from .normals_by_light import angles
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 FILLS = ("black", "edge copies", "edge copies, blurred")
+TEMPLATE = "black, the face template"
 BLUR = 6.0  # working-size pixels
 BANDS = ((0, 4), (4, 8), (8, 16), (16, None))  # distance to the nearest cut edge, pixels
 MIN_BAND = 5  # face pixels a band needs in a frame to count there
@@ -119,6 +124,19 @@ def band_scores(pred: np.ndarray, truth: np.ndarray, sel: np.ndarray) -> tuple[f
     return float(deg.mean()), float((p[1] - t[1]).mean())
 
 
+def templated(session, res, valid: np.ndarray) -> np.ndarray:
+    """(3, h, w) the normals of the network's result ``res`` on a crop with the product's face
+    template held over the face skin inside the frame (``valid``), as addon.portrait.buffers
+    holds them."""
+    from addon import facetemplate
+
+    names = session.card.classes
+    matte = res.parsing[names.index("foreground")] * valid
+    face = res.parsing[names.index("skin")] * valid
+    bufs = intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face)
+    return facetemplate.held(bufs, facetemplate.cached(facetemplate.SHIPPED)).normal
+
+
 def band_name(lo, hi) -> str:
     return f"{lo}+ px" if hi is None else f"{lo}-{hi} px"
 
@@ -150,8 +168,11 @@ def synthetic(model: str, n_frames: int) -> dict:
         rep = repeat_edges(x, inside)
         preds = {"uncut": session.run_planar(x, mirror=portrait.MIRROR).normal}
         for how in FILLS:
-            preds[how] = session.run_planar(fill(rep, inside.astype(np.float32), how),
-                                            mirror=portrait.MIRROR).normal
+            res = session.run_planar(fill(rep, inside.astype(np.float32), how),
+                                     mirror=portrait.MIRROR)
+            preds[how] = res.normal
+            if how == "black":
+                preds[TEMPLATE] = templated(session, res, inside.astype(np.float32))
         truth = data.dense(a, a["normal"])
         dist = edge_distance(inside)
         for lo, hi in BANDS:
@@ -162,7 +183,7 @@ def synthetic(model: str, n_frames: int) -> dict:
                 ang, bias = band_scores(n, truth, sel)
                 acc.setdefault((name, band_name(lo, hi)), []).append((ang, bias, int(sel.sum())))
     out = {}
-    order = {name: i for i, name in enumerate(("uncut", *FILLS))}
+    order = {name: i for i, name in enumerate(("uncut", FILLS[0], TEMPLATE, *FILLS[1:]))}
     for (name, band), v in sorted(acc.items(), key=lambda kv: order[kv[0][0]]):
         v = np.array(v)
         out[f"{name} | {band}"] = {"angle_deg": float(np.average(v[:, 0], weights=v[:, 2])),

@@ -82,3 +82,31 @@ def test_band_scores_read_the_angle_and_the_up_down_bias():
     down[1] -= 0.3
     ang, bias = frame_cut.band_scores(down, truth, sel)
     assert ang > 5.0 and bias < -0.1
+
+
+def test_the_template_row_holds_the_face_skin_inside_the_frame_only():
+    """frame_cut.templated: the network's normals with the product's face template held over
+    the face skin that is inside the frame; a crop whose face skin lies all beyond the edge
+    keeps the network's normals."""
+    from types import SimpleNamespace
+
+    from addon import engine, facetemplate, intrinsic
+
+    h = w = 64
+    yy, xx = np.mgrid[:h, :w] + 0.5
+    skin = (((yy - 32) ** 2 + (xx - 30) ** 2) < 18 ** 2).astype(np.float32)
+    normal = np.zeros((3, h, w), np.float32)
+    normal[2] = 1.0
+    res = engine.IntrinsicResult(normal, np.zeros((h, w), np.float32),
+                                 np.full((3, h, w), 0.5, np.float32),
+                                 np.stack([np.ones((h, w), np.float32), skin,
+                                           np.zeros((h, w), np.float32)]))
+    session = SimpleNamespace(card=SimpleNamespace(classes=("foreground", "skin", "hair")))
+    inside = np.ones((h, w), np.float32)
+    got = frame_cut.templated(session, res, inside)
+    tpl = facetemplate.cached(facetemplate.SHIPPED)
+    want = facetemplate.held(intrinsic.Buffers(normal, res.height, res.albedo,
+                                               np.ones((h, w), np.float32), skin), tpl).normal
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    assert np.abs(got[1] - normal[1]).max() > 0.05  # the template turned the face
+    np.testing.assert_array_equal(frame_cut.templated(session, res, 0.0 * inside), normal)
