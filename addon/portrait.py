@@ -125,8 +125,8 @@ INPUT_LIFT = 0.8
 
 # Every relighting pass's normals (not the framing passes') take the vertical component's low
 # band over the face skin from a face template (facetemplate.held): the file at this path, or
-# none where None. The template is frontal: a turned head takes a frontal face's up/down shape
-# (a head turned about 20 degrees in the dev clip s18 looked right). On the CroppedYale
+# none where None. The template is frontal: a head the network reads as turned takes less of it
+# (facetemplate.TURN). On the CroppedYale
 # test subjects top/bottom balance correlation 0.817 -> 0.833 (paired +0.016, 5-95% +0.005 to
 # +0.028) at 20.31 -> 20.11 dB, left/right 0.982 either way; tune 0.850 -> 0.874 at 20.36 ->
 # 20.15 dB, where the vertical component alone was chosen over all three (0.870 at 20.09 dB).
@@ -146,6 +146,21 @@ def lifted(x: np.ndarray, level: float, power: float | None = None) -> np.ndarra
     return (x * np.power(rel, np.float32(power - 1.0))[None]).astype(np.float32)
 
 
+def result_buffers(session: IntrinsicSession, res,
+                   valid: np.ndarray | None = None) -> intrinsic.Buffers:
+    """The renderer's buffers of the network's result ``res`` (IntrinsicSession.run_planar's):
+    its matte, face skin and hair from the parsing by the card's class names, times ``valid``
+    (the share of each pixel inside the frame) where given."""
+    names = session.card.classes
+    matte = res.parsing[names.index("foreground")]
+    face = res.parsing[names.index("skin")] if "skin" in names else np.zeros_like(matte)
+    hair = res.parsing[names.index("hair")] if "hair" in names else None
+    if valid is not None:  # the dark backdrop beyond the frame is not the subject
+        matte, face = matte * valid, face * valid
+        hair = None if hair is None else hair * valid
+    return intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face, res.transfer, hair)
+
+
 def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None = None,
             mirror: bool = False, level: float | None = None, shape: bool = True):
     """The network's buffers for a (3, h, w) linear image (normalised here, to ``level``:
@@ -156,15 +171,7 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
     framing passes read only the face and the matte)."""
     level = intrinsic.INPUT_LEVEL if level is None else level
     x = lifted(x * np.float32(intrinsic.exposure_scale(x, level)), level)
-    res = session.run_planar(x, mirror=mirror)
-    names = session.card.classes
-    matte = res.parsing[names.index("foreground")]
-    face = res.parsing[names.index("skin")] if "skin" in names else np.zeros_like(matte)
-    hair = res.parsing[names.index("hair")] if "hair" in names else None
-    if valid is not None:  # the dark backdrop beyond the frame is not the subject
-        matte, face = matte * valid, face * valid
-        hair = None if hair is None else hair * valid
-    bufs = intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face, res.transfer, hair)
+    bufs = result_buffers(session, session.run_planar(x, mirror=mirror), valid)
     if shape and FACE_TEMPLATE is not None:
         sigma = facetemplate.SIGMA * x.shape[1] / session.card.working_size
         bufs = facetemplate.held(bufs, facetemplate.cached(FACE_TEMPLATE), sigma,

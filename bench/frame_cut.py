@@ -130,10 +130,7 @@ def templated(session, res, valid: np.ndarray) -> np.ndarray:
     holds them."""
     from addon import facetemplate
 
-    names = session.card.classes
-    matte = res.parsing[names.index("foreground")] * valid
-    face = res.parsing[names.index("skin")] * valid
-    bufs = intrinsic.Buffers(res.normal, res.height, res.albedo, matte, face)
+    bufs = portrait.result_buffers(session, res, valid)
     return facetemplate.held(bufs, facetemplate.cached(facetemplate.SHIPPED)).normal
 
 
