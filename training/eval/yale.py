@@ -96,6 +96,7 @@ from addon.intrinsic import SOURCE_FLOOR
 
 from . import report
 from .facetemplate import applied as template_applied
+from .facetemplate import flag_path as template_flag_path
 from .metrics import (baseline_identity, baseline_irradiance_ratio, image_metrics, mean_metrics,
                       srgb_encode, to_unit, white_level)
 
@@ -922,6 +923,10 @@ def select_subjects(names: list[str], quick: bool,
     return (tune[:1], test[:2]) if quick else (tune, test)
 
 
+def _refuse(message: str):
+    raise InputError(message) from None
+
+
 def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 2021,
         quick: bool = False, threads: int = 1, sheet_path=None, sheet_rows: int = 6,
         progress=print, split: str = "test", lifts=(), template=None,
@@ -948,11 +953,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
         r = PipelineRelighter(onnx_paths[0], threads, lift=lift)
         relighters[r.name] = r
     if template is not None:
-        try:
-            if template != "none":
-                facetemplate.cached(template)  # refused here, before any relighting
-        except (OSError, ValueError) as e:
-            raise InputError(str(e)) from None
+        template_flag_path(template, _refuse)  # refused here, before any relighting
         r = PipelineRelighter(onnx_paths[0], threads, template=template,
                               template_axes=template_axes)
         relighters[r.name] = r
