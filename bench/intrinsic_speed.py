@@ -31,8 +31,8 @@ import time
 
 import numpy as np
 
-from addon import (api, blas, colour, detail, intrinsic, lightvec, outline, pipeline, portrait,
-                   temporal)
+from addon import (api, blas, colour, detail, facetemplate, intrinsic, lightvec, outline, pipeline,
+                   portrait, temporal)
 from training.eval import report
 from training.lightstage.png import read_png
 
@@ -185,6 +185,17 @@ def run(model: str, threads: int, repeats: int) -> dict:
         rows["narrow blur, sigma 0.5 px, two planes, by matrices (comparison)"] = timed(
             lambda: intrinsic.blur_matrix(h, 0.5) @ pair @ intrinsic.blur_matrix(w, 0.5).T,
             repeats)
+        # The face template's low band on the crop (facetemplate.held takes it every pass), the
+        # blur taken into the template's bilinear weights, and laid on the crop then blurred.
+        template = facetemplate.cached(facetemplate.SHIPPED)
+        frame = facetemplate.skin_frame(bufs.face, bufs.matte)
+        if frame is not None:
+            rows["face template's low band on the crop (blur taken into its weights)"] = timed(
+                lambda: facetemplate.laid_low(template, frame, (h, w), facetemplate.SIGMA),
+                repeats)
+            rows["face template's low band on the crop, laid then blurred (comparison)"] = timed(
+                lambda: intrinsic.gaussian_blur(facetemplate.laid(template, frame, (h, w))[0],
+                                                facetemplate.SIGMA), repeats)
         # The coarse pass's change (ratio, highlight, weight, matte) enlarged to the grid, by
         # small blocks (detail.enlarge_planar where the ratio has them) and by whole matrices.
         coarse = np.zeros((8,) + detail.working_shape(*x.shape[1:], portrait.coarse_size(size)),

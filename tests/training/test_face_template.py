@@ -66,6 +66,23 @@ def test_a_template_lands_on_the_face_wherever_and_however_large_it_is():
     assert far.any() and np.all(got[:, far] == 0.0)
 
 
+@pytest.mark.parametrize("hw, sigma", [((96, 96), 6.0), ((72, 128), 3.375), ((96, 80), 1.0)])
+def test_the_template_s_low_band_is_the_blur_of_the_laid_template(hw, sigma):
+    """laid_low, whose blur is taken into the template's bilinear weights (or, for a blur of a
+    few taps, applied to the laid template), gives the laid template blurred as gaussian_blur
+    blurs it, edges and all, and the same reach; here for a face near the crop's edge, so the
+    blur's edge samples and the grid's unreached pixels both count."""
+    t = sphere_template()
+    frame = (hw[0] * 0.3, hw[1] * 0.75, min(hw) * 0.4)
+    shape, inside = facetemplate.laid(t, frame, hw)
+    got, reach = facetemplate.laid_low(t, frame, hw, sigma)
+    assert (~inside).any() and np.array_equal(reach, inside)
+    want = intrinsic.gaussian_blur(shape, sigma)
+    assert got.shape == want.shape == (3,) + hw
+    assert np.abs(got - want).max() < 1e-5
+    assert np.abs(got - shape).max() > 0.05  # a blur that did something
+
+
 def test_held_takes_the_template_s_low_band_and_keeps_the_network_s_detail():
     """On a flat face (every normal toward the camera) with fine sideways ripples, the held
     normals' vertical low band over the skin turns like the sphere's (up at its top) while the
