@@ -109,7 +109,12 @@ def laid(template: Template, frame: tuple[float, float, float],
     ``frame`` (skin_frame's), bilinear, as two small matrix products; (h, w) where the grid
     reaches, 0 elsewhere)."""
     wu, ru, wv, rv = _weights(template, frame, hw)
-    return np.matmul(np.matmul(wu, template.normal), wv.T), ru[:, None] & rv[None, :]
+    return _laid_with(template, wu, wv), ru[:, None] & rv[None, :]
+
+
+def _laid_with(template: Template, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(3, h, w) rows @ the template's normals @ cols^T: laid with (h, T) and (w, T) weights."""
+    return np.matmul(np.matmul(rows, template.normal), cols.T)
 
 
 def laid_low(template: Template, frame: tuple[float, float, float], hw: tuple[int, int],
@@ -127,10 +132,9 @@ def _low(template: Template, wu: np.ndarray, wv: np.ndarray, sigma: float) -> np
     cheaper on a working-size crop (bench.intrinsic_speed's face template rows). A blur narrow
     enough to add taps (intrinsic.TAPS_RADIUS) blurs the laid normals instead."""
     if intrinsic.blur_radius(sigma) <= intrinsic.TAPS_RADIUS:
-        return intrinsic.gaussian_blur(np.matmul(np.matmul(wu, template.normal), wv.T), sigma)
-    rows = intrinsic.blur_matrix(wu.shape[0], sigma) @ wu
-    cols = intrinsic.blur_matrix(wv.shape[0], sigma) @ wv
-    return np.matmul(np.matmul(rows, template.normal), cols.T)
+        return intrinsic.gaussian_blur(_laid_with(template, wu, wv), sigma)
+    return _laid_with(template, intrinsic.blur_matrix(wu.shape[0], sigma) @ wu,
+                      intrinsic.blur_matrix(wv.shape[0], sigma) @ wv)
 
 
 def turned_share(turn: float) -> float:

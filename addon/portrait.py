@@ -172,11 +172,18 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
     level = intrinsic.INPUT_LEVEL if level is None else level
     x = lifted(x * np.float32(intrinsic.exposure_scale(x, level)), level)
     bufs = result_buffers(session, session.run_planar(x, mirror=mirror), valid)
-    if shape and FACE_TEMPLATE is not None:
-        sigma = facetemplate.SIGMA * x.shape[1] / session.card.working_size
-        bufs = facetemplate.held(bufs, facetemplate.cached(FACE_TEMPLATE), sigma,
-                                 facetemplate.AXES[FACE_TEMPLATE_AXES])
-    return bufs
+    return templated(bufs, session.card.working_size) if shape else bufs
+
+
+def templated(bufs: intrinsic.Buffers, working_size: int) -> intrinsic.Buffers:
+    """``bufs`` (of a crop) with the face template held over their normals as every relighting
+    pass holds it (FACE_TEMPLATE, FACE_TEMPLATE_AXES; facetemplate.held, the low band's width
+    scaled from the working size to the crop's); as they are where FACE_TEMPLATE is None."""
+    if FACE_TEMPLATE is None:
+        return bufs
+    sigma = facetemplate.SIGMA * bufs.normal.shape[1] / working_size
+    return facetemplate.held(bufs, facetemplate.cached(FACE_TEMPLATE), sigma,
+                             facetemplate.AXES[FACE_TEMPLATE_AXES])
 
 
 # The face crop's buffers are also the mean with the network's on a finer sampling of the same

@@ -127,11 +127,9 @@ def band_scores(pred: np.ndarray, truth: np.ndarray, sel: np.ndarray) -> tuple[f
 def templated(session, res, valid: np.ndarray) -> np.ndarray:
     """(3, h, w) the normals of the network's result ``res`` on a crop with the product's face
     template held over the face skin inside the frame (``valid``), as addon.portrait.buffers
-    holds them."""
-    from addon import facetemplate
-
-    bufs = portrait.result_buffers(session, res, valid)
-    return facetemplate.held(bufs, facetemplate.cached(facetemplate.SHIPPED)).normal
+    holds them (portrait.templated)."""
+    return portrait.templated(portrait.result_buffers(session, res, valid),
+                              session.card.working_size).normal
 
 
 def band_name(lo, hi) -> str:

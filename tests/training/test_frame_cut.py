@@ -101,7 +101,8 @@ def test_the_template_row_holds_the_face_skin_inside_the_frame_only():
                                  np.full((3, h, w), 0.5, np.float32),
                                  np.stack([np.ones((h, w), np.float32), skin,
                                            np.zeros((h, w), np.float32)]))
-    session = SimpleNamespace(card=SimpleNamespace(classes=("foreground", "skin", "hair")))
+    session = SimpleNamespace(card=SimpleNamespace(classes=("foreground", "skin", "hair"),
+                                                working_size=h))
     inside = np.ones((h, w), np.float32)
     got = frame_cut.templated(session, res, inside)
     tpl = facetemplate.cached(facetemplate.SHIPPED)
