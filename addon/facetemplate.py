@@ -2,8 +2,8 @@
 heads' normals averaged on a grid set by the face skin's own extent (training/intrinsic/template.py
 builds ``models/face-template/template.npz``), laid over a crop where the network finds the face
 skin, and taken as the low band of the normals' vertical component there (a least-squares
-multiple of it, under the network's own detail). addon.portrait applies it to every
-relighting pass (``portrait.FACE_TEMPLATE``).
+multiple of it, under the network's own detail). addon.portrait applies it to the face crop's
+buffers, once on the mean of its passes (``portrait.FACE_TEMPLATE``).
 
 On real faces the network's vertical normals are what the relit balance lacks (they correlate
 about 0.7 with photometric stereo's on CroppedYale); with the template the CroppedYale test
@@ -173,7 +173,7 @@ def held(bufs: intrinsic.Buffers, template: Template, sigma: float = SIGMA,
 
 
 def cached(path) -> Template:
-    """load(``path``), once per path (as given: every relighting pass asks)."""
+    """load(``path``), once per path (as given: every relit frame asks)."""
     key = str(path)
     if key not in _LOADED:
         _LOADED[key] = load(path)

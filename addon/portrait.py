@@ -123,9 +123,9 @@ MIRROR = True
 # rmse_level_fit 0.0570 -> 0.0580 (training.eval.evaluate).
 INPUT_LIFT = 0.8
 
-# Every relighting pass's normals (not the framing passes') take the vertical component's low
-# band over the face skin from a face template (facetemplate.held): the file at this path, or
-# none where None. The template is frontal: a head the network reads as turned takes less of it
+# The face crop's normals (the mean of its passes, face_buffers; not the framing passes' nor the
+# coarse pass's) take the vertical component's low band over the face skin from a face template
+# (facetemplate.held): the file at this path, or none where None. The template is frontal: a head the network reads as turned takes less of it
 # (facetemplate.TURN). On the CroppedYale
 # test subjects top/bottom balance correlation 0.817 -> 0.833 (paired +0.016, 5-95% +0.005 to
 # +0.028) at 20.31 -> 20.11 dB, left/right 0.982 either way; tune 0.850 -> 0.874 at 20.36 ->
@@ -168,7 +168,8 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
     inside the frame (crop_planar); ``mirror``: the mean with the mirror image's (MIRROR). The
     network sees the crop with its shadows lifted (INPUT_LIFT); its normals' vertical low band
     over the face skin is the face template's (FACE_TEMPLATE) unless ``shape`` is off (the
-    framing passes read only the face and the matte)."""
+    framing passes read only the face and the matte; the coarse pass and the face crop's
+    passes, which face_buffers holds to it once, on their mean)."""
     level = intrinsic.INPUT_LEVEL if level is None else level
     x = lifted(x * np.float32(intrinsic.exposure_scale(x, level)), level)
     bufs = result_buffers(session, session.run_planar(x, mirror=mirror), valid)
@@ -176,8 +177,8 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
 
 
 def templated(bufs: intrinsic.Buffers, working_size: int) -> intrinsic.Buffers:
-    """``bufs`` (of a crop) with the face template held over their normals as every relighting
-    pass holds it (FACE_TEMPLATE, FACE_TEMPLATE_AXES; facetemplate.held, the low band's width
+    """``bufs`` (of a crop) with the face template held over their normals as the face crop
+    holds it (FACE_TEMPLATE, FACE_TEMPLATE_AXES; facetemplate.held, the low band's width
     scaled from the working size to the crop's); as they are where FACE_TEMPLATE is None."""
     if FACE_TEMPLATE is None:
         return bufs
@@ -334,14 +335,15 @@ def face_buffers(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box
                  fullres: detail.FullRes | None = None):
     """(crop, valid, buffers) of the face crop as the relighting pass takes them: the crop and
     its mirror image (MIRROR), averaged with a finer sampling of the same box (ZOOM), fed
-    brighter (FINER_LEVEL), whose albedo is left out."""
+    brighter (FINER_LEVEL), whose albedo is left out; the face template held once, on the
+    mean (templated)."""
     crop, valid = crop_planar(x_full, box, size)
-    bufs = buffers(session, crop, valid, mirror=MIRROR)
+    bufs = buffers(session, crop, valid, mirror=MIRROR, shape=False)
     if ZOOM:
         finer = buffers(session, *crop_planar(x_full, box, round(size * ZOOM)), mirror=MIRROR,
-                        level=FINER_LEVEL)
+                        level=FINER_LEVEL, shape=False)
         bufs = replace(mean_buffers(bufs, shrunk(finer, size, fullres)), albedo=bufs.albedo)
-    return crop, valid, bufs
+    return crop, valid, templated(bufs, size)
 
 
 def _change(session, x: np.ndarray, light, effects, valid=None, unit=None, bufs=None):
@@ -401,10 +403,11 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
         small = fr.shrink_planar(grid, *detail.working_shape(h, w, coarse_size(size)))
         # Diffuse only: at this scale (a 1080p frame's 15 pixels a sample) cast shadows are
         # blocks, and highlights fall on face skin, which the face crop covers. One network pass
-        # (no mirror image): the face crop is where the buffers' errors show.
+        # (no mirror image) and no face template: the face crop is where the buffers' errors
+        # show, and it relights the face.
         mr, hi, m, raw = _change(session, small, light,
                                  intrinsic.Plan(plan.components, False, False),
-                                 bufs=buffers(session, small))
+                                 bufs=buffers(session, small, shape=False))
         coarse = detail.enlarge_planar(np.concatenate([mr, hi, m[None], raw[None]], 0), gh, gw)
     # Fine: the crop around the face, placed on the grid with its feathered edge.
     crop, valid, bufs = face_buffers(session, x_full, box, size, fr)

@@ -129,6 +129,17 @@ FACE_ROW = ("network, the face crop's relighting passes (portrait.face_buffers: 
             "and its mirror image, the finer sampling and its mirror image)")
 
 
+def held_on_each(sess, x: np.ndarray, box, size: int) -> intrinsic.Buffers:
+    """portrait.face_buffers with the face template held on the crop's pass and on the finer
+    sampling's, then averaged, not once on their mean (for comparison)."""
+    crop, valid = portrait.crop_planar(x, box, size)
+    bufs = portrait.buffers(sess, crop, valid, mirror=portrait.MIRROR)
+    finer = portrait.buffers(sess, *portrait.crop_planar(x, box, round(size * portrait.ZOOM)),
+                             mirror=portrait.MIRROR, level=portrait.FINER_LEVEL)
+    return dataclasses.replace(portrait.mean_buffers(bufs, portrait.shrunk(finer, size)),
+                               albedo=bufs.albedo)
+
+
 def run(model: str, threads: int, repeats: int) -> dict:
     sess = api.session(model, threads)
     size = sess.card.working_size
@@ -161,6 +172,8 @@ def run(model: str, threads: int, repeats: int) -> dict:
             f"network, {size} px crop and its mirror in one batch (a relighting pass)": timed(
                 lambda: sess.run_planar(crop, mirror=portrait.MIRROR), repeats),
             FACE_ROW: timed(lambda: portrait.face_buffers(sess, x, box, size), repeats),
+            FACE_ROW + ", the face template held on each pass before the mean (comparison)":
+                timed(lambda: held_on_each(sess, x, box, size), repeats),
             "renderer, key lamp (diffuse + shadow + highlight)":
                 timed(lambda: intrinsic.shade(crop, bufs, lamp), repeats),
         }

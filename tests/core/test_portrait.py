@@ -368,20 +368,24 @@ def test_every_pass_feeds_the_network_its_lifted_crop(tmp_path):
 def test_the_face_crop_keeps_its_own_albedo_and_averages_the_rest_with_the_finer_pass(shipped):
     """portrait.face_buffers: the finer sampling, fed brighter, clips the highlights its albedo
     would read, so the albedo is the crop's own pass's; the other buffers are the mean of the
-    two passes (mean_buffers of the crop's and the finer pass shrunk to the crop)."""
+    two passes (mean_buffers of the crop's and the finer pass shrunk to the crop), the face
+    template held once, on the mean (portrait.templated)."""
     sess, x = shipped
     box = portrait.find_box(sess, x)
     size = sess.card.working_size
     crop, valid, got = portrait.face_buffers(sess, x, box, size)
-    own = portrait.buffers(sess, crop, valid, mirror=portrait.MIRROR)
+    own = portrait.buffers(sess, crop, valid, mirror=portrait.MIRROR, shape=False)
     finer = portrait.buffers(sess, *portrait.crop_planar(x, box, round(size * portrait.ZOOM)),
-                             mirror=portrait.MIRROR, level=portrait.FINER_LEVEL)
+                             mirror=portrait.MIRROR, level=portrait.FINER_LEVEL, shape=False)
     mean = portrait.mean_buffers(own, portrait.shrunk(finer, size))
+    held = portrait.templated(mean, size)
     np.testing.assert_array_equal(got.albedo, own.albedo)
     assert np.abs(mean.albedo - own.albedo).max() > 1e-3  # the mean's albedo would differ
     for name in ("normal", "height", "matte", "face", "transfer"):
-        np.testing.assert_allclose(getattr(got, name), getattr(mean, name), atol=1e-6)
+        np.testing.assert_allclose(getattr(got, name), getattr(held, name), atol=1e-6)
     assert np.degrees(np.arccos(np.clip((got.normal * own.normal).sum(0), -1, 1))).max() > 1.0
+    # The template moved the mean's normals (this frame's face is one it holds).
+    assert np.degrees(np.arccos(np.clip((held.normal * mean.normal).sum(0), -1, 1))).max() > 1.0
 
 
 def test_a_finer_sampling_s_buffers_are_shrunk_to_the_crop_and_averaged():

@@ -220,13 +220,13 @@ def test_main_writes_a_template_the_product_loads_with_its_card(tmp_path, monkey
 
 def test_the_product_holds_every_pass_to_its_shipped_template(monkeypatch, tmp_path):
     """portrait.FACE_TEMPLATE: the shipped template (models/face-template/, which loads) by
-    default; each relighting pass's buffers are facetemplate.held's, the vertical component's,
+    default; a relighting pass's buffers are facetemplate.held's, the vertical component's,
     the low band's width scaled with the crop's size (SIGMA at the working size), the framing
-    passes' not. experiment.applied
+    passes' and the coarse pass's not, and a relit frame's face crop takes it once. experiment.applied
     swaps in another template, or none (the network's normals as they are), and then steps
     aside; a missing file is refused before anything runs."""
     from addon import engine, framing
-    from tests.core.test_portrait import chw, frame, write_standin
+    from tests.core.test_portrait import RIGHT_LAMP, chw, frame, write_standin
 
     assert portrait.FACE_TEMPLATE == facetemplate.SHIPPED and portrait.FACE_TEMPLATE_AXES == "y"
     shipped = facetemplate.load(facetemplate.SHIPPED)
@@ -251,6 +251,10 @@ def test_the_product_holds_every_pass_to_its_shipped_template(monkeypatch, tmp_p
     portrait.find_box(sess, x)  # framing reads the face and the matte only: no shape to hold
     portrait.find_box(sess, x, prior=box)
     assert calls == []
+    # A relit frame holds it once, on the face crop's buffers (the mean of its passes); the
+    # coarse pass over the whole frame (this box does not hold it) takes none.
+    portrait.relight_frame(sess, x, RIGHT_LAMP, box)
+    assert calls == [(shipped.normal.shape, pytest.approx(facetemplate.SIGMA), (1,))]
     other = tmp_path / "t.npz"
     np.savez(other, normal=np.tile(np.array([0.0, 0.6, 0.8], np.float32)[:, None, None],
                                    (1, 16, 16)), reach=np.float32(1.3))
