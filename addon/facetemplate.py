@@ -10,11 +10,11 @@ about 0.7 with photometric stereo's on CroppedYale); with the template the Cropp
 subjects' top/bottom balance correlation rose from 0.817 to 0.833 (paired +0.016, 5-95% +0.005
 to +0.028) at 20.31 -> 20.11 dB, left/right 0.982 either way, and the synthetic test set's
 rmse_level_fit went from 0.0580 to 0.0576 (0.0577 since a turned head takes less of it, TURN;
-training/README.md has the commands). It is a prior, not the subject's shape: photometric
-stereo's normals on CroppedYale's tune subjects turn less from forehead to chin (+0.06) than the
-network's (+0.14) and the network's under the template (+0.25), whose vertical component
-correlates less with them (0.70 -> 0.62); the relit balance follows the real light better all
-the same.
+0.832 and 0.0578 held once on the face crop's mean; training/README.md has the commands). It
+is a prior, not the subject's shape: photometric stereo's normals on CroppedYale's tune
+subjects turn less from forehead to chin (+0.06) than the network's (+0.14) and the network's
+under the template (+0.25), whose vertical component correlates less with them (0.70 -> 0.62);
+the relit balance follows the real light better all the same.
 """
 
 from __future__ import annotations

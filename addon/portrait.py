@@ -125,11 +125,13 @@ INPUT_LIFT = 0.8
 
 # The face crop's normals (the mean of its passes, face_buffers; not the framing passes' nor the
 # coarse pass's) take the vertical component's low band over the face skin from a face template
-# (facetemplate.held): the file at this path, or none where None. The template is frontal: a head the network reads as turned takes less of it
-# (facetemplate.TURN). On the CroppedYale
+# (facetemplate.held): the file at this path, or none where None. The template is frontal: a
+# head the network reads as turned takes less of it (facetemplate.TURN). On the CroppedYale
 # test subjects top/bottom balance correlation 0.817 -> 0.833 (paired +0.016, 5-95% +0.005 to
 # +0.028) at 20.31 -> 20.11 dB, left/right 0.982 either way; tune 0.850 -> 0.874 at 20.36 ->
 # 20.15 dB, where the vertical component alone was chosen over all three (0.870 at 20.09 dB).
+# Held on each of the face crop's passes before their mean, it read the same to 0.001 (test
+# 0.833, tune 0.874, training/README.md) for one more run of it a frame.
 FACE_TEMPLATE = facetemplate.SHIPPED
 FACE_TEMPLATE_AXES = "y"  # facetemplate.AXES' key
 
