@@ -345,7 +345,7 @@ def face_buffers(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box
         finer = buffers(session, *crop_planar(x_full, box, round(size * ZOOM)), mirror=MIRROR,
                         level=FINER_LEVEL, shape=False)
         bufs = replace(mean_buffers(bufs, shrunk(finer, size, fullres)), albedo=bufs.albedo)
-    return crop, valid, templated(bufs, size)
+    return crop, valid, templated(bufs, session.card.working_size)
 
 
 def _change(session, x: np.ndarray, light, effects, valid=None, unit=None, bufs=None):
