@@ -222,9 +222,9 @@ def test_the_product_holds_every_pass_to_its_shipped_template(monkeypatch, tmp_p
     """portrait.FACE_TEMPLATE: the shipped template (models/face-template/, which loads) by
     default; a relighting pass's buffers are facetemplate.held's, the vertical component's,
     the low band's width scaled with the crop's size (SIGMA at the working size), the framing
-    passes' and the coarse pass's not, and a relit frame's face crop takes it once. experiment.applied
-    swaps in another template, or none (the network's normals as they are), and then steps
-    aside; a missing file is refused before anything runs."""
+    passes' and the coarse pass's not, and a relit frame's face crop takes it once.
+    experiment.applied swaps in another template, or none (the network's normals as they are),
+    and then steps aside; a missing file is refused before anything runs."""
     from addon import engine, framing
     from tests.core.test_portrait import RIGHT_LAMP, chw, frame, write_standin
 
