@@ -145,6 +145,34 @@ def frontal_b01(shared_data):
     return h, w, x, sess, portrait.find_box(sess, x)
 
 
+def test_the_face_crop_relights_the_given_normals_not_the_template_over_them(shared_data):
+    """Within photometric_buffers the face crop's buffers, the mean of its passes
+    (portrait.face_buffers), keep the given normals where they were fitted: the product holds
+    that mean to the face template, which would otherwise lay its own up/down shape over them;
+    after the context the product holds it again."""
+    from addon import portrait
+
+    h, w, x, sess, box = frontal_b01(shared_data)
+    up = np.tile([[0.0], [0.6], [0.8]], (1, h * w))  # every fitted pixel faces up and forward
+    fitted = np.ones(h * w, bool)
+    n = sess.card.working_size
+    with yn.photometric_buffers(up, fitted):
+        _, _, got = portrait.face_buffers(sess, x, box, n)
+    inner = (slice(n // 2 - 20, n // 2 + 20),) * 2
+    np.testing.assert_allclose(got.normal[(slice(None),) + inner],
+                               np.broadcast_to(np.array([0.0, 0.6, 0.8])[:, None, None],
+                                               (3, 40, 40)), atol=1e-5)
+    assert portrait.templated.__module__ == "addon.portrait"  # restored
+    _, _, plain = portrait.face_buffers(sess, x, box, n)
+    held = portrait.templated(portrait.mean_buffers(
+        portrait.buffers(sess, *portrait.crop_planar(x, box, n), mirror=portrait.MIRROR,
+                         shape=False),
+        portrait.shrunk(portrait.buffers(
+            sess, *portrait.crop_planar(x, box, round(n * portrait.ZOOM)),
+            mirror=portrait.MIRROR, level=portrait.FINER_LEVEL, shape=False), n)), n)
+    np.testing.assert_allclose(plain.normal, held.normal, atol=1e-6)
+
+
 def test_a_band_swap_keeps_one_shape_s_low_band_and_the_other_s_detail(shared_data):
     """photometric_buffers' low_sigma: a flat field (every normal up) has no detail, so swapping
     the network's low band in gives the network's normals blurred, and swapping the flat

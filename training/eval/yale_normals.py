@@ -149,8 +149,11 @@ def crop_normals(normals: np.ndarray, fitted: np.ndarray, hw: tuple[int, int], b
 def crop_swap(change):
     """Within this context the buffers of each square crop the product takes (addon.portrait's
     crop_planar, then buffers of that crop: the face crop and its finer sampling; no other
-    image's) are ``change(session, buffers, box, image_hw, size)``'s."""
-    crop_planar, buffers = portrait.crop_planar, portrait.buffers
+    image's) are ``change(session, buffers, box, image_hw, size)``'s, the buffers given to it
+    held to the face template as the crop's own (portrait.templated). The product holds the
+    face crop's mean of its passes to the template (portrait.face_buffers); here that mean is
+    left as the changes made it, so the shape they give is the one relit."""
+    crop_planar, buffers, templated = portrait.crop_planar, portrait.buffers, portrait.templated
     state = {}
 
     def crop(x, box, size):
@@ -158,17 +161,20 @@ def crop_swap(change):
         return crop_planar(x, box, size)
 
     def swap(session, x, valid=None, mirror=False, level=None, shape=True):
-        out = buffers(session, x, valid, mirror, level, shape)
         size = state.pop("size", None)  # the buffers of the crop just taken, no other image's
-        if size is None or x.shape[1:] != (size, size):
-            return out
-        return change(session, out, state["box"], state["hw"], size)
+        taken = size is not None and x.shape[1:] == (size, size)
+        out = buffers(session, x, valid, mirror, level, False)
+        if shape or taken:
+            out = templated(out, session.card.working_size)
+        return change(session, out, state["box"], state["hw"], size) if taken else out
 
     portrait.crop_planar, portrait.buffers = crop, swap
+    portrait.templated = lambda bufs, working_size: bufs
     try:
         yield
     finally:
         portrait.crop_planar, portrait.buffers = crop_planar, buffers
+        portrait.templated = templated
 
 
 @contextlib.contextmanager
