@@ -198,7 +198,7 @@ def run(model: str, threads: int, repeats: int) -> dict:
         rows["narrow blur, sigma 0.5 px, two planes, by matrices (comparison)"] = timed(
             lambda: intrinsic.blur_matrix(h, 0.5) @ pair @ intrinsic.blur_matrix(w, 0.5).T,
             repeats)
-        # The face template's low band on the crop (facetemplate.held takes it every pass), the
+        # The face template's low band on the crop (facetemplate.held takes it every frame), the
         # blur taken into the template's bilinear weights, and laid on the crop then blurred.
         template = facetemplate.cached(facetemplate.SHIPPED)
         frame = facetemplate.skin_frame(bufs.face, bufs.matte)

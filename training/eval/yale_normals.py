@@ -643,7 +643,7 @@ def main(argv=None):
                     help="also how much of each single-light photo's light the network leaves "
                          "in its albedo, against photometric stereo's albedo (albedo_light)")
     ap.add_argument("--face-template", metavar="NPZ",
-                    help="every pass's normals held to this face template instead of the "
+                    help="the face crop's normals held to this face template instead of the "
                          "product's, or to none with 'none' (addon/facetemplate.py)")
     a = ap.parse_args(argv)
     if a.face_template:
