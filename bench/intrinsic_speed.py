@@ -189,15 +189,19 @@ def run(model: str, threads: int, repeats: int) -> dict:
         rows[fill_row] = timed(lambda: intrinsic.penumbra(vis, dist, turned), repeats)
         rows["penumbra, key lamp, the plain blur (comparison)"] = timed(
             lambda: intrinsic.penumbra(vis, dist), repeats)
-        # A narrow blur as the subsurface diffusion runs it (a value and its weight), by its
-        # taps (gaussian_blur up to TAPS_RADIUS), and by the two matrix products beside it.
+        # Narrow blurs as the subsurface diffusion runs them (a value and its weight), by their
+        # taps (gaussian_blur up to TAPS_RADIUS), and by the two matrix products beside them: at
+        # radius 2 and at the widest radius that adds its taps.
         pair = np.stack([bufs.matte, bufs.face])
         h, w = pair.shape[1:]
-        rows["narrow blur, sigma 0.5 px, two planes (its taps)"] = timed(
-            lambda: intrinsic.gaussian_blur(pair, 0.5), repeats)
-        rows["narrow blur, sigma 0.5 px, two planes, by matrices (comparison)"] = timed(
-            lambda: intrinsic.blur_matrix(h, 0.5) @ pair @ intrinsic.blur_matrix(w, 0.5).T,
-            repeats)
+        for sigma in (0.5, (intrinsic.TAPS_RADIUS - 0.5) / 3.0):
+            label = (f"narrow blur, sigma {sigma:.2f} px (radius {intrinsic.blur_radius(sigma)}), "
+                     "two planes")
+            rows[label + " (its taps)"] = timed(lambda: intrinsic.gaussian_blur(pair, sigma),
+                                                repeats)
+            rows[label + ", by matrices (comparison)"] = timed(
+                lambda: intrinsic.blur_matrix(h, sigma) @ pair
+                @ intrinsic.blur_matrix(w, sigma).T, repeats)
         # The face template's low band on the crop (facetemplate.held takes it every frame), the
         # blur taken into the template's bilinear weights, and laid on the crop then blurred.
         template = facetemplate.cached(facetemplate.SHIPPED)
