@@ -579,12 +579,13 @@ def blur_matrix(n: int, sigma: float) -> np.ndarray:
     return m
 
 
-# Up to this radius (blur_radius) a blur adds its taps along each axis, the two taps at equal
-# offsets summed before their one multiply: the subsurface diffusion's, the matte's, the face
-# template's blend and the penumbra's narrower blurs, for which that is cheaper than the two
-# matrix products (bench.intrinsic_speed's narrow blur rows, radius 2 and radius 8); beyond it
-# the products' cost, flat in the radius, is the lower one.
-TAPS_RADIUS = 8
+# Up to this radius (blur_radius) gaussian_blur adds its taps (tap_blur): the subsurface
+# diffusion's narrower channels and the matte's blurs. Wider blurs take the matrix products by
+# bands (banded_blur), BAND_BLOCK rows of the output at a time: the whole products' values for
+# a fraction of their work. bench.intrinsic_speed times the ways against each other at radius
+# 2, at this radius and just beyond it.
+TAPS_RADIUS = 4
+BAND_BLOCK = 32
 
 
 @functools.lru_cache(maxsize=32)
@@ -616,14 +617,42 @@ def _edge_padded(a: np.ndarray, axis: int, r: int) -> np.ndarray:
 
 def gaussian_blur(a: np.ndarray, sigma: float) -> np.ndarray:
     """(..., h, w) separable Gaussian blur over the last two axes (edges extended), sigma in
-    pixels, cut at three sigma: two matrix products (blur_matrix), far cheaper than a tap loop
-    at the working size, or for a narrow blur (TAPS_RADIUS) its few taps added along each axis
-    (the same blur)."""
+    pixels, cut at three sigma: two matrix products (blur_matrix) by bands (banded_blur), far
+    cheaper than a tap loop at the working size, or for a narrow blur (TAPS_RADIUS) its few
+    taps added along each axis (tap_blur; the same blur)."""
+    a = np.asarray(a, np.float32)
+    if blur_radius(sigma) > TAPS_RADIUS:
+        return banded_blur(a, sigma)
+    return tap_blur(a, sigma)
+
+
+def banded_blur(a: np.ndarray, sigma: float) -> np.ndarray:
+    """gaussian_blur by the matrices blur_matrix gives, BAND_BLOCK rows (then columns) of the
+    output at a time from the input samples within reach of them: the only ones their rows of
+    the matrix weigh (an edge's extended taps fall on samples the block reaches too)."""
     a = np.asarray(a, np.float32)
     h, w = a.shape[-2:]
     r = blur_radius(sigma)
-    if r > TAPS_RADIUS:
-        return np.matmul(np.matmul(blur_matrix(h, sigma), a), blur_matrix(w, sigma).T)
+    mh, mw = blur_matrix(h, sigma), blur_matrix(w, sigma)
+    tmp = np.empty(a.shape, np.float32)
+    for i0 in range(0, h, BAND_BLOCK):
+        i1 = min(h, i0 + BAND_BLOCK)
+        j0, j1 = max(0, i0 - r), min(h, i1 + r)
+        np.matmul(mh[i0:i1, j0:j1], a[..., j0:j1, :], out=tmp[..., i0:i1, :])
+    out = np.empty(a.shape, np.float32)
+    for i0 in range(0, w, BAND_BLOCK):
+        i1 = min(w, i0 + BAND_BLOCK)
+        j0, j1 = max(0, i0 - r), min(w, i1 + r)
+        np.matmul(tmp[..., :, j0:j1], mw[i0:i1, j0:j1].T, out=out[..., :, i0:i1])
+    return out
+
+
+def tap_blur(a: np.ndarray, sigma: float) -> np.ndarray:
+    """gaussian_blur by its taps added along each axis, the two at equal offsets summed before
+    their one multiply."""
+    a = np.asarray(a, np.float32)
+    h, w = a.shape[-2:]
+    r = blur_radius(sigma)
     k = _blur_taps32(sigma)
     for axis, n in ((a.ndim - 2, h), (a.ndim - 1, w)):
         p = _edge_padded(a, axis, r)  # the taps past an edge on its edge sample

@@ -189,17 +189,20 @@ def run(model: str, threads: int, repeats: int) -> dict:
         rows[fill_row] = timed(lambda: intrinsic.penumbra(vis, dist, turned), repeats)
         rows["penumbra, key lamp, the plain blur (comparison)"] = timed(
             lambda: intrinsic.penumbra(vis, dist), repeats)
-        # Narrow blurs as the subsurface diffusion runs them (a value and its weight), by their
-        # taps (gaussian_blur up to TAPS_RADIUS), and by the two matrix products beside them: at
-        # radius 2 and at the widest radius that adds its taps.
+        # Blurs as the subsurface diffusion runs them (a value and its weight), each way
+        # gaussian_blur has (its taps up to TAPS_RADIUS, the matrix products by bands beyond)
+        # and by the whole matrix products: at radius 2, at TAPS_RADIUS and one beyond it.
         pair = np.stack([bufs.matte, bufs.face])
         h, w = pair.shape[1:]
-        for sigma in (0.5, (intrinsic.TAPS_RADIUS - 0.5) / 3.0):
-            label = (f"narrow blur, sigma {sigma:.2f} px (radius {intrinsic.blur_radius(sigma)}), "
-                     "two planes")
-            rows[label + " (its taps)"] = timed(lambda: intrinsic.gaussian_blur(pair, sigma),
-                                                repeats)
-            rows[label + ", by matrices (comparison)"] = timed(
+        for r in (2, intrinsic.TAPS_RADIUS, intrinsic.TAPS_RADIUS + 1):
+            sigma = (r - 0.5) / 3.0
+            label = f"blur, sigma {sigma:.2f} px (radius {r}), two planes"
+            chosen = "its taps" if r <= intrinsic.TAPS_RADIUS else "matrices by bands"
+            ways = {"its taps": intrinsic.tap_blur, "matrices by bands": intrinsic.banded_blur}
+            for way, fn in ways.items():
+                rows[f"{label}, {way}" + ("" if way == chosen else " (comparison)")] = timed(
+                    lambda: fn(pair, sigma), repeats)
+            rows[f"{label}, whole matrices (comparison)"] = timed(
                 lambda: intrinsic.blur_matrix(h, sigma) @ pair
                 @ intrinsic.blur_matrix(w, sigma).T, repeats)
         # The face template's low band on the crop (facetemplate.held takes it every frame), the

@@ -482,19 +482,22 @@ def test_a_cast_shadow_beside_a_side_turned_from_the_light_stays_dark():
     assert np.allclose(ratio[32, 30:60], floor)
 
 
-@pytest.mark.parametrize("sigma", [0.2, 0.5, 0.8, 1.0, 1.05, 2.34, 2.5, 4.0])
-def test_a_narrow_blur_by_its_taps_is_the_matrix_blur(sigma):
-    """gaussian_blur adds a narrow blur's taps (up to TAPS_RADIUS) instead of the matrix
-    products: the same blur, edges extended, on stacks and on sides shorter than its reach."""
+@pytest.mark.parametrize("sigma", [0.2, 0.5, 0.8, 1.0, 1.05, 1.5, 2.5, 4.0])
+def test_a_blur_by_its_taps_or_by_bands_is_the_matrix_blur(sigma):
+    """gaussian_blur adds a narrow blur's taps (up to TAPS_RADIUS) and takes a wider one's
+    matrix products a band of rows at a time: both the whole matrix products' blur, edges
+    extended, on stacks, on sides shorter than its reach and on sides of several bands."""
     rng = np.random.default_rng(3)
-    for shape in ((2, 40, 52), (7, 9), (1, 6), (3, 1), (2, 3, 11, 5)):
+    for shape in ((2, 40, 52), (7, 9), (1, 6), (3, 1), (2, 3, 11, 5), (2, 70, 97)):
         a = rng.random(shape, dtype=np.float32)
         h, w = shape[-2:]
         ref = intrinsic.blur_matrix(h, sigma) @ a @ intrinsic.blur_matrix(w, sigma).T
-        got = intrinsic.gaussian_blur(a, sigma)
-        assert got.dtype == np.float32 and got.shape == a.shape
-        np.testing.assert_allclose(got, ref, atol=2e-6)
-    assert intrinsic.blur_radius(2.5) <= intrinsic.TAPS_RADIUS < intrinsic.blur_radius(4.0)
+        for got in (intrinsic.gaussian_blur(a, sigma), intrinsic.tap_blur(a, sigma),
+                    intrinsic.banded_blur(a, sigma)):
+            assert got.dtype == np.float32 and got.shape == a.shape
+            np.testing.assert_allclose(got, ref, atol=2e-6)
+    assert intrinsic.blur_radius(1.05) <= intrinsic.TAPS_RADIUS < intrinsic.blur_radius(1.5)
+    assert 70 > 2 * intrinsic.BAND_BLOCK
 
 
 def test_penumbra_with_no_pixel_turned_is_the_plain_blur():
