@@ -128,9 +128,10 @@ def laid_low(template: Template, frame: tuple[float, float, float], hw: tuple[in
 def _low(template: Template, wu: np.ndarray, wv: np.ndarray, sigma: float) -> np.ndarray:
     """The blur of the template laid with the bilinear weights ``wu``, ``wv`` (_weights'): the
     blur's matrices (intrinsic.blur_matrix) taken into the weights first, (B_h W_u) T (B_w
-    W_v)^T, the same product associated so that no (h, w) plane is blurred, about three times
-    cheaper on a working-size crop (bench.intrinsic_speed's face template rows). A blur narrow
-    enough to add taps (intrinsic.TAPS_RADIUS) blurs the laid normals instead."""
+    W_v)^T, the same product associated so that no (h, w) plane is blurred: on a working-size
+    crop about 1.7 times cheaper than the laid plane's blur by bands (intrinsic.banded_blur;
+    bench.intrinsic_speed's face template rows), three times than by whole matrices. A blur
+    narrow enough to add taps (intrinsic.TAPS_RADIUS) blurs the laid normals instead."""
     if intrinsic.blur_radius(sigma) <= intrinsic.TAPS_RADIUS:
         return intrinsic.gaussian_blur(_laid_with(template, wu, wv), sigma)
     return _laid_with(template, intrinsic.blur_matrix(wu.shape[0], sigma) @ wu,
