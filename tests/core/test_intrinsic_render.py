@@ -515,6 +515,36 @@ def test_a_light_from_above_shadows_below():
     assert np.all(vis[:29, BUMP_COLS] == 1.0)
 
 
+def test_a_lit_sphere_casts_no_shadow_on_itself():
+    """A convex surface cannot shadow itself: on a sphere's shadow height, no pixel facing a lamp
+    (n.l above 0.05) loses any of it, for lamps all around from 10 to 70 degrees above the image
+    plane (the march's samples are whole pixels; SHADOW_BIAS keeps them off the surface)."""
+    normal, height, matte, _, _ = sphere()
+    h = intrinsic.shadow_height(shadow_buffers(height, normal))
+    for el in np.radians([10, 20, 35, 50, 70]):
+        for az in np.radians(np.arange(0, 360, 30)):
+            d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+            cos = np.tensordot(d, normal, 1)
+            vis = intrinsic.shadow(h, matte, d, lit=cos)
+            assert vis[(matte > 0.5) & (cos > 0.05)].min() == 1.0
+
+
+def test_a_wall_s_shadow_keeps_most_of_its_length():
+    """A wall 12 pixels high under a lamp from above at 20 to 60 degrees over the image plane: its
+    shadow below it (visibility under a half) reaches at least two thirds of the length the
+    lamp's angle gives it (12 / tan(elevation)), and nothing beyond that length is shadowed."""
+    wall = np.zeros((S, S), np.float32)
+    wall[10:20, 20:44] = 12.0
+    for el in (20, 30, 45, 60):
+        e = math.radians(el)
+        vis = intrinsic.shadow(wall, np.ones((S, S), np.float32),
+                               np.array([0.0, math.cos(e), math.sin(e)]))
+        below, geometric = vis[20:, 32], 12.0 / math.tan(e)
+        length = int(np.argmax(below >= 0.5))
+        assert length >= 0.65 * geometric, (el, length)
+        assert np.all(below[math.ceil(geometric):] == 1.0)  # and nothing beyond it
+
+
 def test_a_light_along_the_view_axis_casts_no_shadow():
     """+Z light: visibility 1 everywhere."""
     vis = intrinsic.shadow(bump_field(), np.ones((S, S), np.float32), np.array([0.0, 0.0, 1.0]))
