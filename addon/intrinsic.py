@@ -59,17 +59,22 @@ COMPONENT_SHARE = 0.12
 MAX_COMPONENTS = 3
 SHADOW_STEPS = 30           # march length in working-size pixels
 SHADOW_SOFTNESS = 3.0       # pixels of height over which an occluder fades in
-# The ray toward the light starts this many pixels of height above its pixel, so the march does
-# not shadow a surface with its own samples (rounded to whole pixels): a lit sphere's shadow
-# height (shadow_height) shadows none of its pixels that face the light (n.l above 0.05) from
-# 10 to 70 degrees above the image plane, where 1.0 took up to a tenth of the light near the
-# terminator. Nothing is taken per pixel marched: the height follows the normals' slopes
-# (shadow_height), and the earlier 0.1 a pixel (with 2.0), which made up for the predicted
-# height's own slopes, cut a wall's shadow to 55-58% of its length under lights 20 to 60 degrees
-# high, where this leaves 67-73%. On the CroppedYale tune subjects (36 pairs each, paired with
-# (2.0, 0.1)) top/bottom balance correlation +0.0016 (5-95% +0.0002 to +0.0035), 20.15 -> 20.17
-# dB; the synthetic test set's rmse_level_fit 0.05779 -> 0.05781. 1.0 and 0.5 read +0.0020
-# and +0.0024 on tune, at 0.05784 and 0.05786.
+# The ray toward the light starts this many pixels of height above its pixel, so the march does not
+# shadow a surface with its own samples (rounded to whole pixels): a lit sphere's shadow height
+# (shadow_height) shadows none of its pixels that face the light (n.l above 0.05) from 10 to 70
+# degrees above the image plane, where 1.0 took up to a tenth of the light near the terminator.
+# Nothing is taken per pixel marched: the height follows the normals' slopes (shadow_height), and
+# the earlier 0.1 a pixel (with 2.0), which made up for the predicted height's own slopes, cut a
+# wall's shadow to 55-58% of its length under lights 20 to 60 degrees high, where this leaves
+# 67-73%. On the CroppedYale tune subjects (36 pairs each, paired with (2.0, 0.1)) top/bottom
+# balance correlation +0.0016 (5-95% +0.0002 to +0.0035), 20.15 -> 20.17 dB (the test subjects
+# 20.11 -> 20.14 dB, 0.832 -> 0.833); the synthetic test set's rmse_level_fit 0.05779 -> 0.05781.
+# 1.0 and 0.5 read +0.0020 and +0.0024 on tune, at 0.05784 and 0.05786. On the effects bench
+# ("auto", 24 frames) the network's buffers under the top light gain 0.3388 -> 0.3282 (long-haired
+# identities 0.3481 -> 0.3376), the key lamps within 0.0022; the exact buffers of long-haired
+# identities lose under the key lamps (0.1691 / 0.1517 -> 0.1756 / 0.1570), most likely because a
+# height field has no thickness (a lock of hair before a cheek marches as a wall). 2.0 with nothing
+# per pixel lost less there (0.1732 / 0.1546) and gained less under the top light (0.3399).
 SHADOW_BIAS = 1.5
 # The visibility's penumbra (``penumbra``) widens with the distance to the occluder, as a light
 # of some size draws it: a Gaussian of sigma PENUMBRA[0] + PENUMBRA[1] x the distance (working-
