@@ -435,6 +435,32 @@ def test_the_shadows_height_is_the_normals_shape_where_the_predicted_height_disa
     np.testing.assert_allclose(got - got[0, 0], block, atol=1e-3)
 
 
+def test_the_shadows_height_holds_more_of_the_face_skin_s_relief():
+    """A nose drawn too low (a bump 3 pixels high, 2 wide) on face skin: the shadows' height keeps
+    SHADOW_DETAIL times its relief (its rise over the height blurred by SHADOW_DETAIL_SIGMA, to
+    within a tenth at the bump), ``detail`` 1 keeps it as drawn, and beyond the face skin's reach
+    the height is the same either way. Under a lamp 35 degrees above, only the kept relief casts
+    the nose's shadow below it."""
+    yy, xx = np.mgrid[:S, :S].astype(np.float64)
+    bump = 3.0 * np.exp(-((xx - 32) ** 2 + (yy - 28) ** 2) / (2 * 2.0 ** 2))
+    face = np.zeros((S, S), np.float32)
+    face[16:48, 16:48] = 1.0
+    bufs = dataclasses.replace(shadow_buffers(bump, normals_of(bump)), face=face)
+    drawn, kept = intrinsic.shadow_height(bufs, 1.0), intrinsic.shadow_height(bufs)
+
+    def rise(h):
+        return float((h - intrinsic.gaussian_blur(h, intrinsic.SHADOW_DETAIL_SIGMA))[28, 32])
+
+    assert rise(kept) == pytest.approx(intrinsic.SHADOW_DETAIL * rise(drawn), rel=0.1)
+    far = np.ones((S, S), bool)
+    far[8:56, 8:56] = False
+    np.testing.assert_array_equal(kept[far], drawn[far])
+    lamp_above = unit([0.0, math.cos(math.radians(35)), math.sin(math.radians(35))])
+    below = (slice(31, 35), 32)  # just below the bump's top
+    assert intrinsic.shadow(drawn, bufs.matte, lamp_above)[below].min() == 1.0
+    assert intrinsic.shadow(kept, bufs.matte, lamp_above)[below].min() < 0.9
+
+
 def test_the_shadows_height_keeps_the_predicted_steps_and_the_subject_over_its_backdrop():
     """A head (a disc 30 pixels out) over a neck (10 out) on a backdrop, all facing the camera:
     no normal holds the steps, so they stay the height's, to the pixel. (Integrating with the
