@@ -1071,14 +1071,17 @@ class Shading:
 
 
 def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan | None = None,
-          keep_exposure: bool = True, source: np.ndarray | None = None) -> Shading:
+          keep_exposure: bool = True, source: np.ndarray | None = None,
+          relief: float | None = None) -> Shading:
     """The ratio and highlight that relight ``image_chw`` (the crop at the working size, linear)
     to ``light``. ``keep_exposure``: the subject keeps the footage's mean luminance, so the light
     sets direction, colour and contrast (the artist's default); without it the ratio is left as
     the light's power makes it (twice the light, twice the output). ``source``: the footage's
     own diffuse shading where it is known (a render's: what the benches measure the estimate
     against), (h, w) luminance or (3, h, w) per channel, in place of the estimate from the
-    footage (source_shading, source_chroma)."""
+    footage (source_shading, source_chroma). ``relief``: shadow_height's ``detail``, the multiple
+    of the face skin's relief the cast shadows are marched over (default SHADOW_DETAIL, which
+    makes up for the network's flat relief; 1 for buffers whose height is exact)."""
     light = np.asarray(light, np.float32)
     effects = plan(light) if effects is None else effects
     lum = luminance(image_chw)
@@ -1111,7 +1114,7 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         e_t = e_t * occl[None]
     spec = np.zeros_like(e_t)
     loss = None  # the irradiance the cast shadows take away (diffused apart: cast_subsurface)
-    height = shadow_height(bufs) if effects.shadows and effects.components else None
+    height = shadow_height(bufs, relief) if effects.shadows and effects.components else None
     for comp in effects.components:
         cos = dot3(comp.direction, bufs.normal)
         lam = lobe(cos, wrap)

@@ -7,11 +7,12 @@ Held-out val frames (training/intrinsic/data.py, identities never trained on) ar
 a soft source light, then relit by ``addon.intrinsic.shade`` to seven target lights (targets)
 and compared with the light stage's own render under each target (its shadows, GGX skin,
 subsurface scattering). Two kinds of buffers: the light stage's exact ones, its light transport
-included (the renderer's own error), and, with ``--model``, the network's predictions from the
-camera-degraded picture, the mean of the picture's and its mirror image's as the product's face
-crop takes them (the product's error; its finer sampling of the box is left out: the cached
-frames are 128 pixels). Error: relative RMSE over the subject after one least-squares gain
-(exposure is the artist's choice), so it measures where the light falls. Effects: diffuse only,
+included and its height's relief marched as it is (the renderer's own error), and, with
+``--model``, the network's predictions from the camera-degraded picture, the mean of the
+picture's and its mirror image's as the product's face crop takes them (the product's error;
+its finer sampling of the box is left out: the cached frames are 128 pixels). Error: relative
+RMSE over the subject after one least-squares gain (exposure is the artist's choice), so it
+measures where the light falls. Effects: diffuse only,
 + cast shadows, + highlights, and "auto" (``intrinsic.plan``: shadows and highlights only for
 compact, strong components). Shadow warmth: the median change of log(red / blue) from the
 source frame over the face skin the target light darkens to under half (after one gain), the
@@ -161,7 +162,9 @@ def run(n_frames: int, model=None, cache=None, hair_class: bool = True) -> dict:
                     p = intrinsic.Plan(auto.components, flags["shadows"] and bool(auto.components),
                                        flags["specular"] and bool(auto.components))
                     t0 = time.perf_counter()
-                    sh = intrinsic.shade(src, bufs, light, p)
+                    # the light stage's height is exact: its relief is marched as it is
+                    sh = intrinsic.shade(src, bufs, light, p,
+                                         relief=1.0 if kind == "exact buffers" else None)
                     ms = (time.perf_counter() - t0) * 1000
                     out = src * sh.ratio + sh.highlight
                     r = rows.setdefault((kind, lname, ename),

@@ -12,7 +12,8 @@ frames, each step replacing an estimate with the light stage's truth:
 * ``renderer, network buffers (no framing)``: addon.intrinsic.shade on the network's buffers of
   the whole 128-pixel frame (the mean with the mirror image's, as the face crop takes them);
 * ``renderer, exact buffers``: the same renderer on the light stage's own normals, height,
-  albedo, matte, face skin and light transport: what a perfect network would score;
+  albedo, matte, face skin and light transport (the height's relief marched as it is, not
+  raised as the network's is: intrinsic.shade's ``relief``): what a perfect network would score;
 * ``renderer, network buffers (no framing), exact X``: the network's buffers with one of them
   (normals, height, albedo, matte and face skin, transfer) the light stage's, over the subject
   it renders (the matte and face skin whole): which buffer the gap between the two rows above
@@ -121,7 +122,9 @@ def ladder(sample: dict, a: dict, product=None, session=None) -> dict:
         kinds[NETWORK] = net = predicted_buffers(session, src)
     for name, bufs in kinds.items():
         for suffix, source in (("", None), (TRUE_SOURCE[0], e_lum[0]), (TRUE_SOURCE[1], e_s)):
-            sh = intrinsic.shade(src, bufs, light, source=source)
+            # the light stage's height is exact: its relief is marched as it is
+            sh = intrinsic.shade(src, bufs, light, source=source,
+                                 relief=1.0 if bufs is exact else None)
             outs[name + suffix] = src * sh.ratio + sh.highlight
     if session is not None:
         cover = np.asarray(a["cover"], np.float32)
