@@ -544,15 +544,19 @@ def test_a_light_from_above_shadows_below():
 def test_a_lit_sphere_casts_no_shadow_on_itself():
     """A convex surface cannot shadow itself: on a sphere's shadow height, no pixel facing a lamp
     (n.l above 0.05) loses any of it, for lamps all around from 10 to 70 degrees above the image
-    plane (the march's samples are whole pixels; SHADOW_BIAS keeps them off the surface)."""
+    plane (the march's samples are whole pixels; SHADOW_BIAS keeps them off the surface). Taken
+    as face skin, whose relief the shadows' height raises (SHADOW_DETAIL), the sphere's rim
+    stands a little proud of it: pixels facing the lamp by n.l above 0.2 still lose nothing."""
     normal, height, matte, _, _ = sphere()
-    h = intrinsic.shadow_height(shadow_buffers(height, normal))
-    for el in np.radians([10, 20, 35, 50, 70]):
-        for az in np.radians(np.arange(0, 360, 30)):
-            d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-            cos = np.tensordot(d, normal, 1)
-            vis = intrinsic.shadow(h, matte, d, lit=cos)
-            assert vis[(matte > 0.5) & (cos > 0.05)].min() == 1.0
+    plain = shadow_buffers(height, normal)
+    for bufs, least in ((plain, 0.05), (dataclasses.replace(plain, face=matte), 0.2)):
+        h = intrinsic.shadow_height(bufs)
+        for el in np.radians([10, 20, 35, 50, 70]):
+            for az in np.radians(np.arange(0, 360, 30)):
+                d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+                cos = np.tensordot(d, normal, 1)
+                vis = intrinsic.shadow(h, matte, d, lit=cos)
+                assert vis[(matte > 0.5) & (cos > least)].min() == 1.0
 
 
 def test_a_wall_s_shadow_keeps_most_of_its_length():
