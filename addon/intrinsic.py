@@ -651,16 +651,20 @@ def banded_blur(a: np.ndarray, sigma: float) -> np.ndarray:
     r = blur_radius(sigma)
     mh, mw = blur_matrix(h, sigma), blur_matrix(w, sigma)
     tmp = np.empty(a.shape, np.float32)
-    for i0 in range(0, h, BAND_BLOCK):
-        i1 = min(h, i0 + BAND_BLOCK)
-        j0, j1 = max(0, i0 - r), min(h, i1 + r)
-        np.matmul(mh[i0:i1, j0:j1], a[..., j0:j1, :], out=tmp[..., i0:i1, :])
+    for out_rows, reach in _bands(h, r):
+        np.matmul(mh[out_rows, reach], a[..., reach, :], out=tmp[..., out_rows, :])
     out = np.empty(a.shape, np.float32)
-    for i0 in range(0, w, BAND_BLOCK):
-        i1 = min(w, i0 + BAND_BLOCK)
-        j0, j1 = max(0, i0 - r), min(w, i1 + r)
-        np.matmul(tmp[..., :, j0:j1], mw[i0:i1, j0:j1].T, out=out[..., :, i0:i1])
+    for out_cols, reach in _bands(w, r):
+        np.matmul(tmp[..., :, reach], mw[out_cols, reach].T, out=out[..., :, out_cols])
     return out
+
+
+def _bands(n: int, r: int):
+    """Yield (the slice of up to BAND_BLOCK output samples, the slice of the input samples
+    within ``r`` of them) along an axis of ``n``."""
+    for i0 in range(0, n, BAND_BLOCK):
+        i1 = min(n, i0 + BAND_BLOCK)
+        yield slice(i0, i1), slice(max(0, i0 - r), min(n, i1 + r))
 
 
 def tap_blur(a: np.ndarray, sigma: float) -> np.ndarray:
@@ -1002,7 +1006,7 @@ def poisson(fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
     return ih @ c @ iw.T
 
 
-def shadow_height(bufs: Buffers, detail: float | None = None) -> np.ndarray:
+def shadow_height(bufs: Buffers, relief: float | None = None) -> np.ndarray:
     """(h, w) the height, in pixels, over which the cast shadows are marched: the predicted height
     (height_scale brings it to the normals' slopes) plus the correction, integrated by poisson,
     that gives it the normals' slopes wherever they can say (SHADOW_STEP). The shading follows
@@ -1020,7 +1024,7 @@ def shadow_height(bufs: Buffers, detail: float | None = None) -> np.ndarray:
     "auto": exact buffers 0.1716 -> 0.1812, the network's 0.3196 -> 0.3434), where this keeps
     them (0.1714, 0.3255). Keeping only the correction's detail (less its Gaussian blur over
     the subject, sigma 8 or 16 pixels) read 0.857 and 0.862. Over the face skin the detail
-    finer than SHADOW_DETAIL_SIGMA is then ``detail`` times the network's (default
+    finer than SHADOW_DETAIL_SIGMA is then ``relief`` times the network's (default
     SHADOW_DETAIL; 1: as the network draws it)."""
     n = bufs.normal
     nz = np.maximum(n[2], 1e-3)
@@ -1034,11 +1038,11 @@ def shadow_height(bufs: Buffers, detail: float | None = None) -> np.ndarray:
                   0.5 * (p[:, 1:] + p[:, :-1]) - dx, 0.0)
     fy = np.where(ok[1:] & ok[:-1] & (np.abs(dy) < SHADOW_STEP), 0.5 * (q[1:] + q[:-1]) - dy, 0.0)
     h = h + poisson(fx, fy)  # both float32
-    detail = SHADOW_DETAIL if detail is None else float(detail)
-    if detail == 1.0:
+    relief = SHADOW_DETAIL if relief is None else float(relief)
+    if relief == 1.0:
         return h
     skin = gaussian_blur(((bufs.face > 0.5) & fg).astype(np.float32), SHADOW_DETAIL_BLEND)
-    h += np.float32(detail - 1.0) * skin * (h - gaussian_blur(h, SHADOW_DETAIL_SIGMA))
+    h += np.float32(relief - 1.0) * skin * (h - gaussian_blur(h, SHADOW_DETAIL_SIGMA))
     return h
 
 
@@ -1081,9 +1085,9 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     the light's power makes it (twice the light, twice the output). ``source``: the footage's
     own diffuse shading where it is known (a render's: what the benches measure the estimate
     against), (h, w) luminance or (3, h, w) per channel, in place of the estimate from the
-    footage (source_shading, source_chroma). ``relief``: shadow_height's ``detail``, the multiple
-    of the face skin's relief the cast shadows are marched over (default SHADOW_DETAIL, which
-    makes up for the network's flat relief; 1 for buffers whose height is exact)."""
+    footage (source_shading, source_chroma). ``relief``: shadow_height's, the multiple of the
+    face skin's relief the cast shadows are marched over (default SHADOW_DETAIL, which makes up
+    for the network's flat relief; 1 for buffers whose height is exact)."""
     light = np.asarray(light, np.float32)
     effects = plan(light) if effects is None else effects
     lum = luminance(image_chw)

@@ -25,7 +25,7 @@ import numpy as np
 from training.intrinsic import data
 
 from .intrinsic_effects import lamp, render, write_report
-from .normals_by_light import LAMPS, MIN_FACE, face_scores
+from .normals_by_light import LAMPS, face_frames, face_scores
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 BANDS = ((0.0, 0.1), (0.1, 0.15), (0.15, 0.2), (0.2, 1.0))  # |mean sideways normal| of the truth
@@ -55,14 +55,9 @@ def run(model: str, n_frames: int = 96) -> dict:
     from addon import api
 
     torch.set_num_threads(1)
-    ds = data.IntrinsicFrames("val", 128, 0, varied_backdrops=False)
     session = api.session(model, 1)
     rows = []
-    for f in range(min(n_frames, ds.n)):
-        a = ds.frame(f)
-        face = a["label"] == data.SKIN
-        if int(face.sum()) < MIN_FACE:
-            continue
+    for a, face in face_frames(n_frames):
         truth = data.dense(a, a["normal"])
         turn = abs(float(truth[0][face].mean()))
         pitch = float(truth[1][face].mean())

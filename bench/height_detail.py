@@ -11,7 +11,7 @@ frame: the standard deviation of the shadows' height (``intrinsic.shadow_height`
 Gaussian blur of ``intrinsic.SHADOW_DETAIL_SIGMA`` pixels (the relief that casts the small
 shadows: the nose, the brows over the eye sockets, the lips), over the same of the exact
 buffers' height; and the blurred height's range (5th to 95th percentile), over the exact
-one's (the face's coarser shape). Rows: the network's height as drawn (``detail`` 1) and as the
+one's (the face's coarser shape). Rows: the network's height as drawn (``relief`` 1) and as the
 renderer marches it (``intrinsic.SHADOW_DETAIL``, which this bench calibrates). Median and the
 10th-90th percentiles over the frames. Writes ``bench/results/height_detail.{md,json}``.
 """
@@ -25,13 +25,12 @@ import numpy as np
 import torch
 
 from addon import intrinsic, portrait
-from training.intrinsic import data
 from training.intrinsic.train import normalise_batch
 
 from .intrinsic_effects import exact_buffers, predicted_buffers, render, source_light, write_report
+from .normals_by_light import face_frames
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-MIN_FACE = 50  # face-skin pixels a frame needs to count
 
 
 def relief(height: np.ndarray, face: np.ndarray) -> tuple[float, float]:
@@ -46,14 +45,9 @@ def run(model: str, n_frames: int = 24, cache=None) -> dict:
     from addon import api
 
     torch.set_num_threads(1)
-    ds = data.IntrinsicFrames("val", 128, 0, cache, varied_backdrops=False)
     session = api.session(model, 1)
     rows: dict = {}
-    for f in range(min(n_frames, ds.n)):
-        a = ds.frame(f)
-        face = a["label"] == data.SKIN
-        if int(face.sum()) < MIN_FACE:
-            continue
+    for a, face in face_frames(n_frames, cache):
         d_exact, r_exact = relief(intrinsic.shadow_height(exact_buffers(a), 1.0), face)
         img = normalise_batch(torch.from_numpy(render(a, source_light()))[None])[0].numpy()
         bufs = portrait.templated(predicted_buffers(session, img), session.card.working_size)

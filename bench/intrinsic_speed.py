@@ -194,11 +194,11 @@ def run(model: str, threads: int, repeats: int) -> dict:
         # and by the whole matrix products: at radius 2, at TAPS_RADIUS and one beyond it.
         pair = np.stack([bufs.matte, bufs.face])
         h, w = pair.shape[1:]
+        ways = {"its taps": intrinsic.tap_blur, "matrices by bands": intrinsic.banded_blur}
         for r in (2, intrinsic.TAPS_RADIUS, intrinsic.TAPS_RADIUS + 1):
             sigma = (r - 0.5) / 3.0
             label = f"blur, sigma {sigma:.2f} px (radius {r}), two planes"
             chosen = "its taps" if r <= intrinsic.TAPS_RADIUS else "matrices by bands"
-            ways = {"its taps": intrinsic.tap_blur, "matrices by bands": intrinsic.banded_blur}
             for way, fn in ways.items():
                 rows[f"{label}, {way}" + ("" if way == chosen else " (comparison)")] = timed(
                     lambda: fn(pair, sigma), repeats)

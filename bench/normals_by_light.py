@@ -51,18 +51,24 @@ def face_scores(pred: np.ndarray, truth: np.ndarray, face: np.ndarray) -> dict:
             "angle_deg": float(deg.mean())}
 
 
+def face_frames(n_frames: int, cache=None):
+    """Yield (frame, (h, w) bool face skin) of the first ``n_frames`` held-out val frames (of
+    ``cache``'s build, default cache/intrinsic) that show at least MIN_FACE face-skin pixels."""
+    ds = data.IntrinsicFrames("val", 128, 0, cache, varied_backdrops=False)
+    for f in range(min(n_frames, ds.n)):
+        a = ds.frame(f)
+        face = a["label"] == data.SKIN
+        if int(face.sum()) >= MIN_FACE:
+            yield a, face
+
+
 def run(models: list[str], n_frames: int = 24) -> dict:
     from addon import api
 
     torch.set_num_threads(1)
-    ds = data.IntrinsicFrames("val", 128, 0, varied_backdrops=False)
     sessions = {m: api.session(m, 1) for m in models}
     rows: dict = {}
-    for f in range(min(n_frames, ds.n)):
-        a = ds.frame(f)
-        face = a["label"] == data.SKIN
-        if int(face.sum()) < MIN_FACE:
-            continue
+    for a, face in face_frames(n_frames):
         truth = data.dense(a, a["normal"])
         for lname, d in LAMPS.items():
             img = normalise_batch(torch.from_numpy(render(a, lamp(d, 3.0, 0.05)))[None])[0]

@@ -438,7 +438,7 @@ def test_the_shadows_height_is_the_normals_shape_where_the_predicted_height_disa
 def test_the_shadows_height_holds_more_of_the_face_skin_s_relief():
     """A nose drawn too low (a bump 3 pixels high, 2 wide) on face skin: the shadows' height keeps
     SHADOW_DETAIL times its relief (its rise over the height blurred by SHADOW_DETAIL_SIGMA, to
-    within a tenth at the bump), ``detail`` 1 keeps it as drawn, and beyond the face skin's reach
+    within a tenth at the bump), ``relief`` 1 keeps it as drawn, and beyond the face skin's reach
     the height is the same either way. Under a lamp 35 degrees above, only the kept relief casts
     the nose's shadow below it."""
     yy, xx = np.mgrid[:S, :S].astype(np.float64)
