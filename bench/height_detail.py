@@ -12,13 +12,17 @@ Gaussian blur of ``intrinsic.SHADOW_DETAIL_SIGMA`` pixels (the relief that casts
 shadows: the nose, the brows over the eye sockets, the lips), over the same of the exact
 buffers' height; and the blurred height's range (5th to 95th percentile), over the exact
 one's (the face's coarser shape). Rows: the network's height as drawn (``relief`` 1) and as the
-renderer marches it (``intrinsic.SHADOW_DETAIL``, which this bench calibrates). Median and the
-10th-90th percentiles over the frames. Writes ``bench/results/height_detail.{md,json}``.
+renderer marches it (``intrinsic.SHADOW_DETAIL``, which this bench calibrates); then, as drawn,
+the network's normals over the exact height and the exact normals over the network's height.
+shadow_height gives the height the normals' slopes, so the two say which of the network's
+buffers the flat relief comes from. Median and the 10th-90th percentiles over the frames.
+Writes ``bench/results/height_detail.{md,json}``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pathlib
 
 import numpy as np
@@ -48,11 +52,16 @@ def run(model: str, n_frames: int = 24, cache=None) -> dict:
     session = api.session(model, 1)
     rows: dict = {}
     for a, face in face_frames(n_frames, cache):
-        d_exact, r_exact = relief(intrinsic.shadow_height(exact_buffers(a), 1.0), face)
+        exact = exact_buffers(a)
+        d_exact, r_exact = relief(intrinsic.shadow_height(exact, 1.0), face)
         img = normalise_batch(torch.from_numpy(render(a, source_light()))[None])[0].numpy()
         bufs = portrait.templated(predicted_buffers(session, img), session.card.working_size)
-        for name, k in (("as drawn", 1.0), ("as marched", intrinsic.SHADOW_DETAIL)):
-            d, r = relief(intrinsic.shadow_height(bufs, k), face)
+        for name, b, k in (("as drawn", bufs, 1.0), ("as marched", bufs, intrinsic.SHADOW_DETAIL),
+                           ("its normals, the exact height", dataclasses.replace(
+                               exact, normal=bufs.normal), 1.0),
+                           ("the exact normals, its height", dataclasses.replace(
+                               bufs, normal=exact.normal), 1.0)):
+            d, r = relief(intrinsic.shadow_height(b, k), face)
             rows.setdefault(name, []).append((d / d_exact, r / r_exact, d, d_exact))
     out = {}
     for name, v in rows.items():
@@ -73,7 +82,7 @@ def markdown(res: dict, command: str, machine: str) -> str:
              f"{res['sigma']:g} pixels (standard deviation, the network's over the exact one's) "
              f"and its coarser shape's range; the renderer marches the detail "
              f"{res['detail']:g} times as drawn.", "",
-             "| network's height | detail over exact (median, 10-90%) | detail (px) | exact detail "
+             "| the network's shadows' height | detail over exact (median, 10-90%) | detail (px) | exact detail "
              "(px) | coarse range over exact | frames |",
              "| --- | --- | --- | --- | --- | --- |"]
     for name, v in res["rows"].items():
