@@ -293,6 +293,21 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
     assert len({round(r["all"], 6) for r in got.values()}) == 9  # nine different relightings
 
 
+def test_real_normals_detail_is_marched_as_drawn_and_the_network_s_deepened():
+    """The real normals' detail (photometric_buffers without a band, or under the network's low
+    band) is marched as it is; with the network's detail (the real low band under it) the
+    renderer keeps deepening it, as it does for the network alone; both step aside after."""
+    from addon import intrinsic
+    shipped = intrinsic.SHADOW_DETAIL
+    assert shipped > 1.0
+    n, ok = np.zeros((3, 4)), np.zeros(4, bool)
+    for kwargs, inside in (({}, 1.0), ({"low_sigma": 4.0, "low": "network"}, 1.0),
+                           ({"low_sigma": 4.0, "low": "photometric"}, shipped)):
+        with yn.photometric_buffers(n, ok, **kwargs):
+            assert intrinsic.SHADOW_DETAIL == inside
+        assert intrinsic.SHADOW_DETAIL == shipped
+
+
 def test_without_cast_shadows_plans_none_and_then_steps_aside():
     """Inside the context a lamp's plan keeps its component and highlight but no cast shadow;
     after it, the product plans shadows again."""

@@ -191,7 +191,8 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
     finer detail; "network", the network's low band under the real normals' detail: which
     scale of the face's shape a relit face needs right. ``share`` (with ``low``
     "photometric"): the given low band's share, the network's own low band the rest (1: the
-    given band alone)."""
+    given band alone). Where the detail is the real normals' (no ``low_sigma``, or ``low``
+    "network"), the cast shadows march it as it is (real_relief)."""
 
     def change(session, out, box, hw, size):
         given, inside = crop_normals(normals, fitted, hw, box, size)
@@ -207,8 +208,24 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
         n = intrinsic.unit_normals(np.where(inside, real, out.normal))
         return intrinsic.Buffers(n, out.height, out.albedo, out.matte, out.face)
 
-    with crop_swap(change):
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(crop_swap(change))
+        if not low_sigma or low == "network":
+            stack.enter_context(real_relief())
         yield
+
+
+@contextlib.contextmanager
+def real_relief():
+    """Within this context the cast shadows march the face skin's relief as the normals draw it
+    (intrinsic.SHADOW_DETAIL 1): the renderer deepens the network's relief, which it draws too
+    flat, and deepened so, real normals' detail would stand SHADOW_DETAIL times too deep."""
+    detail = intrinsic.SHADOW_DETAIL
+    intrinsic.SHADOW_DETAIL = 1.0
+    try:
+        yield
+    finally:
+        intrinsic.SHADOW_DETAIL = detail
 
 
 def face_space(normals: list[np.ndarray], hw: tuple[int, int], sigma: float,
