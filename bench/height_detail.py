@@ -82,8 +82,8 @@ def markdown(res: dict, command: str, machine: str) -> str:
              f"{res['sigma']:g} pixels (standard deviation, the network's over the exact one's) "
              f"and its coarser shape's range; the renderer marches the detail "
              f"{res['detail']:g} times as drawn.", "",
-             "| the network's shadows' height | detail over exact (median, 10-90%) | detail (px) | exact detail "
-             "(px) | coarse range over exact | frames |",
+             "| the network's shadows' height | detail over exact (median, 10-90%) | detail (px) "
+             "| exact detail (px) | coarse range over exact | frames |",
              "| --- | --- | --- | --- | --- | --- |"]
     for name, v in res["rows"].items():
         lo, hi = v["detail_10_90"]
