@@ -293,6 +293,25 @@ def test_relight_with_swapped_bands_reports_every_variant(shared_data):
     assert len({round(r["all"], 6) for r in got.values()}) == 9  # nine different relightings
 
 
+def test_relief_says_how_deep_the_network_draws_real_faces(shared_data):
+    """--relief: per tune subject, the network's fine relief (shadows' height and normals) over
+    photometric stereo's in the product's face crop, with its median and spread. The shipped
+    network draws real faces' relief shallower than photometric stereo's, which is why the
+    renderer deepens it (intrinsic.SHADOW_DETAIL)."""
+    root = shared_data / "yale" / "CroppedYale"
+    if not (root / "yaleB01").is_dir():
+        pytest.skip(f"needs CroppedYale at {root}, which is absent on this machine")
+    got = yn.relief("models/relight-portrait.onnx", "tune", root)
+    assert len(got["subjects"]) == 10
+    for k in ("height", "normals"):
+        v = [r[k] for r in got["subjects"].values()]
+        assert all(np.isfinite(x) and x > 0 for x in v)
+        assert got[k]["median"] == pytest.approx(float(np.median(v)))
+        lo, hi = got[k]["10_90"]
+        assert lo <= got[k]["median"] <= hi
+    assert got["height"]["median"] < 1.0 and got["normals"]["median"] < 1.0
+
+
 def test_real_normals_detail_is_marched_as_drawn_and_the_network_s_deepened():
     """The real normals' detail (photometric_buffers without a band, or under the network's low
     band) is marched as it is; with the network's detail (the real low band under it) the

@@ -2,7 +2,7 @@
 
     .venv/bin/python -m training.eval.yale_normals --onnx models/relight-portrait.onnx [--onnx ...]
         [--split tune|test] [--relight [--pairs N] [--low-sigma S] [--no-shadows] [--swap ONNX]]
-        [--response] [--albedo]
+        [--response] [--albedo] [--relief]
 
 A subject's single-light images give its Lambertian normals by least squares per pixel over the
 images in which that pixel is lit and unclipped (photometric stereo, yale.photometric_fit: the
@@ -30,7 +30,9 @@ strongly the relit face answers the target's elevation) and each photo relit to 
 light (how much of the input's light it keeps), the relit top/bottom balance against the real
 photo's, per elevation band, with the network's normals and with photometric stereo's.
 ``--albedo`` (albedo_light) asks how much of each single-light photo's light the network leaves
-in its albedo, against photometric stereo's albedo (0: none, 1: all).
+in its albedo, against photometric stereo's albedo (0: none, 1: all). ``--relief`` (relief) asks
+how deep the network draws the face's fine relief, its shadows' height and its normals, against
+photometric stereo's.
 """
 
 from __future__ import annotations
@@ -630,6 +632,49 @@ def albedo_light(onnx_path, split: str = "tune", root=None, names=None) -> dict:
             "subjects": subjects}
 
 
+def relief(onnx_path, split: str = "tune", root=None) -> dict:
+    """How deep the network draws real faces' fine relief, against photometric stereo's: on each
+    subject's frontal photo, in the product's face crop, the standard deviation over the face
+    skin of the shadows' height (intrinsic.shadow_height as drawn, relief 1) less its blur of
+    intrinsic.SHADOW_DETAIL_SIGMA, and of the normals' two image-plane components less theirs,
+    the network's over the same with photometric stereo's normals in its place
+    (photometric_buffers). The real-face side of bench.height_detail (which measures the light
+    stage's held-out heads against their exact buffers): per subject, and the median and the
+    10th-90th percentiles. Photometric stereo's noise adds to its detail, so the ratios err low."""
+    root = root or yale.default_root()
+    _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
+    session = api.session(onnx_path, 1)
+    sigma = intrinsic.SHADOW_DETAIL_SIGMA
+
+    def detail(x, face):
+        return float(np.stack([c - intrinsic.gaussian_blur(c, sigma) for c in x])[:, face].std())
+
+    per = {}
+    for name in subjects:
+        s = yale.load_subject(root, name)
+        n, ok = photometric_normals(s.images, s.dirs)
+        x = np.repeat(s.images[int(np.argmin(np.abs(s.angles).sum(1)))][None], 3, 0)
+        x = x.astype(np.float32)
+        box = portrait.find_box(session, x)
+        if box is None:
+            continue
+        _, _, net = portrait.face_buffers(session, x, box, session.card.working_size)
+        with photometric_buffers(np.where(ok, n, 0.0), ok):
+            _, _, real = portrait.face_buffers(session, x, box, session.card.working_size)
+        face = (net.face > 0.5) & (net.matte > 0.5)
+        if int(face.sum()) < facetemplate.MIN_SKIN:
+            continue
+        per[name] = {"height": detail(intrinsic.shadow_height(net, 1.0)[None], face)
+                     / detail(intrinsic.shadow_height(real, 1.0)[None], face),
+                     "normals": detail(net.normal[:2], face) / detail(real.normal[:2], face)}
+    out = {"subjects": per, "sigma": sigma}
+    for k in ("height", "normals"):
+        v = [r[k] for r in per.values()]
+        out[k] = {"median": float(np.median(v)),
+                  "10_90": [float(q) for q in np.percentile(v, [10, 90])]} if v else None
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--onnx", action="append", required=True, help="intrinsic model (repeatable)")
@@ -659,6 +704,9 @@ def main(argv=None):
     ap.add_argument("--albedo", action="store_true",
                     help="also how much of each single-light photo's light the network leaves "
                          "in its albedo, against photometric stereo's albedo (albedo_light)")
+    ap.add_argument("--relief", action="store_true",
+                    help="also how deep the network draws the face's fine relief (the shadows' "
+                         "height and the normals) against photometric stereo's (relief)")
     ap.add_argument("--face-template", metavar="NPZ",
                     help="the face crop's normals held to this face template instead of the "
                          "product's, or to none with 'none' (addon/facetemplate.py)")
@@ -675,6 +723,16 @@ def _main(ap, a):
             ap.error(f"{flag} needs --relight and --low-sigma")
     if any(k < 0 for k in a.face_modes):
         ap.error("--face-modes must be 0 or more")
+    if a.relief:
+        for p in a.onnx:
+            got = relief(p, a.split)
+            for k, what in (("height", "shadows' height"), ("normals", "normals'")):
+                r = got[k]
+                if r:
+                    lo, hi = r["10_90"]
+                    print(f"{p}: the {what} detail finer than {got['sigma']:g} px, the network's "
+                          f"over photometric stereo's: median {r['median']:.2f} ({lo:.2f}-"
+                          f"{hi:.2f}) over {len(got['subjects'])} subjects")
     if a.albedo:
         for p in a.onnx:
             got = albedo_light(p, a.split)
