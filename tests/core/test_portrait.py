@@ -388,6 +388,38 @@ def test_the_face_crop_keeps_its_own_albedo_and_averages_the_rest_with_the_finer
     assert np.degrees(np.arccos(np.clip((held.normal * mean.normal).sum(0), -1, 1))).max() > 1.0
 
 
+def test_the_face_skin_s_normal_detail_is_raised_and_the_rest_kept(monkeypatch):
+    """portrait.deepened: over the face skin the normals' detail finer than the Gaussian (a bump,
+    a nose drawn too flat) is raised the given times, so the normals there turn further from the
+    camera; far from the skin and on a flat face nothing changes; the normals stay unit, and
+    templated applies it at NORMAL_DETAIL."""
+    s = 64
+    yy, xx = np.mgrid[:s, :s].astype(np.float64)
+    height = 3.0 * np.exp(-((xx - 32) ** 2 + (yy - 30) ** 2) / (2 * 2.5 ** 2))
+    gy, gx = np.gradient(height)
+    n = np.stack([-gx, gy, np.ones_like(height)])
+    n = (n / np.linalg.norm(n, axis=0)).astype(np.float32)
+    face = np.zeros((s, s), np.float32)
+    face[16:48, 16:48] = 1.0
+    ones = np.ones((s, s), np.float32)
+    bufs = intrinsic.Buffers(n, height.astype(np.float32), np.full((3, s, s), 0.5, np.float32),
+                             ones, face)
+    got = portrait.deepened(bufs, 1.3, 6.0)
+    np.testing.assert_allclose(np.linalg.norm(got.normal, axis=0), 1.0, atol=1e-5)
+    side = (slice(27, 34), slice(33, 37))  # the bump's side
+    assert (np.abs(got.normal[0][side]) > np.abs(n[0][side]) + 0.01).all()
+    far = np.ones((s, s), bool)
+    far[8:56, 8:56] = False
+    np.testing.assert_allclose(got.normal[:, far], n[:, far], atol=1e-6)
+    flat = dataclasses.replace(bufs, normal=np.stack([0 * ones, 0 * ones, ones]))
+    np.testing.assert_allclose(portrait.deepened(flat, 1.3, 6.0).normal, flat.normal, atol=1e-6)
+    assert portrait.deepened(bufs, 1.0, 6.0) is bufs
+    monkeypatch.setattr(portrait, "FACE_TEMPLATE", None)  # the template alone left out
+    want = portrait.deepened(bufs, portrait.NORMAL_DETAIL, portrait.NORMAL_DETAIL_SIGMA / 2)
+    np.testing.assert_array_equal(portrait.templated(bufs, 2 * s).normal, want.normal)
+    assert portrait.NORMAL_DETAIL > 1.0
+
+
 def test_a_finer_sampling_s_buffers_are_shrunk_to_the_crop_and_averaged():
     """portrait.shrunk: buffers of the same box at a larger size come back at the crop's size,
     area-averaged, the normals unit, the height in the crop's pixels; mean_buffers averages
