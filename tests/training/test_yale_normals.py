@@ -314,17 +314,18 @@ def test_relief_says_how_deep_the_network_draws_real_faces(shared_data):
 
 def test_real_normals_detail_is_marched_as_drawn_and_the_network_s_deepened():
     """The real normals' detail (photometric_buffers without a band, or under the network's low
-    band) is marched as it is; with the network's detail (the real low band under it) the
-    renderer keeps deepening it, as it does for the network alone; both step aside after."""
-    from addon import intrinsic
-    shipped = intrinsic.SHADOW_DETAIL
-    assert shipped > 1.0
+    band) is neither raised nor marched deeper; with the network's detail (the real low band
+    under it) the product keeps deepening it, as it does for the network alone; both step aside
+    after."""
+    from addon import intrinsic, portrait
+    shipped = (portrait.NORMAL_DETAIL, intrinsic.SHADOW_DETAIL)
+    assert min(shipped) > 1.0
     n, ok = np.zeros((3, 4)), np.zeros(4, bool)
-    for kwargs, inside in (({}, 1.0), ({"low_sigma": 4.0, "low": "network"}, 1.0),
+    for kwargs, inside in (({}, (1.0, 1.0)), ({"low_sigma": 4.0, "low": "network"}, (1.0, 1.0)),
                            ({"low_sigma": 4.0, "low": "photometric"}, shipped)):
         with yn.photometric_buffers(n, ok, **kwargs):
-            assert intrinsic.SHADOW_DETAIL == inside
-        assert intrinsic.SHADOW_DETAIL == shipped
+            assert (portrait.NORMAL_DETAIL, intrinsic.SHADOW_DETAIL) == inside
+        assert (portrait.NORMAL_DETAIL, intrinsic.SHADOW_DETAIL) == shipped
 
 
 def test_without_cast_shadows_plans_none_and_then_steps_aside():

@@ -219,15 +219,16 @@ def photometric_buffers(normals: np.ndarray, fitted: np.ndarray, low_sigma: floa
 
 @contextlib.contextmanager
 def real_relief():
-    """Within this context the cast shadows march the face skin's relief as the normals draw it
-    (intrinsic.SHADOW_DETAIL 1): the renderer deepens the network's relief, which it draws too
-    flat, and deepened so, real normals' detail would stand SHADOW_DETAIL times too deep."""
-    detail = intrinsic.SHADOW_DETAIL
-    intrinsic.SHADOW_DETAIL = 1.0
+    """Within this context the face skin's relief is taken as the normals draw it: their detail
+    is not raised (portrait.NORMAL_DETAIL 1) and the cast shadows march it as it is
+    (intrinsic.SHADOW_DETAIL 1). The product deepens the network's relief, which it draws too
+    flat; deepened so, real normals' detail would stand too deep."""
+    kept = portrait.NORMAL_DETAIL, intrinsic.SHADOW_DETAIL
+    portrait.NORMAL_DETAIL, intrinsic.SHADOW_DETAIL = 1.0, 1.0
     try:
         yield
     finally:
-        intrinsic.SHADOW_DETAIL = detail
+        portrait.NORMAL_DETAIL, intrinsic.SHADOW_DETAIL = kept
 
 
 def face_space(normals: list[np.ndarray], hw: tuple[int, int], sigma: float,
@@ -640,7 +641,8 @@ def relief(onnx_path, split: str = "tune", root=None) -> dict:
     the network's over the same with photometric stereo's normals in its place
     (photometric_buffers). The real-face side of bench.height_detail (which measures the light
     stage's held-out heads against their exact buffers): per subject, and the median and the
-    10th-90th percentiles. Photometric stereo's noise adds to its detail, so the ratios err low."""
+    10th-90th percentiles. Both as drawn (real_relief: neither deepened as the product deepens
+    the network's). Photometric stereo's noise adds to its detail, so the ratios err low."""
     root = root or yale.default_root()
     _, subjects = yale.select_subjects(yale.subject_names(root), False, split)
     session = api.session(onnx_path, 1)
@@ -658,7 +660,8 @@ def relief(onnx_path, split: str = "tune", root=None) -> dict:
         box = portrait.find_box(session, x)
         if box is None:
             continue
-        _, _, net = portrait.face_buffers(session, x, box, session.card.working_size)
+        with real_relief():
+            _, _, net = portrait.face_buffers(session, x, box, session.card.working_size)
         with photometric_buffers(np.where(ok, n, 0.0), ok):
             _, _, real = portrait.face_buffers(session, x, box, session.card.working_size)
         face = (net.face > 0.5) & (net.matte > 0.5)
