@@ -954,28 +954,30 @@ SHADOW_STEP = 1.5
 # of SHADOW_DETAIL_SIGMA working-size pixels (the nose, the brows over the eye sockets, the lips),
 # faded in over SHADOW_DETAIL_BLEND pixels from the skin's edge. The network draws that detail too
 # flat, and the flatness is its height's, not its normals': on the light stage's held-out heads
-# (python -m bench.height_detail, median of 24 frames) its shadows' height holds 0.53 of the exact
-# height's detail finer than 6 pixels (0.45 of that finer than 4), while its normals over the exact
-# height hold 0.98 and the exact normals over its height 0.71. Real faces it draws flatter still,
-# and there its normals too: on CroppedYale's tune subjects' frontal photos its shadows' height
-# holds 0.47 of the detail finer than 6 pixels that photometric stereo's normals give, its normals
-# 0.66 (python -m training.eval.yale_normals --onnx models/relight-portrait.onnx --relief; test
-# subjects 0.46 and 0.69). The nose's sides rise about as steeply as a lamp 35 degrees to the side
-# and 15 up (the ray climbs 1.3 pixels of height a pixel), so at 2.2 times the detail finer than 4
-# pixels no nose shadow fell on yaleB09 lit so; at 3.0 times the detail finer than 6 a narrow one
-# falls beside the nose. Marched at 3.0 times the detail finer than 6 pixels (1.10 of the exact
-# detail on the light stage's heads), against 2.2 times that finer than 4: CroppedYale tune
-# subjects (36 pairs each, paired) 20.23 -> 20.34 dB (one light 17.12 -> 17.22, few 19.93 -> 20.06,
-# HDRIs 23.64 -> 23.73), top/bottom +0.003 (5-95% -0.001 to +0.010); the synthetic test set's
-# rmse_level_fit 0.05763 -> 0.05787 (one thread, a 2-core Intel Xeon VM), and on the effects bench
-# ("auto") the network's buffers under the top lamp 0.3195 -> 0.3117 but under the key lamps 0.2238
-# / 0.2127 -> 0.2258 / 0.2165 and the sunniest HDRI 0.1897 -> 0.1913: the light stage's heads,
-# which the network draws less flat than real faces, are marched a little deeper than they are. 2.5
-# times the detail finer than 8 read 20.31 dB, 0.05783; 3.0 finer than 8 20.36 dB but 0.05807 (1.28
-# of the exact detail); 4.0 finer than 8 20.36 dB, top/bottom -0.001, and a sphere taken as face
-# skin shadowed itself where n.l is 0.2; 3.0 finer than 12 20.32 dB. The light stage's exact height
-# is marched as it is (shade's relief 1). A sphere taken as face skin still shadows none of itself
-# where n.l is above 0.2; its raised rim takes some light at grazing.
+# (python -m bench.height_detail, median of 24 frames, before portrait.NORMAL_DETAIL raised the
+# normals' detail) its shadows' height holds 0.53 of the exact height's detail finer than 6 pixels
+# (0.45 of that finer than 4), while its normals over the exact height hold 0.98 and the exact
+# normals over its height 0.71. Real faces it draws flatter still, and there its normals too: on
+# CroppedYale's tune subjects' frontal photos its shadows' height holds 0.47 of the detail finer
+# than 6 pixels that photometric stereo's normals give, its normals 0.66 (python -m
+# training.eval.yale_normals --onnx models/relight-portrait.onnx --relief; test subjects 0.46 and
+# 0.69). The nose's sides rise about as steeply as a lamp 35 degrees to the side and 15 up (the ray
+# climbs 1.3 pixels of height a pixel), so at 2.2 times the detail finer than 4 pixels no nose
+# shadow fell on yaleB09 lit so; at 3.0 times the detail finer than 6 a narrow one falls beside the
+# nose. Marched at 3.0 times the detail finer than 6 pixels (1.10 of the exact detail on the light
+# stage's heads), against 2.2 times that finer than 4: CroppedYale tune subjects (36 pairs each,
+# paired) 20.23 -> 20.34 dB (one light 17.12 -> 17.22, few 19.93 -> 20.06, HDRIs 23.64 -> 23.73),
+# top/bottom +0.003 (5-95% -0.001 to +0.010); the synthetic test set's rmse_level_fit 0.05763 ->
+# 0.05787 (one thread, a 2-core Intel Xeon VM), and on the effects bench ("auto") the network's
+# buffers under the top lamp 0.3195 -> 0.3117 but under the key lamps 0.2238 / 0.2127 -> 0.2258 /
+# 0.2165 and the sunniest HDRI 0.1897 -> 0.1913: the light stage's heads, which the network draws
+# less flat than real faces, are marched a little deeper than they are. With the normals' detail
+# raised too (portrait.NORMAL_DETAIL), the product's buffers march 1.41 of it
+# (bench.height_detail). 2.5 times the detail finer than 8 read 20.31 dB, 0.05783; 3.0 finer than 8
+# 20.36 dB but 0.05807 (1.28 of the exact detail); 4.0 finer than 8 20.36 dB, top/bottom -0.001,
+# and a sphere taken as face skin shadowed itself where n.l is 0.2; 3.0 finer than 12 20.32 dB. The
+# light stage's exact height is marched as it is (shade's relief 1). A sphere taken as face skin
+# still shadows none of itself where n.l is above 0.2; its raised rim takes some light at grazing.
 SHADOW_DETAIL = 3.0
 SHADOW_DETAIL_SIGMA = 6.0
 SHADOW_DETAIL_BLEND = 2.0

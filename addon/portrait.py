@@ -196,14 +196,18 @@ def templated(bufs: intrinsic.Buffers, working_size: int) -> intrinsic.Buffers:
 # --relief), where on the light stage's held-out heads it is 0.9-1.0 of the truth's
 # (bench.height_detail's rows: its normals march 0.98 of the exact relief). So over the face skin
 # that detail is raised NORMAL_DETAIL times, faded in over NORMAL_DETAIL_BLEND pixels from the
-# skin's edge: the nose's sides, the eye sockets and the mouth turn further from the light, and
-# the shadows' height, which follows the normals' slopes, stands deeper. CroppedYale tune subjects
-# (36 pairs each, paired, with intrinsic.SHADOW_DETAIL 3.0 finer than 6): 20.34 -> 20.41 dB (one
-# light 17.22 -> 17.36, few 20.06 -> 20.13), top/bottom +0.005 (5-95% +0.000 to +0.012),
-# left/right +0.001; 1.5 read 20.37 dB and +0.000. The synthetic test set's rmse_level_fit 0.05787
-# -> 0.05775 (python -m training.eval.evaluate --onnx models/relight-portrait.onnx --threads 1; a
-# 2-core Intel Xeon VM). On the dev footage under a key lamp the nose's shadow is better defined;
-# frame-to-frame change and skin chroma as before.
+# skin's edge: the nose's sides, the eye sockets and the mouth turn further from the light, and the
+# shadows' height, which follows the normals' slopes, stands deeper. CroppedYale tune subjects (36
+# pairs each, paired, with intrinsic.SHADOW_DETAIL 3.0 finer than 6): 20.34 -> 20.41 dB (one light
+# 17.22 -> 17.36, few 20.06 -> 20.13), top/bottom +0.005 (5-95% +0.000 to +0.012), left/right
+# +0.001; 1.5 read 20.37 dB and +0.000. The synthetic test set's rmse_level_fit 0.05787 -> 0.05775
+# (python -m training.eval.evaluate --onnx models/relight-portrait.onnx --threads 1; a 2-core Intel
+# Xeon VM). On the effects bench (network buffers, "auto") the rim lamp gains (0.4538 -> 0.4493),
+# the key lamps lose (0.2258 / 0.2165 -> 0.2275 / 0.2192) and the sunniest HDRI's shadows come out
+# colder (warmth -0.070 -> -0.118 against the light stage's -0.021; 0.1913 -> 0.1943): the light
+# stage's heads, drawn less flat, are deepened too (bench.height_detail: marched 1.41 of the exact
+# detail). On the dev footage under a key lamp the nose's shadow is better defined; frame-to-frame
+# change and skin chroma as before.
 NORMAL_DETAIL = 1.3
 NORMAL_DETAIL_SIGMA = 6.0  # working-size pixels
 NORMAL_DETAIL_BLEND = 2.0

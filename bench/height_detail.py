@@ -5,17 +5,18 @@
 
 Held-out val frames (training/intrinsic/data.py, identities never trained on) are rendered under
 the effects bench's soft source light and read by the network as the product's face crop reads them
-(the picture and its mirror image, the face template held over the mean; the finer sampling of the
-box is left out: the cached frames are 128 pixels). Over the face skin, per frame: the standard
-deviation of the shadows' height (``intrinsic.shadow_height``) less its Gaussian blur of
-``intrinsic.SHADOW_DETAIL_SIGMA`` pixels (the relief that casts the small shadows: the nose, the
-brows over the eye sockets, the lips), over the same of the exact buffers' height; and the blurred
-height's range (5th to 95th percentile), over the exact one's (the face's coarser shape). Rows: the
-network's height as drawn (``relief`` 1) and as the renderer marches it
-(``intrinsic.SHADOW_DETAIL``, chosen on CroppedYale's real faces, which the network draws flatter
-still); then, as drawn, the network's normals over the exact height and the exact normals over the
-network's height. shadow_height gives the height the normals' slopes, so the two say which of the
-network's buffers the flat relief comes from. Median and the 10th-90th percentiles over the frames.
+(the picture and its mirror image, the face template held over the mean and the face skin's
+normals' detail raised, portrait.templated; the finer sampling of the box is left out: the cached
+frames are 128 pixels). Over the face skin, per frame: the standard deviation of the shadows'
+height (``intrinsic.shadow_height``) less its Gaussian blur of ``intrinsic.SHADOW_DETAIL_SIGMA``
+pixels (the relief that casts the small shadows: the nose, the brows over the eye sockets, the
+lips), over the same of the exact buffers' height; and the blurred height's range (5th to 95th
+percentile), over the exact one's (the face's coarser shape). Rows: the network's height as drawn
+(``relief`` 1) and as the renderer marches it (``intrinsic.SHADOW_DETAIL``, chosen on CroppedYale's
+real faces, which the network draws flatter still); then, as drawn, the network's normals over the
+exact height and the exact normals over the network's height. shadow_height gives the height the
+normals' slopes, so the two say which of the network's buffers the flat relief comes from. Median
+and the 10th-90th percentiles over the frames.
 Writes ``bench/results/height_detail.{md,json}``.
 """
 
