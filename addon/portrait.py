@@ -181,12 +181,13 @@ def buffers(session: IntrinsicSession, x: np.ndarray, valid: np.ndarray | None =
 def templated(bufs: intrinsic.Buffers, working_size: int) -> intrinsic.Buffers:
     """``bufs`` (of a crop) with the face template held over their normals as the face crop
     holds it (FACE_TEMPLATE, FACE_TEMPLATE_AXES; facetemplate.held, the low band's width
-    scaled from the working size to the crop's; none where FACE_TEMPLATE is None), and then the
-    face skin's normals' detail raised (deepened)."""
+    scaled from the working size to the crop's), and then the face skin's normals' detail
+    raised (deepened); as they are where FACE_TEMPLATE is None (the network's normals)."""
+    if FACE_TEMPLATE is None:
+        return bufs
     scale = bufs.normal.shape[1] / working_size
-    if FACE_TEMPLATE is not None:
-        bufs = facetemplate.held(bufs, facetemplate.cached(FACE_TEMPLATE),
-                                 facetemplate.SIGMA * scale, facetemplate.AXES[FACE_TEMPLATE_AXES])
+    bufs = facetemplate.held(bufs, facetemplate.cached(FACE_TEMPLATE), facetemplate.SIGMA * scale,
+                             facetemplate.AXES[FACE_TEMPLATE_AXES])
     return deepened(bufs, NORMAL_DETAIL, NORMAL_DETAIL_SIGMA * scale)
 
 

@@ -86,8 +86,8 @@ def test_band_scores_read_the_angle_and_the_up_down_bias():
 
 def test_the_template_row_holds_the_face_skin_inside_the_frame_only():
     """frame_cut.templated: the network's normals with the product's face template held over
-    the face skin that is inside the frame; a crop whose face skin lies all beyond the edge
-    keeps the network's normals."""
+    the face skin that is inside the frame (and its detail raised, portrait.deepened); a crop
+    whose face skin lies all beyond the edge keeps the network's normals."""
     from types import SimpleNamespace
 
     from addon import engine, facetemplate, intrinsic
@@ -106,8 +106,9 @@ def test_the_template_row_holds_the_face_skin_inside_the_frame_only():
     inside = np.ones((h, w), np.float32)
     got = frame_cut.templated(session, res, inside)
     tpl = facetemplate.cached(facetemplate.SHIPPED)
-    want = facetemplate.held(intrinsic.Buffers(normal, res.height, res.albedo,
-                                               np.ones((h, w), np.float32), skin), tpl).normal
+    want = portrait.deepened(facetemplate.held(intrinsic.Buffers(
+        normal, res.height, res.albedo, np.ones((h, w), np.float32), skin), tpl),
+        portrait.NORMAL_DETAIL, portrait.NORMAL_DETAIL_SIGMA).normal
     np.testing.assert_allclose(got, want, atol=1e-6)
     assert np.abs(got[1] - normal[1]).max() > 0.05  # the template turned the face
     np.testing.assert_array_equal(frame_cut.templated(session, res, 0.0 * inside), normal)
