@@ -1054,9 +1054,17 @@ def shadow_height(bufs: Buffers, relief: float | None = None) -> np.ndarray:
     relief = SHADOW_DETAIL if relief is None else float(relief)
     if relief == 1.0:
         return h
-    skin = gaussian_blur(((bufs.face > 0.5) & fg).astype(np.float32), SHADOW_DETAIL_BLEND)
-    h += np.float32(relief - 1.0) * skin * (h - gaussian_blur(h, SHADOW_DETAIL_SIGMA))
-    return h
+    return skin_detail_raised(h, bufs, relief, SHADOW_DETAIL_SIGMA, SHADOW_DETAIL_BLEND)
+
+
+def skin_detail_raised(x: np.ndarray, bufs: Buffers, gain: float, sigma: float,
+                       blend: float) -> np.ndarray:
+    """``x`` ((h, w) or (C, h, w), float32) with its detail finer than a Gaussian of ``sigma``
+    pixels raised ``gain`` times over the face skin (face and matte above 0.5), faded in over
+    ``blend`` pixels from the skin's edge: the shadows' height's relief (shadow_height) and the
+    normals' (portrait.deepened)."""
+    skin = gaussian_blur(((bufs.face > 0.5) & (bufs.matte > 0.5)).astype(np.float32), blend)
+    return x + np.float32(gain - 1.0) * skin * (x - gaussian_blur(x, sigma))
 
 
 def specular(normal: np.ndarray, direction: np.ndarray,

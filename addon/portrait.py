@@ -216,15 +216,12 @@ NORMAL_DETAIL_BLEND = 2.0
 
 def deepened(bufs: intrinsic.Buffers, gain: float, sigma: float) -> intrinsic.Buffers:
     """``bufs`` with their normals' detail finer than a Gaussian of ``sigma`` pixels raised
-    ``gain`` times over the face skin (face and matte above 0.5), faded in over
-    NORMAL_DETAIL_BLEND pixels from its edge, and renormalised; as they are where ``gain`` is 1
-    or there is no face skin."""
-    skin = (bufs.face > 0.5) & (bufs.matte > 0.5)
-    if gain == 1.0 or not skin.any():
+    ``gain`` times over the face skin, faded in over NORMAL_DETAIL_BLEND pixels from its edge
+    (intrinsic.skin_detail_raised), and renormalised; as they are where ``gain`` is 1 or there
+    is no face skin."""
+    if gain == 1.0 or not ((bufs.face > 0.5) & (bufs.matte > 0.5)).any():
         return bufs
-    w = intrinsic.gaussian_blur(skin.astype(np.float32), NORMAL_DETAIL_BLEND)
-    fine = bufs.normal - intrinsic.gaussian_blur(bufs.normal, sigma)
-    normal = bufs.normal + np.float32(gain - 1.0) * w[None] * fine
+    normal = intrinsic.skin_detail_raised(bufs.normal, bufs, gain, sigma, NORMAL_DETAIL_BLEND)
     return replace(bufs, normal=intrinsic.unit_normals(normal).astype(np.float32))
 
 

@@ -23,6 +23,7 @@ from addon import (api, contract, detail, engine, framing, frames, intrinsic, li
                    pipeline, portrait)
 from addon.errors import InputError, ModelError
 from tests.clip_fixtures import write_exr_sequence
+from tests.core.test_intrinsic_render import normals_of
 
 OPSET = 17
 K, T = 400.0, 0.04          # parsing = sigmoid(K (r - b - T))
@@ -396,9 +397,7 @@ def test_the_face_skin_s_normal_detail_is_raised_and_the_rest_kept(monkeypatch):
     s = 64
     yy, xx = np.mgrid[:s, :s].astype(np.float64)
     height = 3.0 * np.exp(-((xx - 32) ** 2 + (yy - 30) ** 2) / (2 * 2.5 ** 2))
-    gy, gx = np.gradient(height)
-    n = np.stack([-gx, gy, np.ones_like(height)])
-    n = (n / np.linalg.norm(n, axis=0)).astype(np.float32)
+    n = normals_of(height).astype(np.float32)
     face = np.zeros((s, s), np.float32)
     face[16:48, 16:48] = 1.0
     ones = np.ones((s, s), np.float32)
