@@ -287,6 +287,47 @@ def test_soft_sources_and_non_skin_keep_the_fit(case):
         assert np.abs(got[face > 0.5] - fit[face > 0.5]).max() > 0.05 * float(fit.max())
 
 
+def test_a_patch_the_fit_reads_as_unlit_is_not_relit_as_a_brighter_albedo(monkeypatch):
+    """The footage shows a patch lit (a sphere of one albedo lit from the front and above)
+    whose predicted normals turn down and away from the light, off face skin (a raised chin's
+    neck read wrong): the fit says it was unlit, and a lamp from below relights it as if its
+    albedo were many times brighter, a blot.
+    Bounded by the footage's luminance over the albedo (albedo_bounded), the patch's relit
+    radiance per unit of target irradiance stays within SOURCE_ALBEDO_BOUND of the rest of the
+    sphere's; where the fit is above the bound nothing changes."""
+    image, bufs = portrait(light=lamp([0.0, 0.5, 1.0], 5.0, 0.1))
+    _, _, _, u, v = sphere()
+    patch = (np.abs(u) < 0.25) & (v > 0.35) & (v < 0.65)
+    normal = bufs.normal.copy()
+    normal[:, patch] = unit([0.0, -0.8, 0.2]).astype(np.float32)[:, None]
+    face = bufs.face.copy()
+    face[patch] = 0.0  # not face skin: the per-pixel reading does not reach it
+    bufs = dataclasses.replace(bufs, normal=normal, face=face)
+    target = lamp([0.0, -0.8, 0.6], 5.0, 0.1)
+    rest = (bufs.matte > 0.5) & ~patch & (np.hypot(u, v) < 0.8)
+
+    def per_irradiance(bound):
+        monkeypatch.setattr(intrinsic, "SOURCE_ALBEDO_BOUND", bound)
+        sh = intrinsic.shade(image, bufs, target, intrinsic.Plan())
+        e_t = intrinsic.luminance(intrinsic.irradiance(target, bufs.normal))
+        y = intrinsic.luminance(image * sh.ratio + sh.highlight) / np.maximum(e_t, 1e-6)
+        return float(np.median(y[patch])) / float(np.median(y[rest]))
+
+    assert per_irradiance(1e6) > 3.0  # unbounded: the blot
+    assert per_irradiance(1.5) < 1.5 * 1.15
+    lum = intrinsic.luminance(image)
+    c = intrinsic.fit_source(lum, bufs)
+    e = intrinsic.source_shading(lum, bufs, c)
+    got = intrinsic.albedo_bounded(e, lum, bufs, 1.5)
+    read = lum / (intrinsic.luminance(bufs.albedo) / float(np.median(intrinsic.luminance(
+        bufs.albedo)[bufs.matte > 0.5])))
+    high = (bufs.matte > 0.5) & (e >= read / 1.5)
+    assert high.sum() > 0.5 * (bufs.matte > 0.5).sum()
+    np.testing.assert_array_equal(got[high], e[high])
+    assert (got[bufs.matte > 0.5] >= read[bufs.matte > 0.5] / 1.5 * (1 - 1e-6)).all()
+    np.testing.assert_array_equal(got[bufs.matte <= 0.5], e[bufs.matte <= 0.5])
+
+
 # ---- shadows ---------------------------------------------------------------------------------
 
 BUMP_ROWS, BUMP_COLS = slice(29, 35), slice(29, 35)
