@@ -218,6 +218,14 @@ def test_error_breakdown_splits_the_error_by_region_and_level():
     assert bad["hair"]["error_share"] == 1.0 and bad["skin"]["error_share"] == 0.0
     assert bad["edge (2 px)"]["error_share"] == 0.0
     assert abs(bad["edge (2 px)"]["pixel_share"] - (256 - 144) / 256) < 1e-9
+    # after the level fit the tint leaves no error anywhere; the wrong patch's stays mostly in
+    # the hair (the fit's gain, pulled by it, moves the skin a little), and the classes' shares
+    # of what the fit leaves add up to all of it
+    assert max(r["rmse_level_fit"] for r in shares.values()) < 1e-6
+    assert bad["hair"]["rmse_level_fit"] > 5 * bad["skin"]["rmse_level_fit"]
+    assert bad["hair"]["level_fit_share"] > 0.9
+    assert sum(r["level_fit_share"] for k, r in bad.items() if not k.startswith("edge")) == \
+        pytest.approx(1.0, abs=1e-9)
 
 
 def test_level_fit_rmse_forgives_an_overall_level_and_tint_only():

@@ -156,7 +156,8 @@ def error_breakdown(predict, dataset, n: int | None = None, edge_px: int = 2) ->
     pixels inside the portrait's outline (overlapping the classes); and ``level_fit_rmse``, the
     RMSE left after each sample's prediction is scaled per channel by the least-squares gain
     toward the truth (linear, over the portrait): the part of the error a right overall level and
-    colour would remove is ``rmse - level_fit_rmse``; and ``level_gain``, the mean and standard
+    colour would remove is ``rmse - level_fit_rmse`` (per region too: ``rmse_level_fit`` and
+    ``level_fit_share``, where the card's figure lives); and ``level_gain``, the mean and standard
     deviation over the samples of the log of that gain (brightness: the mean of the three
     channels; colour: each channel less that mean). A mean far from 0 would be a bias that one
     fixed correction removes; a spread is a per-image guess that no fixed correction can."""
@@ -165,6 +166,7 @@ def error_breakdown(predict, dataset, n: int | None = None, edge_px: int = 2) ->
     n = len(dataset) if n is None else min(n, len(dataset))
     names = list(PARSING_CLASSES[1:]) + [f"edge ({edge_px} px)"]
     sq = dict.fromkeys(names, 0.0)
+    fit_region = dict.fromkeys(names, 0.0)
     count = dict.fromkeys(names, 0)
     total_sq, total_px, fit_sq = 0.0, 0, 0.0
     log_gains = []
@@ -193,10 +195,14 @@ def error_breakdown(predict, dataset, n: int | None = None, edge_px: int = 2) ->
         regions[names[-1]] = mask & ~inner
         for name, sel in regions.items():
             sq[name] += float(err[sel].sum())
+            fit_region[name] += float(fit[sel].sum())
             count[name] += int(sel.sum())
     out = {name: {"pixel_share": count[name] / max(total_px, 1),
                   "rmse": math.sqrt(sq[name] / count[name]) if count[name] else float("nan"),
-                  "error_share": sq[name] / max(total_sq, 1e-30)} for name in names}
+                  "error_share": sq[name] / max(total_sq, 1e-30),
+                  "rmse_level_fit": math.sqrt(fit_region[name] / count[name]) if count[name]
+                  else float("nan"),
+                  "level_fit_share": fit_region[name] / max(fit_sq, 1e-30)} for name in names}
     lg = np.array(log_gains).reshape(-1, 3)
     bright, colour_ = lg.mean(1), lg - lg.mean(1, keepdims=True)
     level = {"log_brightness_mean": float(bright.mean()) if len(lg) else float("nan"),
@@ -340,9 +346,10 @@ def _main(p, a):
               f"{lv['log_brightness_sd']:.3f} sd; colour (R, G, B less brightness) mean "
               + " ".join(f"{v:+.3f}" for v in lv["log_colour_mean"]) + ", sd "
               + " ".join(f"{v:.3f}" for v in lv["log_colour_sd"]))
-        print("region          pixels  RMSE    share of squared error")
+        print("region          pixels  RMSE    share of squared error  after the fit: RMSE, share")
         for name, r in b["regions"].items():
-            print(f"{name:14s}  {r['pixel_share']:6.1%}  {r['rmse']:.4f}  {r['error_share']:6.1%}")
+            print(f"{name:14s}  {r['pixel_share']:6.1%}  {r['rmse']:.4f}  {r['error_share']:6.1%}"
+                  f"                  {r['rmse_level_fit']:.4f}  {r['level_fit_share']:6.1%}")
         print(json.dumps({**b, **dataset_id(ds)}))
         return
     if a.compare:
