@@ -291,10 +291,9 @@ def test_a_patch_the_fit_reads_as_unlit_is_not_relit_as_a_brighter_albedo(monkey
     """The footage shows a patch lit (a sphere of one albedo lit from the front and above)
     whose predicted normals turn down and away from the light, off face skin (a raised chin's
     neck read wrong): the fit says it was unlit, and a lamp from below relights it as if its
-    albedo were many times brighter, a blot.
-    Bounded by the footage's luminance over the albedo (albedo_bounded), the patch's relit
-    radiance per unit of target irradiance stays within SOURCE_ALBEDO_BOUND of the rest of the
-    sphere's; where the fit is above the bound nothing changes."""
+    albedo were many times brighter, a blot. With the change bounded (change_bounded), the
+    patch's relit radiance per unit of target irradiance stays within SOURCE_ALBEDO_BOUND of
+    the rest of the sphere's."""
     image, bufs = portrait(light=lamp([0.0, 0.5, 1.0], 5.0, 0.1))
     _, _, _, u, v = sphere()
     patch = (np.abs(u) < 0.25) & (v > 0.35) & (v < 0.65)
@@ -314,18 +313,36 @@ def test_a_patch_the_fit_reads_as_unlit_is_not_relit_as_a_brighter_albedo(monkey
         return float(np.median(y[patch])) / float(np.median(y[rest]))
 
     assert per_irradiance(1e6) > 3.0  # unbounded: the blot
-    assert per_irradiance(1.5) < 1.5 * 1.15
+    assert per_irradiance(1.25) < 1.25 * 1.15
+
+
+def test_the_change_is_bounded_only_above_the_frame_s_typical_change():
+    """change_bounded leaves the shading where the change is at most its median over the
+    subject; above it the shading rises toward albedo_bounded's reading (the footage's luminance
+    over the albedo variations, over the bound), never so far that the change falls below the
+    median; off the subject nothing moves."""
+    rng = np.random.default_rng(3)
+    image, bufs = portrait()
+    alb = bufs.albedo * rng.uniform(0.7, 1.3, (1, S, S)).astype(np.float32)
+    bufs = dataclasses.replace(bufs, albedo=alb)
     lum = intrinsic.luminance(image)
-    c = intrinsic.fit_source(lum, bufs)
-    e = intrinsic.source_shading(lum, bufs, c)
-    got = intrinsic.albedo_bounded(e, lum, bufs, 1.5)
-    read = lum / (intrinsic.luminance(bufs.albedo) / float(np.median(intrinsic.luminance(
-        bufs.albedo)[bufs.matte > 0.5])))
-    high = (bufs.matte > 0.5) & (e >= read / 1.5)
-    assert high.sum() > 0.5 * (bufs.matte > 0.5).sum()
-    np.testing.assert_array_equal(got[high], e[high])
-    assert (got[bufs.matte > 0.5] >= read[bufs.matte > 0.5] / 1.5 * (1 - 1e-6)).all()
-    np.testing.assert_array_equal(got[bufs.matte <= 0.5], e[bufs.matte <= 0.5])
+    e_src = np.maximum(lum * rng.uniform(0.2, 2.0, (S, S)), 1e-3).astype(np.float32)
+    y_t = rng.uniform(0.5, 1.5, (S, S)).astype(np.float32)
+    fg = bufs.matte > 0.5
+    got = intrinsic.change_bounded(e_src, y_t, lum, bufs, 1.25)
+    typical = float(np.median((y_t / e_src)[fg]))
+    cap = intrinsic.albedo_bounded(e_src, lum, bufs, 1.25)
+    a = intrinsic.luminance(alb)
+    read = lum / np.maximum(a / float(np.median(a[fg])), 0.02)
+    np.testing.assert_allclose(cap[fg], np.maximum(e_src, read / 1.25)[fg], rtol=1e-6)
+    calm = fg & (y_t / e_src <= typical)
+    np.testing.assert_array_equal(got[calm], e_src[calm])
+    bright = fg & ~calm
+    assert (got[bright] >= e_src[bright]).all() and (got[bright] <= cap[bright] * (1 + 1e-6)).all()
+    assert (y_t / got)[bright].min() >= typical * (1 - 1e-5)
+    raised = bright & (got > e_src * 1.01)
+    assert raised.sum() > 0.1 * bright.sum()  # the bound does act
+    np.testing.assert_array_equal(got[~fg], e_src[~fg])
 
 
 # ---- shadows ---------------------------------------------------------------------------------
