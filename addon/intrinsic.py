@@ -499,17 +499,29 @@ def source_shading(image_lum: np.ndarray, bufs: Buffers, c: np.ndarray,
         e_fit = subsurface(lit[None], bufs.face * bufs.matte, *SSS_LUMINANCE)[0]
     fg = bufs.matte > 0.5
     t = weight * min(directionality(c) / PIXEL_SOURCE_DIRECTIONAL, 1.0)
-    if t <= 0 or not fg.any():
+    if t <= 0:
         return e_fit
-    alb = luminance(bufs.albedo)
-    a_med = float(np.median(alb[fg]))
-    if not a_med > 0:
+    read = albedo_reading(image_lum, bufs)
+    if read is None:
         return e_fit
-    read = image_lum / np.maximum(alb / a_med, 0.02)
     fit = np.maximum(e_fit, 1e-8)
     ok = fg & np.isfinite(read) & (read > 0)
     step = np.log(np.where(ok, read, 1.0) / fit) * np.where(ok, t * bufs.face, 0.0)
     return (fit * np.exp(step)).astype(np.float32)
+
+
+def albedo_reading(image_lum: np.ndarray, bufs: Buffers) -> np.ndarray | None:
+    """(h, w) the footage's shading read per pixel: its luminance over the predicted albedo's
+    luminance about its median over the subject (matte above 0.5; the albedo taken as at least
+    0.02 of that median); None where there is no subject or no albedo."""
+    fg = bufs.matte > 0.5
+    if not fg.any():
+        return None
+    alb = luminance(bufs.albedo)
+    a_med = float(np.median(alb[fg]))
+    if not a_med > 0:
+        return None
+    return image_lum / np.maximum(alb / a_med, 0.02)
 
 
 def albedo_bounded(e_src: np.ndarray, image_lum: np.ndarray, bufs: Buffers,
@@ -519,15 +531,11 @@ def albedo_bounded(e_src: np.ndarray, image_lum: np.ndarray, bufs: Buffers,
     (matte above 0.5): the shading a pixel must have had for the footage to show it with no
     more than ``bound`` times its predicted albedo. ``bound`` defaults to SOURCE_ALBEDO_BOUND."""
     bound = SOURCE_ALBEDO_BOUND if bound is None else bound
-    fg = bufs.matte > 0.5
-    if not fg.any():
+    read = albedo_reading(image_lum, bufs)
+    if read is None:
         return e_src
-    alb = luminance(bufs.albedo)
-    a_med = float(np.median(alb[fg]))
-    if not a_med > 0:
-        return e_src
-    read = image_lum / np.maximum(alb / a_med, 0.02)
-    return np.where(fg, np.maximum(e_src, read / np.float32(bound)), e_src).astype(np.float32)
+    return np.where(bufs.matte > 0.5, np.maximum(e_src, read / np.float32(bound)),
+                    e_src).astype(np.float32)
 
 
 def change_bounded(e_src: np.ndarray, y_t: np.ndarray, image_lum: np.ndarray, bufs: Buffers,
