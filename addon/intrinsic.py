@@ -1224,11 +1224,12 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
         e_t = np.maximum(e_t - cast_subsurface(loss, skin_w), 0.0)
     # Bound the ratio relative to its typical value, so the bound does not depend on the light's
     # absolute power (the change stays linear in the light).
-    typical = float(np.median(luminance(e_t)[fg])) if fg.any() else 0.0
+    y_t = luminance(e_t)
+    typical = float(np.median(y_t[fg])) if fg.any() else 0.0
     norm = float(np.median(e_src[fg])) / typical if typical > 0 else 1.0
     # what the ratio divides by: the footage's shading, raised where it would brighten a pixel
     # beyond the frame's typical change as no predicted albedo allows (change_bounded)
-    e_div = e_src if source is not None else change_bounded(e_src, luminance(e_t), lum, bufs)
+    e_div = e_src if source is not None else change_bounded(e_src, y_t, lum, bufs)
     e_src3 = e_div[None] if tint is None else e_div[None] * tint
     ratio = np.minimum(e_t * np.float32(norm) / e_src3, RATIO_MAX) / np.float32(norm)
     # The highlight in the footage's units: the footage's radiance per unit of irradiance on skin
