@@ -561,11 +561,20 @@ def change_bounded(e_src: np.ndarray, y_t: np.ndarray, image_lum: np.ndarray, bu
 # stronger than a face's own: log chromaticity (red and blue over green, after the predicted
 # albedo) changing by more than this per unit of normal. Skin's own colour gradient read this way
 # (lips and chin redder than the brow, a coloured bounce) measured 0.17-0.35 on the dev footage
-# and 0.04-0.16 on CroppedYale's grey photos; the synthetic test set's two-coloured skies reach
-# 1.5. Beyond the threshold only the excess is taken as light (soft shrinkage), so a clip's
-# colour never jumps; a per-channel fit without it turned real faces red on one side and cyan
-# on the other under a white light.
+# when it was chosen (read then over the whole subject) and 0.04-0.16 on CroppedYale's grey
+# photos; the synthetic test set's two-coloured skies reach 1.5 (read over face skin through
+# the network's buffers: median 0.34, 95th percentile 1.0). Beyond the threshold only the excess
+# is taken as light (soft shrinkage), so a clip's colour never jumps; a per-channel fit without
+# it turned real faces red on one side and cyan on the other under a white light.
 CHROMA_GRADIENT_MIN = 0.4
+# The gradient is read over face skin, whose albedo is nearly uniform, where the crop holds this
+# many pixels of it (sampled every other pixel each way), else over the whole subject: the
+# predicted albedo of hair and clothes takes on some of the light's colour, and their normals
+# are the least certain. On the card's synthetic test set (the network's buffers of the 128-pixel
+# frames, bench.renderer_ceiling's "network buffers" row) rmse_level_fit 0.0555 -> 0.0546, read
+# unshrunk 0.0557 -> 0.0529 (the light stage's own colour ratio: 0.0518). On the dev footage's
+# face crops, under their own light, the skin read 0.20-0.46 and the whole subject 0.35-0.47.
+CHROMA_MIN_PIXELS = 64
 
 
 def source_chroma(image_chw: np.ndarray, bufs: Buffers,
@@ -573,15 +582,19 @@ def source_chroma(image_chw: np.ndarray, bufs: Buffers,
     """(3, h, w) of unit luminance: the directional part of the footage's light colour, or None
     where it is no stronger than a face's own colour gradient (``threshold``). log(red / green)
     and log(blue / green) of the footage over the predicted albedo are fitted, robustly, as
-    linear in the normal over the confident foreground; the fit's normal terms, shrunk by
-    ``threshold`` in magnitude, give each pixel's light colour about the face's mean normal
+    linear in the normal over the face skin (CHROMA_MIN_PIXELS; else the confident foreground);
+    the fit's normal terms, shrunk by ``threshold`` in magnitude, give each pixel's light colour
+    about the mean normal of the pixels read
     (the mean colour stays the footage's: a clip's skin tone is not re-graded). ``threshold``
     defaults to CHROMA_GRADIENT_MIN."""
     threshold = CHROMA_GRADIENT_MIN if threshold is None else threshold
     # Every other pixel each way: four coefficients a channel need no more.
     x, alb = image_chw[:, ::2, ::2], bufs.albedo[:, ::2, ::2]
     fg = (bufs.matte[::2, ::2] > 0.5) & (luminance(x) > 1e-6) & (luminance(alb) > 0.02)
-    if int(fg.sum()) < 64:
+    skin = fg & (bufs.face[::2, ::2] > 0.5)
+    if int(skin.sum()) >= CHROMA_MIN_PIXELS:
+        fg = skin
+    if int(fg.sum()) < CHROMA_MIN_PIXELS:
         return None
     logc = np.log(np.maximum(x[:, fg], 1e-8) / np.maximum(alb[:, fg], 1e-4))
     n = bufs.normal[:, ::2, ::2][:, fg]

@@ -816,6 +816,29 @@ def test_a_faces_own_colour_gradient_is_not_read_as_light():
     assert intrinsic.source_chroma(grey, bufs) is None
 
 
+def test_the_light_colour_is_read_over_face_skin_where_there_is_enough_of_it():
+    """A white lamp on a sphere whose lower part is skin and upper part hair the network drew
+    grey, the hair's own colour turning from blue on its left to red on its right: read over
+    the face skin, no light colour; with too little skin to read (none marked), the colour is
+    read over the whole subject, and the hair's colour then reads as light."""
+    normal, height, matte, u, v = sphere()
+    hair = (v < 0.0) & (matte > 0.5)
+    alb = np.broadcast_to(SKIN[:, None, None], (3, S, S)).copy()
+    turn = np.exp(np.clip(u, -1.0, 1.0) * np.array([1.5, 0.0, -1.5], np.float32)[:, None, None])
+    alb = np.where(hair[None], 0.3 * turn, alb).astype(np.float32)
+    image = (alb * exact_irradiance(lamp([0.3, 0.4, 1.0]), normal) * matte / math.pi)
+    grey = np.where(hair[None], 0.3, np.broadcast_to(SKIN[:, None, None], (3, S, S)))
+    skin = (matte * ~hair).astype(np.float32)
+    bufs = intrinsic.Buffers(normal, height, grey.astype(np.float32), matte, skin)
+    assert int((skin[::2, ::2] > 0.5).sum()) >= intrinsic.CHROMA_MIN_PIXELS
+    assert intrinsic.source_chroma(image.astype(np.float32), bufs) is None
+    none_marked = dataclasses.replace(bufs, face=np.zeros_like(skin))
+    tint = intrinsic.source_chroma(image.astype(np.float32), none_marked)
+    assert tint is not None
+    left, right = hair & (u < -0.3), hair & (u > 0.3)
+    assert red_over_blue(tint, right) - red_over_blue(tint, left) > 0.3
+
+
 def saturated_shadows():
     """(image, Buffers, u) of the skin sphere lit from its left, the skin redder the darker it
     is (as real, graded skin is): its chromaticity moves from the albedo's by up to +25% red
