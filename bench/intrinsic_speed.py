@@ -22,6 +22,7 @@ frame takes over all threads. Writes ``bench/results/intrinsic_speed.{md,json}``
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -124,9 +125,29 @@ def frame_ms(framing: float, relight: float, finish: float, blend: float) -> flo
     return framing / pipeline.FRAMING_STEP + relight + finish + blend
 
 
-# What the network costs a relit frame: every pass relight_frame makes on the face crop.
+# What the network costs a relit frame: every pass relight_frame makes on the face crop, the
+# finer sampling's in a second thread (portrait.PARALLEL_PASSES) as relight_frame runs it.
 FACE_ROW = ("network, the face crop's relighting passes (portrait.face_buffers: the crop "
-            "and its mirror image, the finer sampling and its mirror image)")
+            "and its mirror image, the finer sampling and its mirror image in a second thread)")
+SEQUENTIAL = ", the passes one after another (comparison)"
+
+
+def face_passes(sess, x: np.ndarray, box, size: int):
+    """portrait.face_buffers as relight_frame runs it: the finer sampling's pass handed to the
+    second thread first."""
+    finer = portrait._lane().submit(portrait.finer_buffers, sess, x, box, size)
+    return portrait.face_buffers(sess, x, box, size, finer=finer)
+
+
+@contextlib.contextmanager
+def sequential():
+    """relight_frame with its network passes one after another (for comparison)."""
+    was = portrait.PARALLEL_PASSES
+    portrait.PARALLEL_PASSES = False
+    try:
+        yield
+    finally:
+        portrait.PARALLEL_PASSES = was
 
 
 def held_on_each(sess, x: np.ndarray, box, size: int) -> intrinsic.Buffers:
@@ -171,7 +192,9 @@ def run(model: str, threads: int, repeats: int) -> dict:
                                                                repeats),
             f"network, {size} px crop and its mirror in one batch (a relighting pass)": timed(
                 lambda: sess.run_planar(crop, mirror=portrait.MIRROR), repeats),
-            FACE_ROW: timed(lambda: portrait.face_buffers(sess, x, box, size), repeats),
+            FACE_ROW: timed(lambda: face_passes(sess, x, box, size), repeats),
+            FACE_ROW + SEQUENTIAL: timed(lambda: portrait.face_buffers(sess, x, box, size),
+                                         repeats),
             FACE_ROW + ", the face template held on each pass before the mean (comparison)":
                 timed(lambda: held_on_each(sess, x, box, size), repeats),
             "renderer, key lamp (diffuse + shadow + highlight)":
@@ -237,6 +260,11 @@ def run(model: str, threads: int, repeats: int) -> dict:
             framing_row: timed(lambda: portrait.find_box(sess, x, fullres, prior=box), repeats),
             "relight_frame at 1080p (coarse + face passes, key lamp)": timed(
                 lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats),
+        }
+        with sequential():
+            rows["relight_frame at 1080p" + SEQUENTIAL] = timed(
+                lambda: portrait.relight_frame(sess, x, lamp, box, fullres=fullres), repeats)
+        rows |= {
             "full-resolution finish at 1080p":
                 timed(lambda: fullres.finish_planar(x, res.a, res.b, float(x.max())), repeats),
             outline_row: timed(lambda: outline.apply(res.outline, x, y, fullres=fullres), repeats),
@@ -277,6 +305,8 @@ def main(argv=None):
     res = run(a.model, a.threads, a.repeats)
     if a.clip:
         res["clip"] = run_clip(a.model, a.threads, a.clip)
+        with sequential():  # the same clip, each frame's network passes one after another
+            res["clip_sequential"] = run_clip(a.model, a.threads, a.clip)
         if max(blas.threads(), default=1) > 1:
             with blas.left_alone():  # the same clip, numpy's BLAS left on its own threads
                 res["clip_blas_left_alone"] = run_clip(a.model, a.threads, a.clip)
@@ -298,6 +328,11 @@ def main(argv=None):
                   f"its threads overlapping): {c['fps_after_warm_up']:.1f} frames/s after warm-up, "
                   f"{c['cpu_ms_per_frame']:.0f} ms of CPU a frame over all threads "
                   f"({c['wall_s']:.1f} s in all, with the model's loading)."]
+    if "clip_sequential" in res:
+        c = res["clip_sequential"]
+        lines += ["", f"The same with each frame's network passes one after another "
+                  f"(comparison): {c['fps_after_warm_up']:.1f} frames/s after warm-up, "
+                  f"{c['cpu_ms_per_frame']:.0f} ms of CPU a frame ({c['wall_s']:.1f} s in all)."]
     if "clip_blas_left_alone" in res:
         c = res["clip_blas_left_alone"]
         lines += ["", f"The same with numpy's BLAS left on its own {max(blas.threads())} threads "

@@ -291,30 +291,77 @@ def test_the_mirrored_pass_is_the_mean_of_the_image_s_and_its_mirror_s_buffers(t
     # which passes mirror: every relighting pass, no framing pass
     sess = engine.new_session(write_standin(tmp_path, "mirror"),
                               providers=["CPUExecutionProvider"], threads=1, spin=False)
-    seen, levels = [], []
+    seen = []
 
     class Spy:
         card = sess.card
 
         def run_planar(self, image, mirror=False):
-            seen.append((mirror, image.shape[1]))
-            levels.append(float(np.quantile(intrinsic.luminance(image), intrinsic.INPUT_QUANTILE)))
+            level = float(np.quantile(intrinsic.luminance(image), intrinsic.INPUT_QUANTILE))
+            seen.append((mirror, image.shape[1], level))
             return sess.run_planar(image, mirror=mirror)
 
     wide = chw(frame(96, 160, (110.0, 48.0), 20.0))
     box = portrait.find_box(Spy(), wide)
-    assert seen and not any(m for m, _ in seen)
+    assert seen and not any(m for m, *_ in seen)
     seen.clear()
     portrait.relight_frame(Spy(), wide, RIGHT_LAMP, box)
-    size = sess.card.working_size  # the coarse pass, the face crop, its finer sampling
-    assert [m for m, _ in seen] == [False] + [portrait.MIRROR] * 2
-    assert [n for _, n in seen][1:] == [size, round(size * portrait.ZOOM)]
+    # the coarse pass, the face crop, its finer sampling (in a second thread: in any order)
+    size, finer = sess.card.working_size, round(sess.card.working_size * portrait.ZOOM)
+    assert len(seen) == 3
+    coarse = [p for p in seen if p[1] not in (size, finer)]
+    by_size = {n: (m, level) for m, n, level in seen}
+    assert len(coarse) == 1 and coarse[0][0] is False
+    assert by_size[size][0] is portrait.MIRROR and by_size[finer][0] is portrait.MIRROR
     # each pass normalised to its level: the finer sampling brighter (FINER_LEVEL); the lift
     # keeps the level (up to the quantile's interpolation between two pixels, which a curve
     # moves a little)
     assert portrait.FINER_LEVEL > intrinsic.INPUT_LEVEL
-    np.testing.assert_allclose(levels[-3:], [intrinsic.INPUT_LEVEL] * 2 + [portrait.FINER_LEVEL],
-                               rtol=1e-3)
+    np.testing.assert_allclose([coarse[0][2], by_size[size][1], by_size[finer][1]],
+                               [intrinsic.INPUT_LEVEL] * 2 + [portrait.FINER_LEVEL], rtol=1e-3)
+
+
+def test_the_finer_pass_in_a_second_thread_gives_the_frame_the_passes_in_turn_give(tmp_path,
+                                                                                    monkeypatch):
+    """relight_frame with the finer sampling's pass in the second thread
+    (PARALLEL_PASSES) gives the same frame, to the bit, as with its passes one after
+    another."""
+    sess = engine.new_session(write_standin(tmp_path), providers=["CPUExecutionProvider"],
+                              threads=1, spin=False)
+    wide = chw(frame(96, 160, (110.0, 48.0), 20.0))
+    box = portrait.find_box(sess, wide)
+    assert box is not None
+    got = {}
+    for parallel in (True, False):
+        monkeypatch.setattr(portrait, "PARALLEL_PASSES", parallel)
+        got[parallel] = portrait.relight_frame(sess, wide, RIGHT_LAMP, box)
+    for field in ("a", "b", "matte"):
+        np.testing.assert_array_equal(getattr(got[True], field), getattr(got[False], field))
+
+
+def test_a_pass_failing_in_the_second_thread_fails_the_frame_and_the_next_frame_runs(tmp_path):
+    """The finer sampling's pass raising in the second thread: relight_frame raises that
+    error (no pass left running), and the next frame relights as before."""
+    sess = engine.new_session(write_standin(tmp_path), providers=["CPUExecutionProvider"],
+                              threads=1, spin=False)
+    finer = round(sess.card.working_size * portrait.ZOOM)
+    broken = {"on": True}
+
+    class Failing:
+        card = sess.card
+
+        def run_planar(self, image, mirror=False):
+            if broken["on"] and image.shape[1] == finer:
+                raise ModelError("the finer pass failed")
+            return sess.run_planar(image, mirror=mirror)
+
+    wide = chw(frame(96, 160, (110.0, 48.0), 20.0))
+    box = portrait.find_box(sess, wide)
+    with pytest.raises(ModelError, match="finer pass failed"):
+        portrait.relight_frame(Failing(), wide, RIGHT_LAMP, box)
+    broken["on"] = False
+    again = portrait.relight_frame(Failing(), wide, RIGHT_LAMP, box)
+    np.testing.assert_array_equal(again.a, portrait.relight_frame(sess, wide, RIGHT_LAMP, box).a)
 
 
 def test_the_lift_raises_shadows_keeps_the_level_and_every_pixel_s_colour():
