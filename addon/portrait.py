@@ -399,6 +399,15 @@ def finer_buffers(session: IntrinsicSession, x_full: np.ndarray, box: framing.Bo
                    level=FINER_LEVEL, shape=False)
 
 
+def finer_pass(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box,
+               size: int) -> Future | None:
+    """finer_buffers under way in the second thread (PARALLEL_PASSES), for face_buffers'
+    ``finer``; None where the product makes no such pass (ZOOM 0) or runs it in turn."""
+    if not (ZOOM and PARALLEL_PASSES):
+        return None
+    return _lane().submit(finer_buffers, session, x_full, box, size)
+
+
 def face_buffers(session: IntrinsicSession, x_full: np.ndarray, box: framing.Box, size: int,
                  fullres: detail.FullRes | None = None, finer: Future | None = None):
     """(crop, valid, buffers) of the face crop as the relighting pass takes them: the crop and
@@ -458,9 +467,7 @@ def relight_frame(session: IntrinsicSession, x_full: np.ndarray, light: np.ndarr
                            np.zeros((1, 1), np.float32), False, None)
     gh, gw = grid_shape(h, w, box, size)
     fr = shared_fullres(fullres)
-    # the finer sampling's pass, in the second thread while this one runs the others
-    finer = (_lane().submit(finer_buffers, session, x_full, box, size)
-             if ZOOM and PARALLEL_PASSES else None)
+    finer = finer_pass(session, x_full, box, size)  # beside the passes this thread runs
     try:
         return _relit(session, x_full, light, box, effects, exposure, fr, scale, outline_fit,
                       matte_fit, finer, gh, gw)

@@ -10,9 +10,11 @@ Lights: a key lamp (one compact component: shadows and highlights are computed) 
 uniform world (none: diffuse only); the key lamp's penumbra is timed alone too, beside the
 plain blur it replaces. The stages run as the product runs them, numpy's BLAS on one
 thread (addon/blas.py); relight_frame (and the clip below) also run with it left on its own
-threads, for comparison. The end-to-end figure counts the framing pass a run makes
-(it follows the last framed frame's box, find_box's ``prior``); the whole-frame search it falls
-back to is listed too. ``--clip N`` also runs the whole product path on an N-frame 1080p
+threads, for comparison. relight_frame runs the face crop's finer sampling in a second
+thread (portrait.PARALLEL_PASSES); its passes one after another are timed too (the face crop's,
+relight_frame, and with ``--clip`` the clip), for comparison. The end-to-end figure counts the
+framing pass a run makes (it follows the last framed frame's box, find_box's ``prior``); the
+whole-frame search it falls back to is listed too. ``--clip N`` also runs the whole product path on an N-frame 1080p
 H.264 clip of the demo's frames in the same canvas (addon.pipeline.relight_clip: framing pass,
 exposure, decode, relighting, finish and half-float EXR writing, its threads overlapping as
 they do for an artist) and reports the frames per second after warm-up and the CPU time a
@@ -125,18 +127,18 @@ def frame_ms(framing: float, relight: float, finish: float, blend: float) -> flo
     return framing / pipeline.FRAMING_STEP + relight + finish + blend
 
 
-# What the network costs a relit frame: every pass relight_frame makes on the face crop, the
-# finer sampling's in a second thread (portrait.PARALLEL_PASSES) as relight_frame runs it.
+# What the network costs a relit frame: every pass relight_frame makes on the face crop, as it
+# makes them (the finer sampling's in a second thread: portrait.PARALLEL_PASSES).
 FACE_ROW = ("network, the face crop's relighting passes (portrait.face_buffers: the crop "
-            "and its mirror image, the finer sampling and its mirror image in a second thread)")
+            "and its mirror image, the finer sampling and its mirror image)")
 SEQUENTIAL = ", the passes one after another (comparison)"
 
 
 def face_passes(sess, x: np.ndarray, box, size: int):
     """portrait.face_buffers as relight_frame runs it: the finer sampling's pass handed to the
-    second thread first."""
-    finer = portrait._lane().submit(portrait.finer_buffers, sess, x, box, size)
-    return portrait.face_buffers(sess, x, box, size, finer=finer)
+    second thread first (portrait.finer_pass)."""
+    return portrait.face_buffers(sess, x, box, size,
+                                 finer=portrait.finer_pass(sess, x, box, size))
 
 
 @contextlib.contextmanager
@@ -195,7 +197,8 @@ def run(model: str, threads: int, repeats: int) -> dict:
             FACE_ROW: timed(lambda: face_passes(sess, x, box, size), repeats),
             FACE_ROW + SEQUENTIAL: timed(lambda: portrait.face_buffers(sess, x, box, size),
                                          repeats),
-            FACE_ROW + ", the face template held on each pass before the mean (comparison)":
+            FACE_ROW + ", one after another, the face template held on each pass before the "
+                       "mean (comparison)":
                 timed(lambda: held_on_each(sess, x, box, size), repeats),
             "renderer, key lamp (diffuse + shadow + highlight)":
                 timed(lambda: intrinsic.shade(crop, bufs, lamp), repeats),
