@@ -31,9 +31,9 @@ _FULLRES: dict = {}
 # thread, beside the coarse pass and the crop's own: onnxruntime and numpy's larger operations
 # leave Python's lock, so the two share the cores, and a pass on one core wastes less than one
 # split over two. The frame is the same to the bit. bench.intrinsic_speed on a 2-core Intel Xeon
-# VM: the face crop's passes 40.8 -> 33.7 ms, relight_frame at 1080p 78.3 -> 63.8 ms; a clip
-# (relight_clip) is no faster, 10.0 -> 10.1 frames/s, its decoding, finishing and writing
-# threads keeping the second core busy already: what it shortens is one frame's wait
+# VM: the face crop's passes 41.7 -> 34.5 ms, relight_frame at 1080p 83.1 -> 67.8 ms; a clip
+# (relight_clip) is no faster (9.5 and 9.4 frames/s, within noise), its decoding, finishing and
+# writing threads keeping the second core busy already: what it shortens is one frame's wait
 # (relight_image, the exposure scan, a single-frame render).
 PARALLEL_PASSES = True
 _LANE: dict = {}
