@@ -55,9 +55,10 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
                   working_size: int | None = None) -> np.ndarray:
     """Relight ``image`` ((H, W, 3) float32 scene-linear Rec.709) to ``light`` ((16, 16, 3), the
     light-vector convention) with the preset's model and return (H, W, 3) scene linear.
-    ``model``: a path to an .onnx (with its card) instead of a preset; ``background``: the
-    pipeline's choice for the end-to-end presets (intrinsic presets always keep the footage's
-    background); ``exposure``: the pipeline's exposure mode ("keep": the subject keeps this
+    ``model``: a path to an .onnx (with its card) instead of a preset, or a model loaded
+    already (engine.new_session's; ``threads`` and ``working_size`` are then its own);
+    ``background``: the pipeline's choice for the end-to-end presets (intrinsic presets always
+    keep the footage's background); ``exposure``: the pipeline's exposure mode ("keep": the subject keeps this
     image's luminance; "physical": absolute units); ``working_size``: the network's working
     size in place of its card's (smaller is faster, larger finer; bench.intrinsic_frontier). NaN,
     infinite and negative pixels are taken as 0, as the pipeline does."""
@@ -69,7 +70,10 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
         raise InputError(f"The image must be (H, W, 3), got shape {img.shape}.")
     img = np.where(np.isfinite(img) & (img > 0), img, np.float32(0.0))
     light = lightvec.validate(light)
-    sess = session(model or find_model(preset, models_dir), threads, working_size)
+    if isinstance(model, (engine.RelightSession, engine.IntrinsicSession)):
+        sess = model
+    else:
+        sess = session(model or find_model(preset, models_dir), threads, working_size)
     x = np.ascontiguousarray(img.transpose(2, 0, 1))
     if isinstance(sess, engine.IntrinsicSession):
         fullres = portrait.shared_fullres()

@@ -90,7 +90,7 @@ import time
 
 import numpy as np
 
-from addon import api, facetemplate, hdri, intrinsic, lightvec, normalise, portrait
+from addon import api, engine, facetemplate, hdri, intrinsic, lightvec, normalise, portrait
 from addon.errors import InputError
 from addon.intrinsic import SOURCE_FLOOR
 
@@ -406,7 +406,9 @@ def face_mask(shape, subject: Subject | None = None, weights=None) -> np.ndarray
 
 class PipelineRelighter:
     """A shipped model run exactly as the product runs it (``addon.relight_image``) on a gray
-    image replicated to three channels; the output goes back to gray by Rec.709 luminance."""
+    image replicated to three channels; the output goes back to gray by Rec.709 luminance.
+    ``onnx_path``: the model's file, or a model loaded already (an engine session, which keeps
+    its own threads and working size)."""
 
     def __init__(self, onnx_path, threads: int = 1, background: str | None = None,
                  exposure: str | None = None, working_size: int | None = None,
@@ -421,7 +423,8 @@ class PipelineRelighter:
         # none; None: the product's
         self.template = template
         self.template_axes = template_axes
-        self.card = api.session(onnx_path, threads, working_size).card
+        loaded = isinstance(onnx_path, (engine.RelightSession, engine.IntrinsicSession))
+        self.card = (onnx_path if loaded else api.session(onnx_path, threads, working_size)).card
         self.name = self.card.name if lift is None else f"{self.card.name} lift {lift:g}"
         if template is not None:
             self.name += (" no face template" if template == "none" else " face template"
@@ -930,8 +933,10 @@ def _refuse(message: str):
 def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 2021,
         quick: bool = False, threads: int = 1, sheet_path=None, sheet_rows: int = 6,
         progress=print, split: str = "test", lifts=(), template=None,
-        template_axes: str = "y") -> dict:
+        template_axes: str = "y", sessions=()) -> dict:
     """Evaluate the models; returns the JSON-able result (tables on the test subjects).
+    ``sessions``: models loaded already (engine sessions, each card with its own name: e.g.
+    training.eval.buffer_swap's), relit after the files' on the same pairs.
     ``lifts``: the first model again for each, its crops lifted by that power (an experiment
     on portrait.INPUT_LIFT, compared on the same pairs). ``template``: a face template's path,
     or "none": the first model again with that template over its normals' components
@@ -943,7 +948,7 @@ def run(onnx_paths, root=None, data_root=None, n_pairs: int = 12, seed: int = 20
     if quick:
         n_pairs = min(n_pairs, len(KINDS))
     relighters = {}
-    for p in onnx_paths:
+    for p in [*onnx_paths, *sessions]:
         r = PipelineRelighter(p, threads)
         if r.name in relighters or r.name in REFERENCES:
             raise InputError(f"Two models are named {r.name} (or a model is named like a "
