@@ -89,6 +89,12 @@ def synthetic(models: dict, threads: int = 1) -> dict:
     return out
 
 
+def shown(path) -> str:
+    """A model's path as the report names it: relative to the repository where it lies in it."""
+    p = pathlib.Path(path).resolve()
+    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else str(path)
+
+
 def run(onnx: str, other: str, swaps=DEFAULT_SWAPS, n_pairs: int = 36, threads: int = 1,
         data_root=None, progress=print) -> dict:
     def load(path):
@@ -108,7 +114,7 @@ def run(onnx: str, other: str, swaps=DEFAULT_SWAPS, n_pairs: int = 36, threads: 
     real = yale.run([onnx, other], data_root / "yale" / "CroppedYale", data_root, n_pairs,
                     threads=threads, progress=progress, split="tune", sessions=variants)
     psnr = {m: real["results"]["scale_invariant"][m]["all"]["psnr"] for m in models}
-    return {"onnx": onnx, "other": other, "swaps": [list(f) for f in swaps],
+    return {"onnx": shown(onnx), "other": shown(other), "swaps": [list(f) for f in swaps],
             "pairs_per_subject": n_pairs, "rmse_level_fit": syn, "yale_tune_psnr": psnr,
             "balance_correlation": {m: real["balance_correlation"][m] for m in models},
             "seconds": real["seconds"]}
