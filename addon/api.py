@@ -58,10 +58,11 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
     ``model``: a path to an .onnx (with its card) instead of a preset, or a model loaded
     already (engine.new_session's; ``threads`` and ``working_size`` are then its own);
     ``background``: the pipeline's choice for the end-to-end presets (intrinsic presets always
-    keep the footage's background); ``exposure``: the pipeline's exposure mode ("keep": the subject keeps this
-    image's luminance; "physical": absolute units); ``working_size``: the network's working
-    size in place of its card's (smaller is faster, larger finer; bench.intrinsic_frontier). NaN,
-    infinite and negative pixels are taken as 0, as the pipeline does."""
+    keep the footage's background); ``exposure``: the pipeline's exposure mode ("keep": the
+    subject keeps this image's luminance; "physical": absolute units); ``working_size``: the
+    network's working size in place of its card's (smaller is faster, larger finer;
+    bench.intrinsic_frontier). NaN, infinite and negative pixels are taken as 0, as the
+    pipeline does."""
     if exposure not in pipeline.EXPOSURE_MODES:
         raise InputError(f"Unknown exposure mode {exposure!r}; use one of "
                          f"{', '.join(pipeline.EXPOSURE_MODES)}.")
