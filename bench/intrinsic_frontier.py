@@ -8,7 +8,8 @@ For each size: accuracy on real faces, CroppedYale's held-out test subjects reli
 ``addon.relight_image`` on training/eval/yale.py's pairs (the scale-invariant PSNR over all pairs,
 as its table gives it, and the balance correlations with their intervals over resampled
 subjects); and time on this machine: the network (the face crop's relighting passes,
-portrait.face_buffers) plus the renderer (key lamp) at that size, and a 1080p frame end to end
+portrait.face_buffers, the finer sampling's in a second thread as relight_frame runs it) plus
+the renderer (key lamp) at that size, and a 1080p frame end to end
 as bench/intrinsic_speed.py counts it (framing pass, relight_frame, blend, finish; decode and
 write overlap in other threads). Every repeat times every size in turn, so the machine's load
 falls on all of them alike. ``--write-card`` also records the card's
@@ -89,7 +90,8 @@ def timings(model: str, sizes, threads: int, repeats: int) -> dict:
         bufs = portrait.buffers(sess, crop)
         jobs[size] = {
             # the face crop's relighting passes, as relight_frame makes them
-            "network": lambda s=sess, b=box, n=size: portrait.face_buffers(s, x, b, n),
+            "network": lambda s=sess, b=box, n=size: portrait.face_buffers(
+                s, x, b, n, finer=portrait.finer_pass(s, x, b, n)),  # as relight_frame runs it
             "renderer": lambda c=crop, b=bufs: intrinsic.shade(c, b, lamp),
             **frame_stages(sess, x, lamp, fullres, box)}
     times = {size: {k: [] for k in job} for size, job in jobs.items()}
