@@ -16,6 +16,7 @@ gives a frame where none was found its neighbours' box and counts it.
 from __future__ import annotations
 
 import math
+import os
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -42,10 +43,12 @@ _LANE_LOCK = threading.Lock()
 
 def _lane() -> ThreadPoolExecutor:
     """The one worker thread relight_frame hands the finer sampling's pass to (made on first
-    use, kept for the process)."""
+    use, kept for the process; a process forked from one that had it makes its own, as the
+    parent's thread does not exist in it and a pass handed to it would never run)."""
     with _LANE_LOCK:
-        if "pool" not in _LANE:
+        if _LANE.get("pid") != os.getpid():
             _LANE["pool"] = ThreadPoolExecutor(1, thread_name_prefix="relight-pass")
+            _LANE["pid"] = os.getpid()
         return _LANE["pool"]
 
 

@@ -11,6 +11,7 @@ on the face, so a side lamp lights that side of the face); height 0; albedo 0.5.
 import dataclasses
 import hashlib
 import json
+import multiprocessing
 import os
 import pathlib
 
@@ -362,6 +363,33 @@ def test_a_pass_failing_in_the_second_thread_fails_the_frame_and_the_next_frame_
     broken["on"] = False
     again = portrait.relight_frame(Failing(), wide, RIGHT_LAMP, box)
     np.testing.assert_array_equal(again.a, portrait.relight_frame(sess, wide, RIGHT_LAMP, box).a)
+
+
+def _relight_in_child(sess, frame_chw, box, out):
+    out.put(float(portrait.relight_frame(sess, frame_chw, RIGHT_LAMP, box).a.sum()))
+
+
+@pytest.mark.skipif("fork" not in multiprocessing.get_all_start_methods(),
+                    reason="no fork on this platform")
+def test_a_process_forked_after_a_relit_frame_relights_with_its_own_second_thread(tmp_path):
+    """relight_frame in a process forked from one that had already relit a frame (its second
+    thread does not exist in the child): the frame comes out, the same as the parent's, rather
+    than waiting for ever on a pass handed to a thread that is not there."""
+    sess = engine.new_session(write_standin(tmp_path), providers=["CPUExecutionProvider"],
+                              threads=1, spin=False)
+    wide = chw(frame(96, 160, (110.0, 48.0), 20.0))
+    box = portrait.find_box(sess, wide)
+    parent = float(portrait.relight_frame(sess, wide, RIGHT_LAMP, box).a.sum())
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(target=_relight_in_child, args=(sess, wide, box, out))
+    child.start()
+    child.join(60)
+    if child.is_alive():
+        child.kill()
+        pytest.fail("the forked process never finished its frame")
+    assert child.exitcode == 0
+    assert out.get(timeout=5) == parent
 
 
 def test_the_lift_raises_shadows_keeps_the_level_and_every_pixel_s_colour():
