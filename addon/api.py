@@ -39,7 +39,11 @@ def find_model(preset: str, models_dir=None) -> pathlib.Path:
 
 def session(model_path, threads: int | None = None, working_size: int | None = None):
     """A loaded model, kept for the next call (loading checks the file's checksum);
-    ``working_size``: the network's in place of its card's (engine.check_working_size)."""
+    ``working_size``: the network's in place of its card's (engine.check_working_size).
+    ``model_path`` may be a model loaded already (engine.new_session's): it is returned as it
+    is, with its own threads and working size."""
+    if isinstance(model_path, (engine.RelightSession, engine.IntrinsicSession)):
+        return model_path
     key = (str(pathlib.Path(model_path).resolve()), threads, working_size)
     if key not in _SESSIONS:
         _SESSIONS[key] = engine.new_session(model_path, providers=["CPUExecutionProvider"],
@@ -71,10 +75,7 @@ def relight_image(image, light, preset: str = "standard", models_dir=None, *, mo
         raise InputError(f"The image must be (H, W, 3), got shape {img.shape}.")
     img = np.where(np.isfinite(img) & (img > 0), img, np.float32(0.0))
     light = lightvec.validate(light)
-    if isinstance(model, (engine.RelightSession, engine.IntrinsicSession)):
-        sess = model
-    else:
-        sess = session(model or find_model(preset, models_dir), threads, working_size)
+    sess = session(model or find_model(preset, models_dir), threads, working_size)
     x = np.ascontiguousarray(img.transpose(2, 0, 1))
     if isinstance(sess, engine.IntrinsicSession):
         fullres = portrait.shared_fullres()

@@ -31,8 +31,7 @@ import numpy as np
 from addon import contract, engine
 from addon.errors import InputError
 
-from . import report, yale
-from .metrics import level_fit_rmse
+from . import evaluate, report, yale
 from .predictors import product_predictor
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -74,19 +73,12 @@ class BuffersFrom(engine.IntrinsicSession):
 
 
 def synthetic(models: dict, threads: int = 1) -> dict:
-    """{name: the synthetic test set's mean rmse_level_fit} for each model (a path or a loaded
-    session), relit as the card measures it (training.eval.predictors.product_predictor)."""
-    from training.data.make_testset import load_testset
-
-    ts = load_testset(128)
-    n = len(ts["img_t_i"])
-    out = {}
-    for name, model in models.items():
-        predict = product_predictor(model, threads)
-        out[name] = float(np.mean([
-            level_fit_rmse(predict({k: v[i] for k, v in ts.items()})[0], ts["gt_t_k"][i],
-                           ts["mask_t"][i][0] > 0.5) for i in range(n)]))
-    return out
+    """{name: the synthetic test set's rmse_level_fit} for each model (a path or a loaded
+    session), relit and measured as the card is (training.eval.evaluate)."""
+    ds = evaluate.heldout_dataset(128)
+    return {name: evaluate.evaluate(product_predictor(model, threads), ds,
+                                    baselines=False)["model"]["rmse_level_fit"]
+            for name, model in models.items()}
 
 
 def shown(path) -> str:

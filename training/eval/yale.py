@@ -90,7 +90,7 @@ import time
 
 import numpy as np
 
-from addon import api, engine, facetemplate, hdri, intrinsic, lightvec, normalise, portrait
+from addon import api, facetemplate, hdri, intrinsic, lightvec, normalise, portrait
 from addon.errors import InputError
 from addon.intrinsic import SOURCE_FLOOR
 
@@ -423,8 +423,7 @@ class PipelineRelighter:
         # none; None: the product's
         self.template = template
         self.template_axes = template_axes
-        loaded = isinstance(onnx_path, (engine.RelightSession, engine.IntrinsicSession))
-        self.card = (onnx_path if loaded else api.session(onnx_path, threads, working_size)).card
+        self.card = api.session(onnx_path, threads, working_size).card
         self.name = self.card.name if lift is None else f"{self.card.name} lift {lift:g}"
         if template is not None:
             self.name += (" no face template" if template == "none" else " face template"
