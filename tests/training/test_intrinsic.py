@@ -104,6 +104,42 @@ def test_a_network_given_the_hair_class_keeps_every_other_output(frames):
     assert float(losses(ref, b["target"], b["fg"])["hair"]) == 0.0
 
 
+def test_a_network_given_the_albedo_head_starts_as_it_was_and_trains_only_that(frames):
+    """IntrinsicNet(albedo=True) loaded from a network without the head gives that network's
+    outputs exactly (the head's last convolution starts at zero); --train-only albedo leaves only
+    the head to train, and a step of the albedo loss changes the albedo alone."""
+    from training.intrinsic.model import IntrinsicNet, has_albedo_head, load_weights, losses
+    from training.intrinsic.train import frozen_modules, training_mode
+
+    torch.manual_seed(0)
+    old = IntrinsicNet("small", hair=True).eval()
+    net = IntrinsicNet("small", hair=True, albedo=True)
+    load_weights(net, old.state_dict())
+    assert has_albedo_head(net.state_dict()) and not has_albedo_head(old.state_dict())
+    b = frames.batch(range(2))
+    x = b["image"] / b["image"].amax()
+    with torch.no_grad():
+        ref, got = old(x), net.eval()(x)
+    for r, g in zip(ref, got):
+        torch.testing.assert_close(r, g, rtol=0, atol=0)
+    frozen = frozen_modules(net, "albedo")
+    trainable = {n for n, p in net.named_parameters() if p.requires_grad}
+    assert trainable and all(n.startswith("albedo_head.") for n in trainable)
+    training_mode(net, frozen)
+    opt = torch.optim.SGD([p for p in net.parameters() if p.requires_grad], lr=1.0)
+    for _ in range(2):  # the first step moves only the zero last layer; the second, the rest
+        opt.zero_grad()
+        losses(net(x), b["target"], b["fg"])["albedo"].backward()
+        opt.step()
+    with torch.no_grad():
+        after = net.eval()(x)
+    for i, (r, g) in enumerate(zip(ref, after)):
+        if i == 2:
+            assert float((g - r).abs().mean()) > 1e-4
+        else:
+            torch.testing.assert_close(r, g, rtol=0, atol=0)
+
+
 def test_the_transfer_is_the_light_stages_irradiance_to_its_order(frames):
     """transfer . light_sh(light) gives the irradiance the light stage's own transport gives
     (its 114 lights' visibility x cosine) within the SH order's error; a uniform world exactly
@@ -514,6 +550,61 @@ def test_a_hair_head_grafted_onto_a_file_leaves_its_other_outputs_bit_for_bit(fr
         np.testing.assert_allclose(rebuilt.eval()(x)[3].numpy(), want[3], atol=1e-4)
     with pytest.raises(ValueError, match="already"):
         graft.graft(tmp_path / "grafted-base.onnx", net, tmp_path / "twice.onnx")
+
+
+def test_an_albedo_head_grafted_onto_a_file_leaves_its_other_outputs_bit_for_bit(frames, tmp_path):
+    """graft_albedo: the base file (float, and int8, with a hair head) with the albedo's head
+    added gives the base file's other outputs exactly and the network's own albedo (on a float
+    base, to float rounding); recover rebuilds the grafted file with the head; a file that
+    already has one is refused."""
+    import onnxruntime as ort
+
+    from training.intrinsic import graft, recover
+    from training.intrinsic.export import export_onnx, quantise
+    from training.intrinsic.model import IntrinsicNet, load_weights
+    from training.intrinsic.train import prepare
+
+    torch.manual_seed(0)
+    base_net = _batch_norms_set_apart(IntrinsicNet("small", hair=True)).eval()
+    net = IntrinsicNet("small", hair=True, albedo=True).eval()
+    load_weights(net, base_net.state_dict())
+    g = torch.Generator().manual_seed(2)
+    with torch.no_grad():  # a head that changes the albedo, as a trained one does
+        for p in net.albedo_head.parameters():
+            p.copy_(0.3 * torch.randn(p.shape, generator=g))
+    x = prepare(frames.batch(range(2)), torch.Generator().manual_seed(3))
+    fp, q8 = tmp_path / "base.float.onnx", tmp_path / "base.onnx"
+    export_onnx(base_net, fp)
+    quantise(fp, q8, frames.batch(range(4)), frames.batch(range(4, 6)), RES)
+    with torch.no_grad():
+        want = [t.numpy() for t in net(x)]
+        plain = base_net(x)[2].numpy()
+    for base in (fp, q8):
+        out = tmp_path / f"grafted-{base.name}"
+        assert not graft.has_albedo_head(base)
+        graft.graft_albedo(base, net, out)
+        assert graft.has_albedo_head(out)
+
+        def run(path):
+            s = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+            return s.run(None, {contract.INPUT_IMAGE: x.numpy()})
+
+        before, after = run(base), run(out)
+        c = graft.check_albedo(before, after, want[2])
+        assert c["other_outputs_max_abs_against_base"] == 0.0
+        assert c["albedo_mean_abs_against_base"] > 0.01  # the head acts
+        if base == fp:
+            assert c["albedo_mean_abs_against_the_network"] < 1e-5
+        else:  # the int8 layers' features feed it: near, not equal
+            assert c["albedo_mean_abs_against_the_network"] < 0.05
+            assert (np.abs(after[2] - want[2]).mean()
+                    < 0.2 * np.abs(after[2] - plain).mean())
+    rebuilt = recover.rebuild(tmp_path / "grafted-base.float.onnx", "small", True, x, hair=True)
+    assert rebuilt.albedo
+    with torch.no_grad():
+        np.testing.assert_allclose(rebuilt.eval()(x)[2].numpy(), want[2], atol=1e-4)
+    with pytest.raises(ValueError, match="already"):
+        graft.graft_albedo(tmp_path / "grafted-base.onnx", net, tmp_path / "twice.onnx")
 
 
 def test_a_network_rebuilt_from_its_int8_file_stays_near_it(frames, tmp_path):

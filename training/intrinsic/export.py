@@ -15,10 +15,10 @@ of the error and of the frame-to-frame flicker for little of the time. The card 
 the int8 buffers are from the float network's on held-out val identities; every other figure
 on it is the int8 file's.
 
-``--graft-onto FILE`` (a run that trained only the hair head from FILE's rebuilt checkpoint):
-FILE's graph with the hair head added (graft.py), every other output FILE's own, in place of
-exporting and quantising the whole network again; the card keeps FILE's quantisation record and
-says what was grafted onto which file.
+``--graft-onto FILE`` (a run that trained only the hair head, or only the albedo's head, from
+FILE's rebuilt checkpoint): FILE's graph with that head added (graft.py), every other output
+FILE's own, in place of exporting and quantising the whole network again; the card keeps FILE's
+quantisation record and says what was grafted onto which file.
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ from addon import contract, engine
 
 from ..eval.report import cpu_name
 from . import data, graft
-from .model import HAIR_TARGET, STRIDE, IntrinsicNet, has_hair, has_transfer, unoccluded
+from .model import (HAIR_TARGET, STRIDE, IntrinsicNet, has_albedo_head, has_hair, has_transfer,
+                    unoccluded)
 from .train import prepare
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -321,8 +322,9 @@ def parser() -> argparse.ArgumentParser:
                     help="export the checkpoint's weights averaged with those of the run's --init "
                          "checkpoint, S being the init's share (0 <= S < 1; with_init)")
     ap.add_argument("--graft-onto", metavar="ONNX",
-                    help="add the run's hair head to this file (the one the run's --init was "
-                         "rebuilt from) instead of exporting the whole network (graft.py)")
+                    help="add the run's hair head or albedo head to this file (the one the "
+                         "run's --init was rebuilt from) instead of exporting the whole network "
+                         "(graft.py)")
     return ap
 
 
@@ -350,21 +352,27 @@ def with_init(state_dict: dict, recipe: dict, share: float) -> dict:
 
 
 def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
-    """--graft-onto: write ``onnx_path`` as the base file with ``net``'s hair head, and return
-    the card's record of it: the base file, the check on held-out val frames and both files'
-    time (interleaved, one thread), the base card's quantisation record (still the truth for
-    every layer but the hair head's, which is float) and its per-frame time (``frontier``, from
-    bench.intrinsic_frontier, marked as the base file's until that bench is run again)."""
+    """--graft-onto: write ``onnx_path`` as the base file with the head of ``net``'s that the
+    file lacks (the hair class's or the albedo's), and return the card's record of it: the base
+    file, the check on held-out val frames and both files' time (interleaved, one thread), the
+    base card's quantisation record (still the truth for every layer but the new head's, which
+    is float) and its per-frame time (``frontier``, from bench.intrinsic_frontier, marked as the
+    base file's until that bench is run again)."""
     base = pathlib.Path(a.graft_onto)
     base_card = engine.load_card(base)  # read before the same path is written
-    if "hair" in base_card.classes:
-        raise SystemExit(f"{base} already predicts hair")
+    new_heads = [h for h, has in (("hair", net.hair and "hair" not in base_card.classes),
+                                  ("albedo", net.albedo and not graft.has_albedo_head(base)))
+                 if has]
+    if len(new_heads) != 1:
+        raise SystemExit(f"{base}: the run's network must add one head the file lacks (hair or "
+                         f"albedo); it would add {new_heads or 'none'}")
+    head = new_heads[0]
     record = {"onnx": str(base), "sha256": engine.file_sha256(base),
-              "what": "the hair head (model.hair_head) added to this file's graph; every other "
-                      "output is the file's own"}
+              "what": f"the {head} head (model.{head}_head) added to this file's graph; every "
+                      "other output is the file's own"}
     base_bytes = base.read_bytes()
     part = onnx_path.with_suffix(".part.onnx")
-    graft.graft(base, net, part)
+    (graft.graft if head == "hair" else graft.graft_albedo)(base, net, part)
     import onnxruntime as ort
 
     _, x = val_inputs(16)
@@ -374,8 +382,9 @@ def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
     ref, got = ([np.concatenate(o, 0) for o in zip(*[s.run(None, f) for f in feeds])]
                 for s in (before, after))
     with torch.no_grad():
-        mine = net(x)[3].numpy()
-    record["check"] = {**graft.check(ref, got, mine), "samples": len(x),
+        mine = net(x)[3 if head == "hair" else 2].numpy()
+    compare = graft.check if head == "hair" else graft.check_albedo
+    record["check"] = {**compare(ref, got, mine), "samples": len(x),
                        "split": "val (held-out identities)"}
     if record["check"]["other_outputs_max_abs_against_base"] != 0.0:
         part.unlink()
@@ -389,13 +398,13 @@ def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
     part.replace(onnx_path)
     front = base_card.data.get("frontier")
     if front:
-        front = {**front, "file": f"measured on the file before the hair head was grafted "
+        front = {**front, "file": f"measured on the file before the {head} head was grafted "
                                   f"(sha256 {record['sha256']}); graft.ms_one_thread says what "
                                   "the head adds to the network"}
     quant = base_card.data.get("quantisation")
     if quant:
         quant = {**quant, "kept_float": quant["kept_float"] + [
-            c for c in conv_nodes(onnx_path) if c.startswith("/hair_head/")]}
+            c for c in conv_nodes(onnx_path) if c.startswith(f"/{head}_head/")]}
     return {"graft": record, "quantisation": quant, "frontier": front}
 
 
@@ -410,7 +419,7 @@ def main(argv=None):
     if a.init_share:
         state = {**state, "state_dict": with_init(state["state_dict"], recipe, a.init_share)}
     net = IntrinsicNet(state["width"], has_transfer(state["state_dict"]),
-                       has_hair(state["state_dict"]))
+                       has_hair(state["state_dict"]), has_albedo_head(state["state_dict"]))
     net.load_state_dict(state["state_dict"])
     net.eval()
     out = pathlib.Path(a.out)

@@ -1,4 +1,5 @@
-"""Give a shipped intrinsic network file the hair class, leaving the rest of the file as it is.
+"""Give a shipped intrinsic network file the hair class or the albedo's own head, leaving the rest
+of the file as it is.
 
     .venv/bin/python -m training.intrinsic.export --run runs/portrait-hair \
         --graft-onto models/relight-portrait.onnx ...
@@ -16,6 +17,11 @@ their logit enlarged to the input's size, and its sigmoid appended to ``parsing`
 channel. Every other output stays the file's to the bit; the node names are IntrinsicNet's
 (``/hair_head/hair_head.0/Conv``), so recover reads the result back as it reads an exported
 file.
+
+The albedo's head (a ``--albedo-head --train-only albedo`` run, model.albedo_head) is grafted
+the same way (``graft_albedo``): its convolutions read the full-resolution decoder block's output
+beside the encoded input image (the first convolution's input), their correction is added to the
+albedo's logit ahead of its sigmoid, and every other output stays the file's to the bit.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from .model import IntrinsicNet
 
 HEAD_CONV = "/head/Conv"            # the output head: its input is the finest block's output
 FINE_BLOCK_CONV = "/dec.0/dec.0.0/Conv"  # the finest decoder block's first convolution
+FIRST_CONV = "/enc.0/enc.0.0/Conv"  # the first convolution: its input is the encoded image
 
 
 def _producer(graph, name: str):
@@ -62,27 +69,13 @@ def graft(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> None:
     parsing = _producer(g, contract.OUTPUT_PARSING)
     parsing.output[0] = "/hair/parsing_base"
 
-    convs = [(f"hair_head.{i}", m) for i, m in enumerate(net.hair_head) if hasattr(m, "weight")]
-    for name, conv in convs:
-        for part in ("weight", "bias"):
-            g.initializer.append(numpy_helper.from_array(
-                getattr(conv, part).detach().numpy().astype(np.float32), f"{name}.{part}"))
+    convs, x = _head_nodes(g, net.hair_head, "hair_head", "/hair/cat")
     g.initializer.append(numpy_helper.from_array(np.float32([1, 1, 2, 2]), "/hair/scales"))
     n = helper.make_node
     new = [n("AveragePool", [fine], ["/hair/pool"], name="/hair/AveragePool",
              kernel_shape=[2, 2], strides=[2, 2]),
            n("Concat", ["/hair/pool", coarse], ["/hair/cat"], name="/hair/Concat", axis=1)]
-    x = "/hair/cat"
-    for i, (name, conv) in enumerate(convs):
-        k = conv.kernel_size[0]
-        y = f"/hair_head/{name}/Conv_output_0"
-        new.append(n("Conv", [x, f"{name}.weight", f"{name}.bias"], [y],
-                     name=f"/hair_head/{name}/Conv", kernel_shape=[k, k],
-                     pads=[k // 2] * 4, strides=[1, 1], dilations=[1, 1], group=1))
-        x = y
-        if i < len(convs) - 1:
-            new.append(n("Relu", [y], [f"{y}_relu"], name=f"/hair_head/{name}/Relu"))
-            x = f"{y}_relu"
+    new += convs
     new += [n("Resize", [x, "", "/hair/scales"], ["/hair/up"], name="/hair/Resize",
               mode="linear", coordinate_transformation_mode="half_pixel"),
             n("Sigmoid", ["/hair/up"], ["/hair/p"], name="/hair/Sigmoid"),
@@ -94,6 +87,87 @@ def graft(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> None:
             o.type.tensor_type.shape.dim[1].dim_value = len(net.classes)
     onnx.checker.check_model(model)
     onnx.save(model, str(out))
+
+
+def _head_nodes(g, net_head, prefix: str, x: str) -> tuple[list, str]:
+    """``net_head``'s convolutions (float) as ONNX nodes named as IntrinsicNet's, reading ``x``,
+    a ReLU after each but the last; their initialisers are added to ``g``. Returns the nodes and
+    the name of the last one's output."""
+    from onnx import helper, numpy_helper
+
+    convs = [(f"{prefix}.{i}", m) for i, m in enumerate(net_head) if hasattr(m, "weight")]
+    for name, conv in convs:
+        for part in ("weight", "bias"):
+            g.initializer.append(numpy_helper.from_array(
+                getattr(conv, part).detach().numpy().astype(np.float32), f"{name}.{part}"))
+    nodes = []
+    for i, (name, conv) in enumerate(convs):
+        k = conv.kernel_size[0]
+        y = f"/{prefix}/{name}/Conv_output_0"
+        nodes.append(helper.make_node(
+            "Conv", [x, f"{name}.weight", f"{name}.bias"], [y], name=f"/{prefix}/{name}/Conv",
+            kernel_shape=[k, k], pads=[k // 2] * 4, strides=[1, 1], dilations=[1, 1], group=1))
+        x = y
+        if i < len(convs) - 1:
+            nodes.append(helper.make_node("Relu", [y], [f"{y}_relu"],
+                                          name=f"/{prefix}/{name}/Relu"))
+            x = f"{y}_relu"
+    return nodes, x
+
+
+def has_albedo_head(path: pathlib.Path) -> bool:
+    """Whether the ONNX file at ``path`` has the albedo's own head."""
+    import onnx
+
+    return any(n.name.startswith("/albedo_head/") for n in onnx.load(str(path)).graph.node)
+
+
+def graft_albedo(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> None:
+    """Write ``out``: the ONNX file ``base`` (an IntrinsicNet without the albedo's own head,
+    exported by export.py, float or int8, with or without a grafted hair head) with ``net``'s
+    albedo head added. ``base`` may be ``out``."""
+    import onnx
+    from onnx import helper
+
+    if not net.albedo:
+        raise ValueError("the network has no albedo head to graft")
+    model = onnx.load(str(base))
+    g = model.graph
+    nodes = {n.name: n for n in g.node}
+    if any(n.name.startswith("/albedo_head/") for n in g.node):
+        raise ValueError(f"{base} already has an albedo head")
+    if HEAD_CONV not in nodes or FIRST_CONV not in nodes:
+        raise ValueError(f"{base}: not an intrinsic network's graph (no {HEAD_CONV} or "
+                         f"{FIRST_CONV} node)")
+    sigmoid = _producer(g, contract.OUTPUT_ALBEDO)
+    if sigmoid.op_type != "Sigmoid":
+        raise ValueError(f"{base}: its albedo is not a sigmoid of the head's logit, as "
+                         "IntrinsicNet's is")
+    logit = sigmoid.input[0]
+    g.node.remove(sigmoid)  # made again after the head, the graph's order being topological
+    n = helper.make_node
+    new = [n("Concat", [nodes[HEAD_CONV].input[0], nodes[FIRST_CONV].input[0]],
+             ["/albedo/cat"], name="/albedo/Concat", axis=1)]
+    convs, x = _head_nodes(g, net.albedo_head, "albedo_head", "/albedo/cat")
+    new += convs + [n("Add", [logit, x], ["/albedo/logit"], name="/albedo/Add"),
+                    n("Sigmoid", ["/albedo/logit"], [contract.OUTPUT_ALBEDO],
+                      name="/albedo/Sigmoid")]
+    g.node.extend(new)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(out))
+
+
+def check_albedo(base_outputs: list, grafted_outputs: list, reference: np.ndarray) -> dict:
+    """How the file with the albedo's head grafted compares (onnxruntime, on the same inputs):
+    every output but the albedo against the base file's, and the albedo against the network's
+    own (``reference``: IntrinsicNet's albedo, as numpy) and against the base file's."""
+    same = max(float(np.abs(np.asarray(b) - np.asarray(g)).max())
+               for i, (b, g) in enumerate(zip(base_outputs, grafted_outputs)) if i != 2)
+    return {"other_outputs_max_abs_against_base": same,
+            "albedo_mean_abs_against_the_network": float(
+                np.abs(grafted_outputs[2] - reference).mean()),
+            "albedo_mean_abs_against_base": float(
+                np.abs(grafted_outputs[2] - base_outputs[2]).mean())}
 
 
 def check(base_outputs: list, grafted_outputs: list, reference: np.ndarray) -> dict:

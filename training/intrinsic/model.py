@@ -14,6 +14,9 @@ camera data it must generalise to is distributed. Outputs, all at the input's si
 * ``transfer`` (16): the light that reaches each pixel as order-3 SH coefficients (visibility
   times cosine: addon.intrinsic's light transport; data.transfer_matrix), so occlusion by the
   nose, brows, jaw and hair is learnt from the light stage rather than guessed from the height.
+
+With ``albedo_head`` the albedo's logit is refined by a small head of its own (albedo_head),
+which a network trained without it gains with every other output unchanged.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ HEAD = 3 + 1 + 3 + 2 + TRANSFER_CHANNELS
 CLASSES = ("foreground", "skin")
 HAIR_CLASSES = CLASSES + ("hair",)
 HAIR_WIDTH = 8
+ALBEDO_WIDTH = 12
 
 
 def block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
@@ -51,30 +55,50 @@ def hair_head(w: tuple[int, ...]) -> nn.Sequential:
                          nn.Conv2d(HAIR_WIDTH, 1, 1))
 
 
+def albedo_head(w: tuple[int, ...]) -> nn.Sequential:
+    """The albedo's own small head: from the full-resolution decoder block's features beside
+    the encoded input image, a correction added to the albedo's logit (its last convolution
+    starts at zero, so a network gains the head with its albedo unchanged). The shared output
+    head reads the albedo linearly off features that also carry the normals, height and
+    transfer; this one sees each pixel's 3x3 neighbourhood and the picture itself, to take the
+    shading the shared head leaves in the albedo out. Trained alone (``train --train-only
+    albedo``), it refines the albedo while the other buffers stay the network's own: the
+    renderer's up/down balance on real faces lives in those."""
+    last = nn.Conv2d(ALBEDO_WIDTH, 3, 1)
+    nn.init.zeros_(last.weight)
+    nn.init.zeros_(last.bias)
+    return nn.Sequential(nn.Conv2d(w[0] + 3, ALBEDO_WIDTH, 3, 1, 1), nn.ReLU(inplace=True),
+                         nn.Conv2d(ALBEDO_WIDTH, ALBEDO_WIDTH, 1), nn.ReLU(inplace=True), last)
+
+
 class IntrinsicNet(nn.Module):
     """``transfer`` False: the network without the transfer (networks trained before it had
     none; their files keep four outputs when re-exported). ``hair``: a third parsing class,
-    hair (hair_head)."""
+    hair (hair_head). ``albedo``: the albedo's own refining head (albedo_head)."""
 
-    def __init__(self, width: str = "standard", transfer: bool = True, hair: bool = False):
+    def __init__(self, width: str = "standard", transfer: bool = True, hair: bool = False,
+                 albedo: bool = False):
         super().__init__()
         w = WIDTHS[width]
         self.width = width
         self.transfer = transfer
         self.hair = hair
+        self.albedo = albedo
         self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i - 1], w[i], 2)
                                                      for i in range(1, len(w))])
         self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in range(len(w) - 1)])
         self.head = nn.Conv2d(w[0], HEAD if transfer else HEAD - TRANSFER_CHANNELS, 1)
         if hair:
             self.hair_head = hair_head(w)
+        if albedo:
+            self.albedo_head = albedo_head(w)
 
     @property
     def classes(self) -> tuple[str, ...]:
         return HAIR_CLASSES if self.hair else CLASSES
 
     def forward(self, image: torch.Tensor):
-        x = image.clamp(0.0, 1.0).clamp(min=1e-6) ** (1 / 2.2) - 0.5
+        x = encoded = image.clamp(0.0, 1.0).clamp(min=1e-6) ** (1 / 2.2) - 0.5
         skips = []
         for enc in self.enc:
             x = enc(x)
@@ -89,7 +113,10 @@ class IntrinsicNet(nn.Module):
         out = self.head(x).float()
         normal = tf.normalize(out[:, 0:3], dim=1, eps=1e-6)
         height = out[:, 3:4] * 10.0
-        albedo = torch.sigmoid(out[:, 4:7])
+        logit = out[:, 4:7]
+        if self.albedo:
+            logit = logit + self.albedo_head(torch.cat([x, encoded.to(x.dtype)], 1)).float()
+        albedo = torch.sigmoid(logit)
         parsing = torch.sigmoid(out[:, 7:9])
         if self.hair:
             fine = tf.avg_pool2d(x, 2)  # sizes are multiples of STRIDE
@@ -111,6 +138,11 @@ def has_hair(state_dict: dict) -> bool:
     return any(k.startswith("hair_head.") for k in state_dict)
 
 
+def has_albedo_head(state_dict: dict) -> bool:
+    """Whether a saved network refines its albedo with a head of its own."""
+    return any(k.startswith("albedo_head.") for k in state_dict)
+
+
 _TRANSFER_BAND = torch.from_numpy(TRANSFER_BAND.copy())
 
 
@@ -127,10 +159,14 @@ def load_weights(net: IntrinsicNet, state_dict: dict) -> None:
     head of 9 channels) keeps its buffers' weights, and the transfer's channels start at zero
     (the unoccluded transfer of the predicted normals). A network without the transfer takes
     the buffers' channels of one with it. A network with the hair class loaded from one
-    without it keeps its hair head as initialised."""
+    without it keeps its hair head as initialised, and so does the albedo's head (albedo_head:
+    the albedo as the saved network's)."""
     if net.hair and not has_hair(state_dict):
         state_dict = {**state_dict, **{f"hair_head.{k}": v
                                        for k, v in net.hair_head.state_dict().items()}}
+    if net.albedo and not has_albedo_head(state_dict):
+        state_dict = {**state_dict, **{f"albedo_head.{k}": v
+                                       for k, v in net.albedo_head.state_dict().items()}}
     head = state_dict.get("head.weight")
     if head is not None and not net.transfer and head.shape[0] == HEAD:
         keep = HEAD - TRANSFER_CHANNELS

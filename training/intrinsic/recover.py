@@ -111,9 +111,11 @@ def architecture(card: engine.ModelCard) -> tuple[str, bool, bool]:
 def rebuild(path: pathlib.Path, width: str, transfer: bool,
             calibration: torch.Tensor, hair: bool = False) -> IntrinsicNet:
     """The IntrinsicNet(width, transfer, hair) of an ONNX file, its batch normalisations set
-    from ``calibration`` (a batch of prepared training inputs)."""
-    net = IntrinsicNet(width, transfer=transfer, hair=hair)
+    from ``calibration`` (a batch of prepared training inputs); with the albedo's own head
+    (model.albedo_head) where the file has one."""
     convs = conv_weights(path)
+    net = IntrinsicNet(width, transfer=transfer, hair=hair,
+                       albedo=any(n.startswith("albedo_head.") for n in convs))
     modules = dict(net.named_modules())
     if set(convs) != {n for n, m in modules.items() if isinstance(m, torch.nn.Conv2d)}:
         raise ValueError(f"{path}: its convolutions are not those of a {width} IntrinsicNet")

@@ -214,9 +214,10 @@ class EMA:
 # refine the buffers while the encoder's reading of a face's large-scale shape stays; it does
 # not guarantee it: 2,500 steps of "decoder" (--albedo-weight 1.5) from the shipped network
 # moved the CroppedYale tune subjects' top/bottom balance 0.808 -> 0.794. "hair": only the hair
-# class's head (model.hair_head), so every other output stays exactly the --init network's.
+# class's head (model.hair_head), so every other output stays exactly the --init network's;
+# "albedo": only the albedo's own head (model.albedo_head), likewise.
 TRAIN_ONLY = {"all": None, "decoder": ("dec", "head"), "last": ("dec.0", "head"),
-              "hair": ("hair_head",)}
+              "hair": ("hair_head",), "albedo": ("albedo_head",)}
 
 
 def frozen_modules(model: torch.nn.Module, which: str) -> list:
@@ -291,7 +292,7 @@ def train(a) -> pathlib.Path:
     vgen = torch.Generator().manual_seed(99)
     val_in = prepare(val, vgen).to(device)
     val = {k: v.to(device) for k, v in val.items()}
-    model = IntrinsicNet(a.width, a.transfer, a.hair)
+    model = IntrinsicNet(a.width, a.transfer, a.hair, a.albedo_head)
     if a.init:
         load_weights(model, torch.load(a.init, map_location="cpu")["state_dict"])
     model.to(device)
@@ -332,8 +333,8 @@ def train(a) -> pathlib.Path:
             v = validate(model, val, val_in)
             training_mode(model, frozen)
             score = v["normal_deg"] + 10 * v["albedo"] + 10 * v["height"] + 10 * v["transfer"]
-            if a.train_only == "hair":  # the rest is the --init network's, whatever the step
-                score = v["hair"]
+            if a.train_only in ("hair", "albedo"):  # the rest is the --init network's
+                score = v[a.train_only]
             log.append({"step": step, "seconds": round(time.time() - t0), **v, "score": score})
             print("val", json.dumps(log[-1]), flush=True)
             state = {"state_dict": cpu(ema.shadow), "width": a.width, "step": step, "val": v}
@@ -407,6 +408,8 @@ def parser() -> argparse.ArgumentParser:
                     help="no transfer head (as the networks trained before it)")
     ap.add_argument("--hair", action="store_true", help="a third parsing class, hair "
                     "(model.hair_head); with --train-only hair, only that head trains")
+    ap.add_argument("--albedo-head", action="store_true", help="the albedo's own refining head "
+                    "(model.albedo_head); with --train-only albedo, only that head trains")
     return ap
 
 
