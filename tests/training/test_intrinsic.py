@@ -859,6 +859,33 @@ def test_train_only_last_keeps_the_rest_of_the_network_as_it_was():
     assert any(k.startswith("dec.0.") and "running_mean" in k for k in changed)
 
 
+def test_hold_others_supervises_every_buffer_but_the_albedo_by_the_init_network(frames):
+    """--hold-others (held_target): the target's normals, height, parsing and transfer are the
+    teacher's own prediction and its albedo the light stage's, so the teacher itself scores
+    nothing but the albedo loss; a network without the hair class leaves the hair label as it
+    was."""
+    from training.intrinsic.model import HAIR_TARGET, IntrinsicNet, losses
+    from training.intrinsic.train import held_target, prepare
+
+    torch.manual_seed(0)
+    b = frames.batch(range(2))
+    x = prepare(b, torch.Generator().manual_seed(3))
+    for hair in (True, False):
+        teacher = IntrinsicNet("small", hair=hair).eval()
+        held = held_target(teacher, x, b["target"])
+        torch.testing.assert_close(held[:, 4:7], b["target"][:, 4:7], rtol=0, atol=0)
+        with torch.no_grad():
+            pred = teacher(x)
+        torch.testing.assert_close(held[:, 0:3], pred[0], rtol=0, atol=0)
+        ls = losses(pred, held, b["fg"])
+        assert float(ls["normal"]) < 1e-6 and float(ls["height"]) < 1e-6
+        assert float(ls["transfer"]) < 1e-6 and float(ls["albedo"]) > 0.05
+        if hair:
+            assert float((held[:, HAIR_TARGET] - pred[3][:, 2]).abs().max()) == 0.0
+        else:
+            torch.testing.assert_close(held[:, HAIR_TARGET], b["target"][:, HAIR_TARGET])
+
+
 def test_bright_crops_are_the_same_crops_normalised_brighter(frames, tmp_path):
     """--bright P: a share P of a step's crops is the crop without it times a factor between 1
     and BRIGHT_MAX / INPUT_LEVEL (their highlights clip at the network's input clamp), the rest

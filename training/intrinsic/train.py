@@ -220,6 +220,23 @@ TRAIN_ONLY = {"all": None, "decoder": ("dec", "head"), "last": ("dec.0", "head")
               "hair": ("hair_head",), "albedo": ("albedo_head",)}
 
 
+def held_target(teacher: torch.nn.Module, inp: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``target`` (data.TARGETS' channels) with every buffer but the albedo replaced by
+    ``teacher``'s prediction for ``inp`` (--hold-others): the normals, height, transfer and
+    parsing are then held to the --init network's own while the albedo learns from the light
+    stage, and every layer may change to serve it. Channels the teacher does not predict (the
+    transfer or the hair class of a network without them) keep the light stage's."""
+    with torch.no_grad():
+        normal, height, _, parsing, *transfer = teacher(inp)
+    out = target.clone()
+    out[:, 0:3], out[:, 3:4], out[:, 7:9] = normal, height, parsing[:, 0:2]
+    if transfer:
+        out[:, data.TRANSFER] = transfer[0]
+    if parsing.shape[1] > 2:
+        out[:, HAIR_TARGET:HAIR_TARGET + 1] = parsing[:, 2:3]
+    return out
+
+
 def frozen_modules(model: torch.nn.Module, which: str) -> list:
     """The leaf modules --train-only ``which`` keeps as they are, their parameters set not to
     need gradients."""
@@ -301,6 +318,13 @@ def train(a) -> pathlib.Path:
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=a.lr,
                             weight_decay=1e-4)
     ema = EMA(model, a.ema)
+    teacher = None
+    if a.hold_others:
+        if not a.init:
+            raise SystemExit("--hold-others holds the buffers to the --init network's: give --init")
+        teacher = IntrinsicNet(a.width, a.transfer, a.hair, a.albedo_head)
+        load_weights(teacher, torch.load(a.init, map_location="cpu")["state_dict"])
+        teacher.to(device).eval().requires_grad_(False)
     feed = batches(ds, a)
     t0 = time.time()
     budget = a.minutes * 60 if a.minutes else None
@@ -314,6 +338,8 @@ def train(a) -> pathlib.Path:
         for g in opt.param_groups:
             g["lr"] = lr
         inp, target, fg = (t.to(device, non_blocking=True) for t in next(feed))
+        if teacher is not None:
+            target = held_target(teacher, inp, target)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=a.bf16):
             pred = model(inp)
         ls = losses(pred, target, fg, a.face_weight, a.gradient_weight, a.up_weight,
@@ -408,6 +434,9 @@ def parser() -> argparse.ArgumentParser:
                     help="no transfer head (as the networks trained before it)")
     ap.add_argument("--hair", action="store_true", help="a third parsing class, hair "
                     "(model.hair_head); with --train-only hair, only that head trains")
+    ap.add_argument("--hold-others", action="store_true", help="every buffer but the albedo "
+                    "supervised by the --init network's own prediction, not the light stage's "
+                    "(held_target): the albedo trains while the others stay the init's")
     ap.add_argument("--albedo-head", action="store_true", help="the albedo's own refining head "
                     "(model.albedo_head); with --train-only albedo, only that head trains")
     return ap
