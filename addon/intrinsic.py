@@ -1177,16 +1177,19 @@ class Shading:
 
 def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan | None = None,
           keep_exposure: bool = True, source: np.ndarray | None = None,
-          relief: float | None = None) -> Shading:
+          relief: float | None = None, source_colour: np.ndarray | None = None) -> Shading:
     """The ratio and highlight that relight ``image_chw`` (the crop at the working size, linear)
     to ``light``. ``keep_exposure``: the subject keeps the footage's mean luminance, so the light
     sets direction, colour and contrast (the artist's default); without it the ratio is left as
     the light's power makes it (twice the light, twice the output). ``source``: the footage's
     own diffuse shading where it is known (a render's: what the benches measure the estimate
     against), (h, w) luminance or (3, h, w) per channel, in place of the estimate from the
-    footage (source_shading, source_chroma). ``relief``: shadow_height's, the multiple of the
-    face skin's relief the cast shadows are marched over (default SHADOW_DETAIL, which makes up
-    for the network's flat relief; 1 for buffers whose height is exact)."""
+    footage (source_shading, source_chroma). ``source_colour``: with ``source`` None, the
+    footage's light colour where it is known, (3, h, w) of unit luminance, in place of
+    source_chroma's estimate (the shading's level still estimated). ``relief``: shadow_height's,
+    the multiple of the face skin's relief the cast shadows are marched over (default
+    SHADOW_DETAIL, which makes up for the network's flat relief; 1 for buffers whose height is
+    exact)."""
     light = np.asarray(light, np.float32)
     effects = plan(light) if effects is None else effects
     lum = luminance(image_chw)
@@ -1195,7 +1198,8 @@ def shade(image_chw: np.ndarray, bufs: Buffers, light: np.ndarray, effects: Plan
     tint = None  # the footage's light colour that varies over the face (source_chroma)
     if source is None:
         e_src = source_shading(lum, bufs, c, basis=basis)  # (h, w) luminance shading
-        tint = source_chroma(image_chw, bufs)
+        tint = (source_chroma(image_chw, bufs) if source_colour is None
+                else np.asarray(source_colour, np.float32))
     elif source.ndim == 3:
         e_src = luminance(source).astype(np.float32)
         # a channel the source leaves dark keeps a tiny share: its ratio meets RATIO_MAX

@@ -23,6 +23,10 @@ frames, each step replacing an estimate with the light stage's truth:
   (intrinsic.shade's ``source``; luminance, or with its colour): what the estimate costs. On
   the network's buffers the estimate can beat the truth: fitted on the same predicted normals
   as the target is rendered on, their errors partly cancel in the ratio;
+  ``, the true source light colour``: the shading estimated as the product does, but the
+  footage's light colour per pixel (its irradiance over the irradiance's luminance) the light
+  stage's, in place of source_chroma's estimate (intrinsic.shade's ``source_colour``): what
+  reading the light's colour from one image costs;
 * ``ratio of the true diffuse shading``: the footage times the light stage's own target over
   source diffuse irradiance (subsurface diffusion included), the source's taken as luminance
   (the footage keeps its colour; the renderer divides out only a strong colour gradient,
@@ -58,7 +62,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # The scene rendered again must give the stored test set's pictures (its transfer is kept in
 # float16, as the intrinsic cache keeps it): largest difference over the picture's peak.
 MATCH = 2e-3
-TRUE_SOURCE = (", the true source shading", ", the true source shading per channel")
+TRUE_SOURCE = (", the true source shading", ", the true source shading per channel",
+               ", the true source light colour")
 NETWORK = "renderer, network buffers (no framing)"
 # The buffers made exact one at a time in the network's: Buffers fields each stands for.
 EXACT_ONE = {"normals": ("normal",), "height": ("height",), "albedo": ("albedo",),
@@ -109,6 +114,7 @@ def ladder(sample: dict, a: dict, product=None, session=None) -> dict:
     per_channel = np.where(fg, e_t / np.maximum(e_s, 1e-8), 1.0)
     e_lum = intrinsic.luminance(e_s)[None]
     lum = np.where(fg & (e_lum > 1e-8), e_t / np.maximum(e_lum, 1e-8), 1.0)
+    tint = np.where(fg & (e_lum > 1e-8), e_s / np.maximum(e_lum, 1e-8), 1.0).astype(np.float32)
     outs = {"input unchanged": src,
             "ratio of the true diffuse shading": src * lum,
             "ratio of the true diffuse shading, per channel": src * per_channel,
@@ -121,9 +127,10 @@ def ladder(sample: dict, a: dict, product=None, session=None) -> dict:
     if session is not None:
         kinds[NETWORK] = net = predicted_buffers(session, src)
     for name, bufs in kinds.items():
-        for suffix, source in (("", None), (TRUE_SOURCE[0], e_lum[0]), (TRUE_SOURCE[1], e_s)):
+        for suffix, source, colour in (("", None, None), (TRUE_SOURCE[0], e_lum[0], None),
+                                       (TRUE_SOURCE[1], e_s, None), (TRUE_SOURCE[2], None, tint)):
             # the light stage's height is exact: its relief is marched as it is
-            sh = intrinsic.shade(src, bufs, light, source=source,
+            sh = intrinsic.shade(src, bufs, light, source=source, source_colour=colour,
                                  relief=1.0 if bufs is exact else None)
             outs[name + suffix] = src * sh.ratio + sh.highlight
     if session is not None:

@@ -942,8 +942,8 @@ def test_renderer_ceiling_ladder_rests_on_the_light_stages_own_terms(frames):
     """bench.renderer_ceiling: its diffuse and specular terms make the light stage's picture
     again; with both taken out exactly the relit frame is the truth (on the pixels the subject
     covers whole); a warm-left, cool-right source relit by a white lamp keeps its colour
-    through a luminance ratio, not per channel; and the renderer on exact buffers does better
-    than no relighting."""
+    through a luminance ratio, not per channel; the renderer on exact buffers does better
+    than no relighting, and better still told the source light's colour."""
     from bench.intrinsic_effects import lamp, render
     from bench.renderer_ceiling import ladder, stage_parts
     from training.intrinsic import data
@@ -968,6 +968,14 @@ def test_renderer_ceiling_ladder_rests_on_the_light_stages_own_terms(frames):
     assert floor < 1e-4  # (silhouette pixels, where the backdrop blends in, are left out here)
     assert per_channel < 0.7 * luminance
     assert got["renderer, exact buffers"] < 0.7 * got["input unchanged"]
+    # a milder colour gradient, which source_chroma leaves to the footage (below its threshold):
+    # told the light's own colour per pixel, the renderer divides it out
+    mild = (lamp([-1, 0.3, 0.6], 2.0, 0.0) * np.array([1.0, 0.85, 0.7], np.float32)
+            + lamp([1, 0.2, 0.6], 1.0, 0.0) * np.array([0.7, 0.85, 1.0], np.float32)
+            + 0.3 * lightvec.uniform()).astype(np.float32)
+    got = ladder({**sample, "img_t_i": render(a, mild), "light_i": mild}, a)
+    assert (got["renderer, exact buffers, the true source light colour"]
+            < got["renderer, exact buffers"])
 
 
 def test_renderer_ceiling_swaps_one_exact_buffer_in_where_the_light_stage_has_it():
