@@ -505,6 +505,16 @@ def test_a_network_with_the_hair_class_exports_and_is_rebuilt_from_its_file(fram
         recover.rebuild(path, "small", True, x)  # read as a network without the class
 
 
+def _float_and_int8(net, frames, tmp_path):
+    """``net`` exported float (base.float.onnx) and quantised to int8 (base.onnx)."""
+    from training.intrinsic.export import export_onnx, quantise
+
+    fp, q8 = tmp_path / "base.float.onnx", tmp_path / "base.onnx"
+    export_onnx(net, fp)
+    quantise(fp, q8, frames.batch(range(4)), frames.batch(range(4, 6)), RES)
+    return fp, q8
+
+
 def test_a_hair_head_grafted_onto_a_file_leaves_its_other_outputs_bit_for_bit(frames, tmp_path):
     """graft: the base file (float, and int8) with the hair head added gives the base file's
     outputs exactly and a third parsing channel that is the hair network's own (on a float base,
@@ -513,7 +523,6 @@ def test_a_hair_head_grafted_onto_a_file_leaves_its_other_outputs_bit_for_bit(fr
     import onnxruntime as ort
 
     from training.intrinsic import graft, recover
-    from training.intrinsic.export import export_onnx, quantise
     from training.intrinsic.model import IntrinsicNet, load_weights
     from training.intrinsic.train import prepare
 
@@ -522,9 +531,7 @@ def test_a_hair_head_grafted_onto_a_file_leaves_its_other_outputs_bit_for_bit(fr
     net = IntrinsicNet("small", hair=True).eval()
     load_weights(net, base_net.state_dict())
     x = prepare(frames.batch(range(2)), torch.Generator().manual_seed(3))
-    fp, q8 = tmp_path / "base.float.onnx", tmp_path / "base.onnx"
-    export_onnx(base_net, fp)
-    quantise(fp, q8, frames.batch(range(4)), frames.batch(range(4, 6)), RES)
+    fp, q8 = _float_and_int8(base_net, frames, tmp_path)
     with torch.no_grad():
         want = [t.numpy() for t in net(x)]
     for base in (fp, q8):
@@ -560,7 +567,6 @@ def test_an_albedo_head_grafted_onto_a_file_leaves_its_other_outputs_bit_for_bit
     import onnxruntime as ort
 
     from training.intrinsic import graft, recover
-    from training.intrinsic.export import export_onnx, quantise
     from training.intrinsic.model import IntrinsicNet, load_weights
     from training.intrinsic.train import prepare
 
@@ -573,9 +579,7 @@ def test_an_albedo_head_grafted_onto_a_file_leaves_its_other_outputs_bit_for_bit
         for p in net.albedo_head.parameters():
             p.copy_(0.3 * torch.randn(p.shape, generator=g))
     x = prepare(frames.batch(range(2)), torch.Generator().manual_seed(3))
-    fp, q8 = tmp_path / "base.float.onnx", tmp_path / "base.onnx"
-    export_onnx(base_net, fp)
-    quantise(fp, q8, frames.batch(range(4)), frames.batch(range(4, 6)), RES)
+    fp, q8 = _float_and_int8(base_net, frames, tmp_path)
     with torch.no_grad():
         want = [t.numpy() for t in net(x)]
         plain = base_net(x)[2].numpy()

@@ -43,6 +43,23 @@ def _producer(graph, name: str):
     return next(n for n in graph.node if name in n.output)
 
 
+def _base_graph(base: pathlib.Path, head: str, needs: tuple[str, ...]):
+    """(model, graph, {node name: node}) of the ONNX file ``base``, refused where it has the
+    ``head`` (a module name: hair_head, albedo_head) already or lacks a node of ``needs``."""
+    import onnx
+
+    model = onnx.load(str(base))
+    g = model.graph
+    nodes = {n.name: n for n in g.node}
+    if any(n.name.startswith(f"/{head}/") for n in g.node):
+        raise ValueError(f"{base} already has a {head.replace('_', ' ')}")
+    missing = [n for n in needs if n not in nodes]
+    if missing:
+        raise ValueError(f"{base}: not an intrinsic network's graph (no {' or '.join(missing)} "
+                         "node)")
+    return model, g, nodes
+
+
 def graft(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> None:
     """Write ``out``: the ONNX file ``base`` (an IntrinsicNet without the hair class, exported by
     export.py, float or int8) with ``net``'s hair head added. ``base`` may be ``out``."""
@@ -51,14 +68,7 @@ def graft(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> None:
 
     if not net.hair:
         raise ValueError("the network has no hair head to graft")
-    model = onnx.load(str(base))
-    g = model.graph
-    nodes = {n.name: n for n in g.node}
-    if any(n.name.startswith("/hair_head/") for n in g.node):
-        raise ValueError(f"{base} already has a hair head")
-    if HEAD_CONV not in nodes or FINE_BLOCK_CONV not in nodes:
-        raise ValueError(f"{base}: not an intrinsic network's graph (no {HEAD_CONV} or "
-                         f"{FINE_BLOCK_CONV} node)")
+    model, g, nodes = _base_graph(base, "hair_head", (HEAD_CONV, FINE_BLOCK_CONV))
     fine = nodes[HEAD_CONV].input[0]
     cat = _producer(g, nodes[FINE_BLOCK_CONV].input[0])
     resize = _producer(g, cat.input[0])
@@ -131,14 +141,7 @@ def graft_albedo(base: pathlib.Path, net: IntrinsicNet, out: pathlib.Path) -> No
 
     if not net.albedo:
         raise ValueError("the network has no albedo head to graft")
-    model = onnx.load(str(base))
-    g = model.graph
-    nodes = {n.name: n for n in g.node}
-    if any(n.name.startswith("/albedo_head/") for n in g.node):
-        raise ValueError(f"{base} already has an albedo head")
-    if HEAD_CONV not in nodes or FIRST_CONV not in nodes:
-        raise ValueError(f"{base}: not an intrinsic network's graph (no {HEAD_CONV} or "
-                         f"{FIRST_CONV} node)")
+    model, g, nodes = _base_graph(base, "albedo_head", (HEAD_CONV, FIRST_CONV))
     sigmoid = _producer(g, contract.OUTPUT_ALBEDO)
     if sigmoid.op_type != "Sigmoid":
         raise ValueError(f"{base}: its albedo is not a sigmoid of the head's logit, as "
