@@ -923,6 +923,11 @@ def test_bright_crops_are_the_same_crops_normalised_brighter(frames, tmp_path):
               "albedo_weight": 1.5}
     assert "--bright 0.5" in export.train_command(recipe)
     assert "--albedo-weight 1.5" in export.train_command(recipe)
+    held = export.train_command({**recipe, "hold_others": True, "albedo_head": True,
+                                 "train_only": "albedo", "low_weight": 2.0})
+    args = train.parser().parse_args(held.split()[3:])
+    assert args.hold_others and args.albedo_head and args.train_only == "albedo"
+    assert args.low_weight == 2.0 and args.bright == 0.5
 
 
 def test_normals_by_light_scores_the_up_down_and_left_right_shape_apart(frames):

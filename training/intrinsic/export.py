@@ -218,7 +218,7 @@ def time_onnx(path: pathlib.Path, threads: int, size: int = 128, runs: int = 20)
 TRAIN_ARGS = ("width", "res", "cache", "val_cache", "minutes", "steps", "batch", "lr", "ema",
               "seed", "threads", "val_n", "val_every", "zoom", "cut", "face_weight",
               "gradient_weight", "start_step", "init", "sky_flip", "studio", "up_weight",
-              "albedo_weight", "bright", "device", "workers", "out")
+              "albedo_weight", "low_weight", "low_sigma", "bright", "device", "workers", "out")
 
 
 def train_command(recipe: dict) -> str:
@@ -235,8 +235,9 @@ def train_command(recipe: dict) -> str:
         args.append("--no-bf16")
     if not recipe.get("transfer", False):  # runs recorded before the transfer had none
         args.append("--no-transfer")
-    if recipe.get("hair"):
-        args.append("--hair")
+    for flag in ("hair", "albedo_head", "hold_others"):
+        if recipe.get(flag):
+            args.append(f"--{flag.replace('_', '-')}")
     if recipe.get("train_only", "all") != "all":
         args.append(f"--train-only {recipe['train_only']}")
     return "python -m training.intrinsic.train " + " ".join(args)

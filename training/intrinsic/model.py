@@ -15,8 +15,8 @@ camera data it must generalise to is distributed. Outputs, all at the input's si
   times cosine: addon.intrinsic's light transport; data.transfer_matrix), so occlusion by the
   nose, brows, jaw and hair is learnt from the light stage rather than guessed from the height.
 
-With ``albedo_head`` the albedo's logit is refined by a small head of its own (albedo_head),
-which a network trained without it gains with every other output unchanged.
+With ``albedo`` the albedo's logit is refined by a small head of its own (albedo_head), which
+a network trained without it gains with every other output unchanged.
 """
 
 from __future__ import annotations

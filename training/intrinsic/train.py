@@ -220,7 +220,8 @@ TRAIN_ONLY = {"all": None, "decoder": ("dec", "head"), "last": ("dec.0", "head")
               "hair": ("hair_head",), "albedo": ("albedo_head",)}
 
 
-def held_target(teacher: torch.nn.Module, inp: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def held_target(teacher: torch.nn.Module, inp: torch.Tensor,
+                target: torch.Tensor) -> torch.Tensor:
     """``target`` (data.TARGETS' channels) with every buffer but the albedo replaced by
     ``teacher``'s prediction for ``inp`` (--hold-others): the normals, height, transfer and
     parsing are then held to the --init network's own while the albedo learns from the light
@@ -321,7 +322,8 @@ def train(a) -> pathlib.Path:
     teacher = None
     if a.hold_others:
         if not a.init:
-            raise SystemExit("--hold-others holds the buffers to the --init network's: give --init")
+            raise SystemExit("--hold-others holds the buffers to the --init network's own: "
+                             "give --init")
         teacher = IntrinsicNet(a.width, a.transfer, a.hair, a.albedo_head)
         load_weights(teacher, torch.load(a.init, map_location="cpu")["state_dict"])
         teacher.to(device).eval().requires_grad_(False)
