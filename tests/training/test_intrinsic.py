@@ -888,6 +888,11 @@ def test_hold_others_supervises_every_buffer_but_the_albedo_by_the_init_network(
             assert float((held[:, HAIR_TARGET] - pred[3][:, 2]).abs().max()) == 0.0
         else:
             torch.testing.assert_close(held[:, HAIR_TARGET], b["target"][:, HAIR_TARGET])
+    # --learn transfer: the transfer is the light stage's too, the rest still the teacher's
+    learnt = held_target(teacher, x, b["target"], ("transfer",))
+    torch.testing.assert_close(learnt[:, 9:HAIR_TARGET], b["target"][:, 9:HAIR_TARGET],
+                               rtol=0, atol=0)
+    torch.testing.assert_close(learnt[:, 0:9], held[:, 0:9], rtol=0, atol=0)
 
 
 def test_bright_crops_are_the_same_crops_normalised_brighter(frames, tmp_path):
@@ -924,9 +929,11 @@ def test_bright_crops_are_the_same_crops_normalised_brighter(frames, tmp_path):
     assert "--bright 0.5" in export.train_command(recipe)
     assert "--albedo-weight 1.5" in export.train_command(recipe)
     held = export.train_command({**recipe, "hold_others": True, "albedo_head": True,
-                                 "train_only": "albedo", "low_weight": 2.0})
+                                 "train_only": "albedo", "low_weight": 2.0,
+                                 "learn": ["transfer"]})
     args = train.parser().parse_args(held.split()[3:])
     assert args.hold_others and args.albedo_head and args.train_only == "albedo"
+    assert args.learn == ["transfer"]
     assert args.low_weight == 2.0 and args.bright == 0.5
 
 

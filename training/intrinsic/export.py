@@ -238,6 +238,8 @@ def train_command(recipe: dict) -> str:
     for flag in ("hair", "albedo_head", "hold_others"):
         if recipe.get(flag):
             args.append(f"--{flag.replace('_', '-')}")
+    if recipe.get("hold_others") and recipe.get("learn"):
+        args.append("--learn " + " ".join(recipe["learn"]))
     if recipe.get("train_only", "all") != "all":
         args.append(f"--train-only {recipe['train_only']}")
     return "python -m training.intrinsic.train " + " ".join(args)

@@ -220,18 +220,26 @@ TRAIN_ONLY = {"all": None, "decoder": ("dec", "head"), "last": ("dec.0", "head")
               "hair": ("hair_head",), "albedo": ("albedo_head",)}
 
 
-def held_target(teacher: torch.nn.Module, inp: torch.Tensor,
-                target: torch.Tensor) -> torch.Tensor:
-    """``target`` (data.TARGETS' channels) with every buffer but the albedo replaced by
-    ``teacher``'s prediction for ``inp`` (--hold-others): the normals, height, transfer and
-    parsing are then held to the --init network's own while the albedo learns from the light
-    stage, and every layer may change to serve it. Channels the teacher does not predict (the
-    transfer or the hair class of a network without them) keep the light stage's."""
+# The buffers --learn may leave to the light stage under --hold-others (the albedo always is).
+LEARNABLE = ("transfer", "normal", "height")
+
+
+def held_target(teacher: torch.nn.Module, inp: torch.Tensor, target: torch.Tensor,
+                learn: tuple[str, ...] = ()) -> torch.Tensor:
+    """``target`` (data.TARGETS' channels) with every buffer but the albedo and ``learn``
+    (LEARNABLE's) replaced by ``teacher``'s prediction for ``inp`` (--hold-others): the others
+    are then held to the --init network's own while those learn from the light stage, and
+    every layer may change to serve them. Channels the teacher does not predict (the transfer
+    or the hair class of a network without them) keep the light stage's."""
     with torch.no_grad():
         normal, height, _, parsing, *transfer = teacher(inp)
     out = target.clone()
-    out[:, 0:3], out[:, 3:4], out[:, 7:9] = normal, height, parsing[:, 0:2]
-    if transfer:
+    if "normal" not in learn:
+        out[:, 0:3] = normal
+    if "height" not in learn:
+        out[:, 3:4] = height
+    out[:, 7:9] = parsing[:, 0:2]
+    if transfer and "transfer" not in learn:
         out[:, data.TRANSFER] = transfer[0]
     if parsing.shape[1] > 2:
         out[:, HAIR_TARGET:HAIR_TARGET + 1] = parsing[:, 2:3]
@@ -341,7 +349,7 @@ def train(a) -> pathlib.Path:
             g["lr"] = lr
         inp, target, fg = (t.to(device, non_blocking=True) for t in next(feed))
         if teacher is not None:
-            target = held_target(teacher, inp, target)
+            target = held_target(teacher, inp, target, tuple(a.learn))
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=a.bf16):
             pred = model(inp)
         ls = losses(pred, target, fg, a.face_weight, a.gradient_weight, a.up_weight,
@@ -439,6 +447,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--hold-others", action="store_true", help="every buffer but the albedo "
                     "supervised by the --init network's own prediction, not the light stage's "
                     "(held_target): the albedo trains while the others stay the init's")
+    ap.add_argument("--learn", nargs="*", default=[], choices=LEARNABLE, help="with "
+                    "--hold-others, these buffers too learn from the light stage")
     ap.add_argument("--albedo-head", action="store_true", help="the albedo's own refining head "
                     "(model.albedo_head); with --train-only albedo, only that head trains")
     return ap
