@@ -34,7 +34,7 @@ from addon import (api, blas, detail, intrinsic, lightvec, outline, pipeline, po
                    temporal)
 from training.eval import report, yale
 
-from .intrinsic_speed import demo_frame, frame_1080p, frame_ms
+from .intrinsic_speed import demo_frame, face_passes, frame_1080p, frame_ms
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SIZES = (96, 128, 160, 192)
@@ -90,8 +90,7 @@ def timings(model: str, sizes, threads: int, repeats: int) -> dict:
         bufs = portrait.buffers(sess, crop)
         jobs[size] = {
             # the face crop's relighting passes, as relight_frame makes them
-            "network": lambda s=sess, b=box, n=size: portrait.face_buffers(
-                s, x, b, n, finer=portrait.finer_pass(s, x, b, n)),  # as relight_frame runs it
+            "network": lambda s=sess, b=box, n=size: face_passes(s, x, b, n),
             "renderer": lambda c=crop, b=bufs: intrinsic.shade(c, b, lamp),
             **frame_stages(sess, x, lamp, fullres, box)}
     times = {size: {k: [] for k in job} for size, job in jobs.items()}

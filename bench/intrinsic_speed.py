@@ -17,8 +17,9 @@ framing pass a run makes (it follows the last framed frame's box, find_box's ``p
 whole-frame search it falls back to is listed too. ``--clip N`` also runs the whole product
 path on an N-frame 1080p H.264 clip of the demo's frames in the same canvas
 (addon.pipeline.relight_clip: framing pass, exposure, decode, relighting, finish and
-half-float EXR writing, its threads overlapping as they do for an artist) and reports the frames
-per second after warm-up and the CPU time a frame takes over all threads. Writes ``bench/results/intrinsic_speed.{md,json}``.
+half-float EXR writing, its threads overlapping as they do for an artist) and reports the
+frames per second after warm-up and the CPU time a frame takes over all threads. Writes
+``bench/results/intrinsic_speed.{md,json}``.
 """
 
 from __future__ import annotations

@@ -370,12 +370,13 @@ def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
         raise SystemExit(f"{base}: the run's network must add one head the file lacks (hair or "
                          f"albedo); it would add {new_heads or 'none'}")
     head = new_heads[0]
+    add, compare, output = graft.HEADS[head]
     record = {"onnx": str(base), "sha256": engine.file_sha256(base),
               "what": f"the {head} head (model.{head}_head) added to this file's graph; every "
                       "other output is the file's own"}
     base_bytes = base.read_bytes()
     part = onnx_path.with_suffix(".part.onnx")
-    (graft.graft if head == "hair" else graft.graft_albedo)(base, net, part)
+    add(base, net, part)
     import onnxruntime as ort
 
     _, x = val_inputs(16)
@@ -385,8 +386,7 @@ def grafted(a, net: IntrinsicNet, onnx_path: pathlib.Path) -> dict:
     ref, got = ([np.concatenate(o, 0) for o in zip(*[s.run(None, f) for f in feeds])]
                 for s in (before, after))
     with torch.no_grad():
-        mine = net(x)[3 if head == "hair" else 2].numpy()
-    compare = graft.check if head == "hair" else graft.check_albedo
+        mine = net(x)[output].numpy()
     record["check"] = {**compare(ref, got, mine), "samples": len(x),
                        "split": "val (held-out identities)"}
     if record["check"]["other_outputs_max_abs_against_base"] != 0.0:

@@ -182,3 +182,8 @@ def check(base_outputs: list, grafted_outputs: list, reference: np.ndarray) -> d
     hair = float(np.abs(grafted_outputs[3][:, -1] - reference[:, -1]).mean())
     return {"other_outputs_max_abs_against_base": same,
             "hair_mean_abs_against_the_network": hair}
+
+
+# Each head a graft adds: (the function that grafts it, the check of the grafted file's outputs,
+# the index of the network output the head feeds).
+HEADS = {"hair": (graft, check, 3), "albedo": (graft_albedo, check_albedo, 2)}
